@@ -1,0 +1,1 @@
+"""Networks: latent bank generator, critic, depth encoder/decoder, pose network, joint model."""

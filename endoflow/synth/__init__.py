@@ -1,0 +1,1 @@
+"""Procedural colon renderer: the built-in data, with exact depth and poses, in native layouts."""

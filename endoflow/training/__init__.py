@@ -1,0 +1,1 @@
+"""Latent-bank pretraining, the self-supervised objective and the distributed training loop."""
