@@ -32,6 +32,11 @@ class DataFormatError(ValueError):
         self.problem = problem
         super().__init__(f"{path}: {problem}")
 
+    def __reduce__(self):
+        # Default exception pickling replays args (the joined message) into __init__, which takes two:
+        # without this, an error raised in a worker process reaches the parent as a broken pool.
+        return (type(self), (str(self.path), self.problem))
+
 
 @dataclass
 class Frame:
