@@ -1,0 +1,75 @@
+"""Open a dataset root with the right reader, named or detected from the folder layout."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Optional
+
+from endoflow.config import Params
+from endoflow.data.base import DataFormatError, DatasetReader
+from endoflow.data.endoslam import EndoSLAMReader
+from endoflow.data.scenenet import SPLITS as SCENENET_SPLITS
+from endoflow.data.scenenet import SceneNetReader
+from endoflow.data.simcol import SCENES as SIMCOL_SCENES
+from endoflow.data.simcol import SimColReader
+
+DATASETS = ("simcol", "endoslam", "scenenet")
+
+
+def _looks_like_simcol(root: Path) -> bool:
+    return any((root / scene).is_dir() for scene in SIMCOL_SCENES)
+
+
+def _looks_like_endoslam(root: Path) -> bool:
+    return (root / "UnityCam").is_dir() or (root / "Cameras").is_dir()
+
+
+def _looks_like_scenenet(root: Path) -> bool:
+    # A bare train/ folder is common; SceneNet's has <part>/<trajectory>/depth/ below it.
+    return any(any((root / split).glob("*/*/depth")) for split in SCENENET_SPLITS if (root / split).is_dir())
+
+
+LAYOUT_TESTS: dict[str, Callable[[Path], bool]] = {
+    "simcol": _looks_like_simcol,
+    "endoslam": _looks_like_endoslam,
+    "scenenet": _looks_like_scenenet,
+}
+
+EXPECTED_LAYOUTS = (
+    "simcol: SyntheticColon_I/, SyntheticColon_II/ or SyntheticColon_III/; "
+    "endoslam: UnityCam/ or Cameras/; "
+    "scenenet: train/ or val/ holding <part>/<trajectory>/depth/"
+)
+
+
+def detect_dataset(root: str | Path) -> str:
+    """The dataset whose native layout ``root`` has.
+
+    Raises:
+        DataFormatError: no layout matches, or more than one does (then pass the dataset name).
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise DataFormatError(root, "dataset root folder not found")
+    matches = [name for name, looks_like in LAYOUT_TESTS.items() if looks_like(root)]
+    if not matches:
+        raise DataFormatError(root, f"no known dataset layout found; expected one of: {EXPECTED_LAYOUTS}")
+    if len(matches) > 1:
+        raise DataFormatError(root, f"layout matches several datasets ({', '.join(matches)}); name one with --dataset")
+    return matches[0]
+
+
+def open_reader(root: str | Path, dataset: Optional[str], params: Params) -> DatasetReader:
+    """The reader for ``root``; ``dataset`` None detects it from the layout. Settings: ``params.data.<name>``.
+
+    Raises:
+        DataFormatError: unknown dataset name, missing root, or no recognisable layout.
+    """
+    name = dataset if dataset is not None else detect_dataset(root)
+    if name == "simcol":
+        return SimColReader(root, params.data.simcol)
+    if name == "endoslam":
+        return EndoSLAMReader(root, params.data.endoslam)
+    if name == "scenenet":
+        return SceneNetReader(root, params.data.scenenet)
+    raise DataFormatError(root, f"unknown dataset {name!r} (known: {', '.join(DATASETS)})")

@@ -1,0 +1,92 @@
+"""Pinhole camera: intrinsics scaling, back-projection and projection (OpenCV convention).
+
+Pixel coordinates put pixel centres at integers: the ray through pixel ``(u, v)`` (column, row) is
+``K^-1 [u, v, 1]^T`` and the top-left pixel's centre is ``(0, 0)``. Depth is z-depth (distance along the
+optical axis), so a pixel with depth ``d`` back-projects to ``d * K^-1 [u, v, 1]^T``.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import TypeVar
+
+import numpy as np
+import torch
+
+ArrayOrTensor = TypeVar("ArrayOrTensor", np.ndarray, torch.Tensor)
+
+
+def scale_intrinsics(K: ArrayOrTensor, sx: float, sy: float) -> ArrayOrTensor:
+    """K ``[..., 3, 3]`` for an image resized by ``sx`` horizontally and ``sy`` vertically.
+
+    Resizing whole images (``cv2.resize``, ``F.interpolate(align_corners=False)``) maps pixel-area edges to
+    edges, so with pixel centres at integers a point moves as ``u' = (u + 0.5) * sx - 0.5``. Hence
+    ``fx' = fx * sx`` and ``cx' = (cx + 0.5) * sx - 0.5`` (the same with ``sy`` for ``fy``, ``cy``).
+    Cropping is a separate shift of ``cx``, ``cy``. Works on numpy arrays and tensors, batched.
+    """
+    if K.shape[-2:] != (3, 3):
+        raise ValueError(f"K: expected shape [..., 3, 3], got {tuple(K.shape)}")
+    scaled = K.clone() if isinstance(K, torch.Tensor) else np.array(K, dtype=np.float64)
+    scaled[..., 0, 0] = K[..., 0, 0] * sx
+    scaled[..., 0, 1] = K[..., 0, 1] * sx
+    scaled[..., 0, 2] = (K[..., 0, 2] + 0.5) * sx - 0.5
+    scaled[..., 1, 1] = K[..., 1, 1] * sy
+    scaled[..., 1, 2] = (K[..., 1, 2] + 0.5) * sy - 0.5
+    return scaled
+
+
+def intrinsics_inverse(K: torch.Tensor) -> torch.Tensor:
+    """``K^-1`` ``[..., 3, 3]`` of pinhole intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in closed form.
+
+    Cheaper than a general inverse, and on GPU it needs no linear-algebra library call or sync.
+    """
+    if K.shape[-2:] != (3, 3):
+        raise ValueError(f"K: expected shape [..., 3, 3], got {tuple(K.shape)}")
+    fx, skew, cx = K[..., 0, 0], K[..., 0, 1], K[..., 0, 2]
+    fy, cy = K[..., 1, 1], K[..., 1, 2]
+    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
+    rows = [
+        [1 / fx, -skew / (fx * fy), (skew * cy - cx * fy) / (fx * fy)],
+        [zero, 1 / fy, -cy / fy],
+        [zero, zero, one],
+    ]
+    return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)
+
+
+@lru_cache(maxsize=32)
+def pixel_grid(height: int, width: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """Homogeneous pixel coordinates ``[3, H*W]`` (rows ``u``, ``v``, ``1``), row-major over the image.
+
+    Cached per (H, W, device, dtype): the result is shared, never modify it in place.
+    """
+    v, u = torch.meshgrid(
+        torch.arange(height, device=device, dtype=dtype),
+        torch.arange(width, device=device, dtype=dtype),
+        indexing="ij",
+    )
+    return torch.stack([u.reshape(-1), v.reshape(-1), torch.ones_like(u).reshape(-1)])
+
+
+def backproject(depth: torch.Tensor, K_inv: torch.Tensor) -> torch.Tensor:
+    """3D points ``[B, 3, H*W]`` in the camera frame from z-depth ``[B, 1, H, W]`` and ``K^-1`` ``[B, 3, 3]``."""
+    if depth.ndim != 4 or depth.shape[1] != 1:
+        raise ValueError(f"depth: expected shape [B, 1, H, W], got {tuple(depth.shape)}")
+    if K_inv.shape != (depth.shape[0], 3, 3):
+        raise ValueError(f"K_inv: expected shape [{depth.shape[0]}, 3, 3], got {tuple(K_inv.shape)}")
+    height, width = depth.shape[-2:]
+    rays = K_inv @ pixel_grid(height, width, depth.device, depth.dtype)
+    return rays * depth.reshape(depth.shape[0], 1, -1)
+
+
+def project(points: torch.Tensor, K: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """Pixel coordinates ``[B, 2, N]`` (u, v) of camera-frame points ``[B, 3, N]`` through K ``[B, 3, 3]``.
+
+    ``z`` is clamped to at least ``eps`` so points on or behind the camera plane stay finite; callers that
+    need them masked test ``points[:, 2] > 0`` themselves.
+    """
+    if points.ndim != 3 or points.shape[1] != 3:
+        raise ValueError(f"points: expected shape [B, 3, N], got {tuple(points.shape)}")
+    if K.shape != (points.shape[0], 3, 3):
+        raise ValueError(f"K: expected shape [{points.shape[0]}, 3, 3], got {tuple(K.shape)}")
+    homogeneous = K @ points
+    return homogeneous[:, :2] / homogeneous[:, 2:3].clamp(min=eps)

@@ -1,0 +1,170 @@
+"""Rigid poses: 6-DoF vectors, 4x4 matrices, inverses, relative poses, Unity <-> OpenCV handedness.
+
+Conventions (see ``docs/design.md``):
+
+- A pose ``T_a_b`` is a 4x4 rigid transform that maps points from frame ``b`` into frame ``a``:
+  ``p_a = T_a_b @ p_b``. Absolute poses are camera-to-world, ``T_world_cam``.
+- The relative pose used to warp a target frame t from a source frame s is
+  ``T_s_t = inv(T_world_s) @ T_world_t``: it maps points in t's camera frame into s's.
+- A 6-DoF pose vector is ``(rx, ry, rz, tx, ty, tz)``: an axis-angle rotation (direction = axis,
+  norm = angle in radians) followed by a translation; ``T = [[R(r), t], [0, 0, 0, 1]]``.
+- Quaternions are ``(qx, qy, qz, qw)``, scalar last, as SimCol3D stores them.
+
+Torch functions are batched over any leading dimensions; :func:`invert_pose` and :func:`relative_pose`
+also accept numpy arrays and return the same type.
+"""
+
+from __future__ import annotations
+
+from typing import TypeVar
+
+import numpy as np
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
+
+ArrayOrTensor = TypeVar("ArrayOrTensor", np.ndarray, torch.Tensor)
+
+# Unity (left-handed, y up) <-> OpenCV (right-handed, y down): flip the y axis on both sides.
+TM = np.diag([1.0, -1.0, 1.0, 1.0])
+
+
+def _check_last_dims(x: torch.Tensor | np.ndarray, dims: tuple[int, ...], name: str) -> None:
+    if x.ndim < len(dims) or tuple(x.shape[-len(dims) :]) != dims:
+        raise ValueError(f"{name}: expected shape [..., {', '.join(map(str, dims))}], got {tuple(x.shape)}")
+
+
+# ----------------------------------------------------------------------------------------- torch
+def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices ``[..., 3, 3]`` from axis-angle vectors ``[..., 3]`` (angle = norm, radians)."""
+    _check_last_dims(axis_angle, (3,), "axis_angle")
+    lead = axis_angle.shape[:-1]
+    flat = axis_angle.reshape(-1, 3)
+    # kornia's Rodrigues has no low-precision path; compute in float32 at least.
+    compute_dtype = torch.promote_types(flat.dtype, torch.float32)
+    rotation = axis_angle_to_rotation_matrix(flat.to(compute_dtype))
+    return rotation.to(axis_angle.dtype).reshape(*lead, 3, 3)
+
+
+def matrix_to_axis_angle(rotation: torch.Tensor) -> torch.Tensor:
+    """Axis-angle vectors ``[..., 3]`` (angle in [0, pi]) of rotation matrices ``[..., 3, 3]``."""
+    _check_last_dims(rotation, (3, 3), "rotation")
+    lead = rotation.shape[:-2]
+    compute_dtype = torch.promote_types(rotation.dtype, torch.float32)
+    axis_angle = rotation_matrix_to_axis_angle(rotation.reshape(-1, 3, 3).to(compute_dtype))
+    return axis_angle.to(rotation.dtype).reshape(*lead, 3)
+
+
+def pose_vec_to_matrix(vec: torch.Tensor) -> torch.Tensor:
+    """4x4 rigid transforms ``[..., 4, 4]`` from pose vectors ``[..., 6]`` = (axis-angle, translation)."""
+    _check_last_dims(vec, (6,), "vec")
+    rotation = axis_angle_to_matrix(vec[..., :3])
+    top = torch.cat([rotation, vec[..., 3:, None]], dim=-1)
+    bottom = torch.zeros_like(top[..., :1, :])
+    bottom[..., 0, 3] = 1
+    return torch.cat([top, bottom], dim=-2)
+
+
+def matrix_to_pose_vec(T: torch.Tensor) -> torch.Tensor:
+    """Pose vectors ``[..., 6]`` = (axis-angle, translation) of rigid transforms ``[..., 4, 4]``.
+
+    Inverse of :func:`pose_vec_to_matrix` for rotation angles below pi.
+    """
+    _check_last_dims(T, (4, 4), "T")
+    return torch.cat([matrix_to_axis_angle(T[..., :3, :3]), T[..., :3, 3]], dim=-1)
+
+
+# ---------------------------------------------------------------------------------- torch + numpy
+def invert_pose(T: ArrayOrTensor) -> ArrayOrTensor:
+    """Rigid inverse ``[[R^T, -R^T t], [0, 1]]`` of ``[..., 4, 4]`` poses: ``T_a_b`` -> ``T_b_a``.
+
+    Exact for rigid transforms and cheaper and better conditioned than a general matrix inverse.
+    """
+    _check_last_dims(T, (4, 4), "T")
+    rotation_t = T[..., :3, :3].swapaxes(-1, -2)
+    translation = -(rotation_t @ T[..., :3, 3:4])
+    if isinstance(T, torch.Tensor):
+        inverse = torch.zeros_like(T)
+    else:
+        inverse = np.zeros_like(T)
+    inverse[..., :3, :3] = rotation_t
+    inverse[..., :3, 3:4] = translation
+    inverse[..., 3, 3] = 1
+    return inverse
+
+
+def relative_pose(T_world_s: ArrayOrTensor, T_world_t: ArrayOrTensor) -> ArrayOrTensor:
+    """``T_s_t = inv(T_world_s) @ T_world_t``: maps points in t's camera frame into s's camera frame."""
+    return invert_pose(T_world_s) @ T_world_t
+
+
+# ------------------------------------------------------------------------------------------ numpy
+def quaternion_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``[..., 3, 3]`` from quaternions ``[..., 4]`` (qx, qy, qz, qw; scalar last).
+
+    Quaternions are normalised first; ``q`` and ``-q`` give the same matrix (sign flips in the data are
+    harmless).
+    """
+    q = np.asarray(q, dtype=np.float64)
+    _check_last_dims(q, (4,), "q")
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    if np.any(norm == 0):
+        raise ValueError("quaternion of zero norm")
+    x, y, z, w = np.moveaxis(q / norm, -1, 0)
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
+
+
+def matrix_to_quaternion_xyzw(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions ``[..., 4]`` (qx, qy, qz, qw) of rotation matrices ``[..., 3, 3]``, with qw >= 0."""
+    R = np.asarray(R, dtype=np.float64)
+    _check_last_dims(R, (3, 3), "R")
+    # Each of 4 equivalent formulas divides by one component; use the largest one for stability.
+    trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    squares = np.stack(
+        [
+            1 + 2 * R[..., 0, 0] - trace,
+            1 + 2 * R[..., 1, 1] - trace,
+            1 + 2 * R[..., 2, 2] - trace,
+            1 + trace,
+        ],
+        axis=-1,
+    )
+    largest = np.argmax(squares, axis=-1)
+    big = np.sqrt(np.maximum(np.take_along_axis(squares, largest[..., None], -1)[..., 0], 0)) / 2
+    scale = 1 / (4 * big)
+    xy, xz, yz = R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1]
+    wx, wy, wz = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
+    candidates = np.stack(
+        [
+            np.stack([big, xy * scale, xz * scale, wx * scale], -1),
+            np.stack([xy * scale, big, yz * scale, wy * scale], -1),
+            np.stack([xz * scale, yz * scale, big, wz * scale], -1),
+            np.stack([wx * scale, wy * scale, wz * scale, big], -1),
+        ],
+        axis=-2,
+    )
+    q = np.take_along_axis(candidates, largest[..., None, None], -2)[..., 0, :]
+    q = np.where(q[..., 3:4] < 0, -q, q)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def unity_to_opencv(M: np.ndarray) -> np.ndarray:
+    """SimCol3D's official handedness conversion ``P = TM @ M @ TM`` with ``TM = diag(1, -1, 1, 1)``.
+
+    ``M`` is a Unity (left-handed) camera-to-world ``[..., 4, 4]``; ``P`` is right-handed OpenCV with the
+    camera looking along +z.
+    """
+    M = np.asarray(M, dtype=np.float64)
+    _check_last_dims(M, (4, 4), "M")
+    return TM @ M @ TM
+
+
+def opencv_to_unity(P: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`unity_to_opencv` (``TM`` is its own inverse)."""
+    P = np.asarray(P, dtype=np.float64)
+    _check_last_dims(P, (4, 4), "P")
+    return TM @ P @ TM

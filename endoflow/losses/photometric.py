@@ -1,0 +1,104 @@
+"""Photometric reprojection losses: the paper's MSE and Monodepth2's SSIM + L1 with per-pixel minimum
+over sources and auto-masking (Godard et al., "Digging into self-supervised monocular depth estimation").
+
+Images are ``[B, C, H, W]`` with values in [0, 1]; per-pixel errors are ``[B, 1, H, W]`` (mean over
+channels).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+
+from endoflow.config import LossConfig
+
+# SSIM stabilisers for a dynamic range of 1 (Wang et al. 2004: (0.01 L)^2, (0.03 L)^2).
+_C1 = 0.01**2
+_C2 = 0.03**2
+# Noise on the identity error breaks exact ties with the reprojection error (e.g. a static camera, where the
+# warp returns the source) at random instead of always the same way.
+_TIE_BREAK_STD = 1e-5
+
+
+def _local_mean(x: torch.Tensor) -> torch.Tensor:
+    """3x3 box filter; reflection padding keeps the border statistics from seeing artificial zeros."""
+    return F.avg_pool2d(F.pad(x, (1, 1, 1, 1), mode="reflect"), kernel_size=3, stride=1)
+
+
+def ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Per-pixel SSIM dissimilarity ``(1 - SSIM) / 2`` in [0, 1], ``[B, C, H, W]``, over 3x3 windows."""
+    if x.shape != y.shape or x.ndim != 4:
+        raise ValueError(
+            f"x, y: expected two [B, C, H, W] tensors of one shape, got {tuple(x.shape)}, {tuple(y.shape)}"
+        )
+    mu_x, mu_y = _local_mean(x), _local_mean(y)
+    var_x = _local_mean(x * x) - mu_x * mu_x
+    var_y = _local_mean(y * y) - mu_y * mu_y
+    cov_xy = _local_mean(x * y) - mu_x * mu_y
+    numerator = (2 * mu_x * mu_y + _C1) * (2 * cov_xy + _C2)
+    denominator = (mu_x * mu_x + mu_y * mu_y + _C1) * (var_x + var_y + _C2)
+    return ((1 - numerator / denominator) / 2).clamp(0, 1)
+
+
+def photometric_error(
+    pred: torch.Tensor, target: torch.Tensor, kind: Literal["mse", "ssim_l1"], ssim_weight: float = 0.85
+) -> torch.Tensor:
+    """Per-pixel photometric error ``[B, 1, H, W]`` between two ``[B, C, H, W]`` images.
+
+    ``mse``: squared difference (the paper's loss). ``ssim_l1``: ``ssim_weight * ssim_map + (1 -
+    ssim_weight) * |pred - target|`` (Monodepth2, 0.85). Both averaged over channels.
+    """
+    if pred.shape != target.shape or pred.ndim != 4:
+        raise ValueError(f"pred, target: expected two [B, C, H, W] tensors of one shape, "
+                         f"got {tuple(pred.shape)}, {tuple(target.shape)}")
+    if kind == "mse":
+        return (pred - target).square().mean(1, keepdim=True)
+    if kind == "ssim_l1":
+        l1 = (pred - target).abs().mean(1, keepdim=True)
+        ssim = ssim_map(pred, target).mean(1, keepdim=True)
+        return ssim_weight * ssim + (1 - ssim_weight) * l1
+    raise ValueError(f"photometric kind must be 'mse' or 'ssim_l1', got {kind!r}")
+
+
+def _combine_over_sources(errors: list[torch.Tensor], use_minimum: bool) -> torch.Tensor:
+    stacked = torch.cat(errors, dim=1)
+    return stacked.min(dim=1, keepdim=True).values if use_minimum else stacked.mean(dim=1, keepdim=True)
+
+
+def reprojection_loss(
+    warped: list[torch.Tensor], target: torch.Tensor, sources: list[torch.Tensor], cfg: LossConfig
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Photometric reprojection loss of the target reconstructed from several sources.
+
+    Args:
+        warped: each source warped into the target view, ``[B, C, H, W]`` each.
+        target: the target image ``[B, C, H, W]``.
+        sources: the same sources unwarped, in the same order (used by auto-masking only).
+        cfg: ``photometric`` and ``ssim_weight`` choose the per-pixel error; ``min_reprojection`` takes the
+            per-pixel minimum over sources (else the mean); ``automask`` also computes the identity error of
+            the unwarped sources (combined over sources the same way) and lets it win per pixel where it is
+            lower: such pixels (static scenes, objects moving with the camera) give no gradient.
+
+    Returns:
+        ``loss`` (scalar, mean of the per-pixel map), the per-pixel map ``[B, 1, H, W]`` that is averaged,
+        and ``mask [B, 1, H, W]`` bool, True where the reprojection error is the one used (all True without
+        auto-masking).
+    """
+    if not warped or (cfg.automask and len(sources) != len(warped)):
+        raise ValueError(f"expected at least one warped image and, with automask, as many sources "
+                         f"({len(warped)} warped, {len(sources)} sources)")
+    reprojection = _combine_over_sources(
+        [photometric_error(w, target, cfg.photometric, cfg.ssim_weight) for w in warped], cfg.min_reprojection
+    )
+    if not cfg.automask:
+        return reprojection.mean(), reprojection, torch.ones_like(reprojection, dtype=torch.bool)
+    with torch.no_grad():
+        identity = _combine_over_sources(
+            [photometric_error(s, target, cfg.photometric, cfg.ssim_weight) for s in sources], cfg.min_reprojection
+        )
+        identity = identity + _TIE_BREAK_STD * torch.randn_like(identity)
+    mask = reprojection < identity
+    per_pixel = torch.where(mask, reprojection, identity)
+    return per_pixel.mean(), per_pixel, mask

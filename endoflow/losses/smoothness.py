@@ -1,0 +1,29 @@
+"""Edge-aware disparity smoothness (Monodepth2): disparity gradients are penalised less across image edges."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def edge_aware_smoothness(disp: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+    """Scalar ``mean(|dx d| exp(-|dx I|)) + mean(|dy d| exp(-|dy I|))`` on mean-normalised disparity.
+
+    Args:
+        disp: ``[B, 1, h, w]`` disparity (any positive scale: it is divided by its per-image mean, so the
+            loss does not reward shrinking the depth scale).
+        image: ``[B, C, H, W]`` colour image; resized to ``(h, w)`` by area averaging when larger, so a
+            coarse scale's disparity can be paired with the full-resolution image.
+    """
+    if disp.ndim != 4 or disp.shape[1] != 1:
+        raise ValueError(f"disp: expected shape [B, 1, H, W], got {tuple(disp.shape)}")
+    if image.ndim != 4 or image.shape[0] != disp.shape[0]:
+        raise ValueError(f"image: expected shape [{disp.shape[0]}, C, H, W], got {tuple(image.shape)}")
+    if image.shape[-2:] != disp.shape[-2:]:
+        image = F.interpolate(image, size=disp.shape[-2:], mode="area")
+    normalised = disp / (disp.mean(dim=(2, 3), keepdim=True) + 1e-7)
+    grad_disp_x = (normalised[..., :, 1:] - normalised[..., :, :-1]).abs()
+    grad_disp_y = (normalised[..., 1:, :] - normalised[..., :-1, :]).abs()
+    grad_image_x = (image[..., :, 1:] - image[..., :, :-1]).abs().mean(1, keepdim=True)
+    grad_image_y = (image[..., 1:, :] - image[..., :-1, :]).abs().mean(1, keepdim=True)
+    return (grad_disp_x * torch.exp(-grad_image_x)).mean() + (grad_disp_y * torch.exp(-grad_image_y)).mean()

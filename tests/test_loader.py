@@ -1,0 +1,153 @@
+"""Reading shards back: decoded tensors, shard listing by path and URL, ordered and per-rank iteration.
+
+Training shards here are deliberately uneven: 5 shards of 2 or 3 samples dealt to 2 ranks.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import fsspec
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+
+from endoflow.data.base import DataFormatError
+from endoflow.data.loader import (
+    batches_per_epoch,
+    collate_samples,
+    decode_sample,
+    list_shards,
+    rank_batches,
+    rank_shards,
+    raw_samples,
+    shard_sample_counts,
+    triplet_dataset,
+)
+from endoflow.data.shards import MANIFEST, write_dataset_shards
+from tests.test_shards import SyntheticSource, native_pose, small_params
+
+
+@pytest.fixture(scope="module")
+def shard_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out_dir = tmp_path_factory.mktemp("loader") / "simcol"
+    params = small_params()
+    params.preprocess = replace(params.preprocess, samples_per_shard=3, shard_multiple=5)
+    write_dataset_shards(SyntheticSource(frames=8), "simcol", params, out_dir)
+    return out_dir
+
+
+def manifest_keys(shard_dir: Path, split: str) -> list[str]:
+    manifest = pq.read_table(shard_dir / MANIFEST).to_pandas()
+    return list(manifest[manifest.split == split].key)
+
+
+def test_shards_are_listed_sorted_by_path_and_by_file_url(shard_dir: Path) -> None:
+    paths = list_shards(shard_dir, "train")
+    assert paths == [str(shard_dir / f"train-{i:06d}.tar") for i in range(5)]
+    urls = list_shards(f"file://{shard_dir}", "train")
+    assert urls == [f"file://{p}" for p in paths]
+    assert [s["__key__"] for s in raw_samples(urls)] == [s["__key__"] for s in raw_samples(paths)]
+    assert shard_sample_counts(urls) == {url: n for url, n in zip(urls, [2, 2, 3, 2, 3])}
+    with pytest.raises(ValueError, match="split"):
+        list_shards(shard_dir, "training")
+
+
+def test_shards_on_another_fsspec_filesystem_are_listed_counted_and_read(shard_dir: Path) -> None:
+    memory = fsspec.filesystem("memory")
+    for path in shard_dir.iterdir():
+        memory.pipe(f"/loader-test/{path.name}", path.read_bytes())
+    try:
+        urls = list_shards("memory://loader-test", "train")
+        assert urls == [f"memory:///loader-test/train-{i:06d}.tar" for i in range(5)]
+        assert list(shard_sample_counts(urls).values()) == [2, 2, 3, 2, 3]
+        batches = list(rank_batches(urls, 1, 2, batch_size=2, epoch=0, seed=0))
+        assert len(batches) == 3
+    finally:
+        memory.rm("/loader-test", recursive=True)
+
+
+def test_decoded_sample_has_float_tensors_in_the_documented_units(shard_dir: Path) -> None:
+    sample = decode_sample(next(raw_samples(list_shards(shard_dir, "val"))))
+    meta = sample["meta"]
+    position = (meta["frame"] - 10) // 2
+    for name, shift in (("prev", -1), ("cur", 0), ("next", 1)):
+        image = sample[name]
+        assert image.shape == (3, 32, 32) and image.dtype == torch.float32
+        assert 0.0 <= image.min() and image.max() <= 1.0
+        # channel 2 (blue) holds the frame index: channels are RGB, scaled by 1/255
+        assert torch.allclose(image[2], torch.full((32, 32), 40 * (position + shift) / 255.0))
+        np.testing.assert_allclose(sample[f"T_{name}"].numpy(), native_pose(position + shift), atol=1e-6)
+    assert sample["depth"].shape == (1, 32, 32) and sample["depth"].dtype == torch.float32
+    valid = sample["depth"][sample["depth"] > 0]
+    assert 5.0 + 0.5 * position <= valid.min() and valid.max() < 5.0 + 0.5 * position + 2.0  # cm
+    assert torch.equal(sample["K"], torch.tensor(meta["K"], dtype=torch.float32))
+    assert sample["key"] == f"simcol-{meta['sequence']}-{meta['frame']:06d}"
+
+
+def test_unknown_poses_decode_as_nan_and_depth_only_samples_have_no_images(tmp_path: Path) -> None:
+    write_dataset_shards(SyntheticSource(dataset="scenenet", frames=2), "scenenet", small_params(), tmp_path / "sn")
+    sample = decode_sample(next(raw_samples(list_shards(tmp_path / "sn", "train"))))
+    assert "cur" not in sample and sample["depth"].shape == (1, 32, 32)
+    assert torch.isnan(sample["T_prev"]).all() and torch.isnan(sample["T_next"]).all()
+    assert torch.isfinite(sample["T_cur"]).all()
+
+
+def test_evaluation_order_is_the_manifest_order_and_shuffling_is_reproducible(shard_dir: Path) -> None:
+    urls = list_shards(shard_dir, "train")
+    ordered = manifest_keys(shard_dir, "train")
+    assert [s["key"] for s in triplet_dataset(urls)] == ordered
+    shuffled = [s["key"] for s in triplet_dataset(urls, shuffle=True, seed=3, shuffle_buffer=4)]
+    assert sorted(shuffled) == sorted(ordered) and shuffled != ordered
+    assert shuffled == [s["key"] for s in triplet_dataset(urls, shuffle=True, seed=3, shuffle_buffer=4)]
+    loader = torch.utils.data.DataLoader(triplet_dataset(urls), batch_size=4, collate_fn=collate_samples)
+    first = next(iter(loader))
+    assert first["cur"].shape == (4, 3, 32, 32) and first["T_cur"].shape == (4, 4, 4) and len(first["meta"]) == 4
+
+
+def test_ranks_read_disjoint_shards_and_yield_equal_batch_counts_from_uneven_shards(shard_dir: Path) -> None:
+    urls = list_shards(f"file://{shard_dir}", "train")
+    key_shard = {key: i for i, url in enumerate(urls) for key in (s["__key__"] for s in raw_samples([url]))}
+    assignments = []
+    for epoch in range(3):
+        own = [rank_shards(urls, rank, 2, epoch, seed=7) for rank in (0, 1)]
+        assert sorted(own[0] + own[1]) == urls and not set(own[0]) & set(own[1])
+        assert {len(own[0]), len(own[1])} == {2, 3}
+        assignments.append(own[0])
+        expected = batches_per_epoch(urls, world_size=2, batch_size=2)
+        assert expected == 12 // 2 // 2
+        for rank in (0, 1):
+            batches = list(rank_batches(urls, rank, 2, batch_size=2, epoch=epoch, seed=7, shuffle_buffer=3))
+            assert len(batches) == expected
+            assert all(b["cur"].shape == (2, 3, 32, 32) for b in batches)
+            seen_shards = {urls[key_shard[key]] for b in batches for key in b["key"]}
+            assert seen_shards <= set(own[rank])
+    assert len({tuple(a) for a in assignments}) > 1, "the shard assignment should change between epochs"
+
+
+def test_a_rank_short_of_its_share_cycles_its_own_shards(shard_dir: Path) -> None:
+    urls = list_shards(shard_dir, "train")
+    sizes = {url: 1 for url in urls[:4]} | {urls[4]: 20}  # one large shard: its rank has 20, the other few
+    expected = batches_per_epoch(urls, 2, 3, sizes)
+    for rank in (0, 1):
+        own = rank_shards(urls, rank, 2, epoch=0, seed=0)
+        batches = list(rank_batches(urls, rank, 2, batch_size=3, epoch=0, seed=0, shard_sizes=sizes))
+        assert len(batches) == expected == (4 + 20) // 2 // 3
+        keys = [key for b in batches for key in b["key"]]
+        own_keys = {s["__key__"] for s in raw_samples(own)}
+        assert set(keys) <= own_keys
+
+
+def test_more_ranks_than_shards_or_a_missing_manifest_fail_clearly(shard_dir: Path, tmp_path: Path) -> None:
+    urls = list_shards(shard_dir, "train")
+    with pytest.raises(ValueError, match="5 shards cannot give each of 6 ranks"):
+        next(rank_batches(urls, 0, 6, batch_size=1, epoch=0, seed=0))
+    copy = tmp_path / "train-000000.tar"
+    copy.write_bytes(Path(urls[0]).read_bytes())
+    with pytest.raises(DataFormatError, match="manifest not found"):
+        shard_sample_counts([str(copy)])
+    meta = json.loads(next(raw_samples([str(copy)]))["meta.json"])
+    assert meta["split"] == "train"
