@@ -59,6 +59,10 @@ def build_parser() -> argparse.ArgumentParser:
     summary.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     summary.add_argument("--json", action="store_true")
     summary.set_defaults(handler=_model_summary)
+
+    report = commands.add_parser("report", help="Markdown tables (paper Tables 1-3) of workspace + DVC experiments")
+    report.add_argument("--no-experiments", action="store_true", help="only the workspace's metrics")
+    report.set_defaults(handler=_report)
     return parser
 
 
@@ -76,7 +80,13 @@ def _synth(args: argparse.Namespace) -> int:
     from endoflow.synth.writers import synthesize_layout
 
     summary = synthesize_layout(
-        args.layout, args.out, sequences=args.sequences, frames=args.frames, size=args.size, seed=args.seed
+        args.layout,
+        args.out,
+        sequences=args.sequences,
+        frames=args.frames,
+        size=args.size,
+        seed=args.seed,
+        params=_params_if_present(args.params),
     )
     print(summary)
     return 0
@@ -106,6 +116,15 @@ def _model_summary(args: argparse.Namespace) -> int:
     params = load_params(args.params, overrides=args.overrides)
     report = model_summary(params)
     _print(report, args.json, format_summary(report))
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from endoflow.config import params_to_dict
+    from endoflow.report import build_report
+
+    params = _params_if_present(args.params)
+    print(build_report(".", params.eval.metrics, params_to_dict(params), experiments=not args.no_experiments), end="")
     return 0
 
 

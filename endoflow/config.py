@@ -80,6 +80,8 @@ class SynthConfig:
     out: str = "data/raw/synthetic"
     size: int = 128
     seed: int = 0
+    workers: int = 2  # processes rendering sequences in parallel (CPU)
+    device: str = "cpu"  # torch device for rendering, e.g. "cuda" (then one process)
     simcol: SynthLayoutConfig = field(default_factory=lambda: SynthLayoutConfig(15, 60))
     endoslam: SynthLayoutConfig = field(default_factory=lambda: SynthLayoutConfig(2, 120))
     scenenet: SynthLayoutConfig = field(default_factory=lambda: SynthLayoutConfig(60, 20))
@@ -104,20 +106,26 @@ class LatentBankConfig:
     shards: str = "data/shards/scenenet"
     out: str = "models/latent_bank.pt"
     resolution: int = 64  # final generator resolution (power of two)
-    start_resolution: int = 8
+    # First generator block; with resolution 64 the bank has 5 blocks, one per DepthNet encoder level.
+    start_resolution: int = 4
     latent_dim: int = 128
     style_dim: int = 128
     mapping_layers: int = 4
-    channel_base: int = 1024
+    channel_base: int = 512
     channel_max: int = 128
-    batch_size: int = 32
-    steps_per_stage: int = 300
+    batch_size: int = 16
+    steps_per_stage: int = 200  # generator steps at each resolution (the stage takes minutes on 2 cores)
     lr: float = 1e-4
     betas: list[float] = field(default_factory=lambda: [0.0, 0.99])
     n_critic: int = 1
     gp_gamma: float = 10.0
     ema_decay: float = 0.999
     swd_samples: int = 256
+    drift_weight: float = 0.001  # ProGAN's penalty on squared real scores, keeps critic outputs bounded
+    fade_fraction: float = 0.5  # share of each new stage spent fading the new resolution in
+    # Maps are centred log-depth divided by this (natural-log units), clipped to [-1, 1].
+    depth_log_range: float = 1.5
+    holdout_fraction: float = 0.1  # held out of train for the SWD when the shards have no val split
 
 
 # ------------------------------------------------------------------------------------------ model
@@ -129,6 +137,11 @@ class ModelConfig:
     max_depth: float = 20.0  # cm
     encoder_weights: Optional[str] = None  # optional local ResNet-18 ImageNet state dict
     scales: int = 4
+    # The frozen bank injects its learned per-pixel noise while training (never at evaluation).
+    bank_noise: bool = False
+    # Initial log-variance of the pose VAE (std exp(-4.5) ~ 0.011 rad / cm): small, so early samples
+    # do not swamp the warp; the KL term then pulls it up against the reprojection loss.
+    pose_logvar_init: float = -9.0
 
 
 @dataclass
@@ -148,6 +161,8 @@ class TrainConfig:
     shards: str = "data/shards/simcol"
     latent_bank: str = "models/latent_bank.pt"
     out: str = "models/endoflow.pt"
+    metrics: str = "metrics/train.json"
+    plots: str = "plots/train"
     epochs: int = 20
     batch_size: int = 12
     lr: float = 1e-4
@@ -160,7 +175,6 @@ class TrainConfig:
     grad_clip: Optional[float] = None  # max gradient norm; null: no clipping
     steps_per_epoch: Optional[int] = None  # cap per epoch (smoke runs); null: one pass over the shards
     val_batches: Optional[int] = None  # cap on validation batches per epoch; null: the whole val split
-    loader_workers: int = 0  # DataLoader processes per Ray worker
     bf16: bool = True  # bf16 autocast and channels-last on GPU (ignored on CPU)
     image_examples: int = 3  # fixed val frames whose depth is logged beside GT each epoch
 
@@ -178,10 +192,11 @@ class RayConfig:
     object_store_mb: int = 256
     run_name: str = "endoflow-train"  # + a fingerprint of params and data: same inputs resume the run
 
+
 # --------------------------------------------------------------------------------------- evaluation
 @dataclass
-class TestSetConfig:
-    """One test set: samples of `split` in `<preprocess.out>/<dataset>` whose group/sequence match."""
+class EvalSetConfig:
+    """One test set: samples of `split` in `<eval.shards>/<dataset>` whose group/sequence match."""
 
     dataset: str
     groups: list[str] = field(default_factory=list)  # empty: any group
@@ -189,22 +204,23 @@ class TestSetConfig:
     split: str = "test"
 
 
-def _default_test_sets() -> dict[str, TestSetConfig]:
+def _default_test_sets() -> dict[str, EvalSetConfig]:
     return {
-        "simcol_12": TestSetConfig("simcol", groups=["SyntheticColon_I", "SyntheticColon_II"]),
-        "simcol_3": TestSetConfig("simcol", groups=["SyntheticColon_III"]),
-        "endoslam_colon": TestSetConfig("endoslam", groups=["Colon"]),
-        "endoslam_small_intestine": TestSetConfig("endoslam", groups=["Small Intestine"]),
+        "simcol_12": EvalSetConfig("simcol", groups=["SyntheticColon_I", "SyntheticColon_II"]),
+        "simcol_3": EvalSetConfig("simcol", groups=["SyntheticColon_III"]),
+        "endoslam_colon": EvalSetConfig("endoslam", groups=["Colon"]),
+        "endoslam_small_intestine": EvalSetConfig("endoslam", groups=["Small Intestine"]),
     }
 
 
 @dataclass
 class EvalConfig:
     model: str = "models/endoflow.pt"
+    shards: str = "data/shards"  # holds <dataset>/ shard folders; a local path or an fsspec URL
     metrics: str = "metrics/eval"  # <metrics>/<testset>.json
     plots: str = "plots/eval"  # <plots>/<testset>/
     predictions: str = "predictions"  # <predictions>/<testset>/ in the SimCol3D challenge layout
-    test_sets: dict[str, TestSetConfig] = field(default_factory=_default_test_sets)
+    test_sets: dict[str, EvalSetConfig] = field(default_factory=_default_test_sets)
     batch_size: int = 8
     depth_examples: int = 3  # frames shown with error maps per test set
     max_frames_per_sequence: Optional[int] = None  # null: every frame

@@ -1,0 +1,191 @@
+"""Scene presets (shape, motion, mucosa, light) and the sequence generator shared by the tube layouts.
+
+``SyntheticColon_I`` and ``_II`` share the colon shape with different mucosa and light (as in the real
+dataset); ``_III`` differs in shape (narrower, deeper folds, tighter bends) and texture. The EndoSLAM organs
+are the narrower, small-intestine-like variants (the stomach is wide with shallow rugae).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from endoflow.geometry.pose import quaternion_xyzw_to_matrix
+from endoflow.synth.camera_path import MotionStyle, camera_poses, trajectory_arcs
+from endoflow.synth.render import LightStyle, TubeScene, make_scene
+from endoflow.synth.texture import MucosaStyle, bump_slopes, mucosa_atlas
+from endoflow.synth.tube import TubeShape, build_tube
+
+TEXEL_CM = 0.025  # atlas resolution on the wall (about a pixel at 2 cm in a 128-px frame)
+VIEW_AHEAD_CM = 22.0  # tube length built beyond the last camera position
+LEAD_IN_CM = 4.0  # tube length behind the first camera position
+
+
+@dataclass
+class SceneStyle:
+    shape: TubeShape
+    motion: MotionStyle
+    mucosa: MucosaStyle
+    light: LightStyle
+
+
+_COLON = TubeShape(
+    radius=(1.5, 2.6),
+    radius_wavelength=14.0,
+    fold_period=(2.0, 3.2),
+    fold_depth=(0.1, 0.25),
+    fold_width=1.5,
+    curvature=0.3,
+    bend_spacing=0.35,
+)
+_COLON_MOTION = MotionStyle(speed=(0.1, 0.2), lateral=0.3, turn_deg=8.0, roll_deg=25.0)
+_LIGHT = LightStyle(exposure=12.0, diffuse=1.0, specular=0.08, shininess=40.0, vignetting=1.0, ambient=0.002)
+
+STYLES: dict[str, SceneStyle] = {
+    "SyntheticColon_I": SceneStyle(
+        shape=_COLON,
+        motion=_COLON_MOTION,
+        mucosa=MucosaStyle(
+            base=(0.95, 0.58, 0.32),
+            mottle=(0.88, 0.45, 0.28),
+            vessel=(0.65, 0.22, 0.15),
+            mottle_strength=0.9,
+            vessel_trees_per_cm2=0.5,
+            vessel_strength=0.55,
+            grain=0.15,
+        ),
+        light=_LIGHT,
+    ),
+    "SyntheticColon_II": SceneStyle(
+        shape=_COLON,
+        motion=_COLON_MOTION,
+        mucosa=MucosaStyle(
+            base=(0.90, 0.50, 0.42),
+            mottle=(0.95, 0.66, 0.52),
+            vessel=(0.55, 0.16, 0.18),
+            mottle_strength=0.9,
+            vessel_trees_per_cm2=0.6,
+            vessel_strength=0.55,
+            grain=0.15,
+        ),
+        light=LightStyle(exposure=6.0, diffuse=1.0, specular=0.2, shininess=50.0, vignetting=1.5, ambient=0.002),
+    ),
+    "SyntheticColon_III": SceneStyle(
+        shape=TubeShape(
+            radius=(1.2, 2.0),
+            radius_wavelength=9.0,
+            fold_period=(1.4, 2.2),
+            fold_depth=(0.3, 0.45),
+            fold_width=0.55,
+            curvature=0.16,
+            bend_spacing=0.35,
+        ),
+        motion=_COLON_MOTION,
+        mucosa=MucosaStyle(
+            base=(0.92, 0.68, 0.50),
+            mottle=(0.80, 0.50, 0.40),
+            vessel=(0.70, 0.25, 0.20),
+            mottle_strength=0.9,
+            vessel_trees_per_cm2=0.45,
+            vessel_strength=0.55,
+            grain=0.15,
+        ),
+        light=LightStyle(exposure=5.0, diffuse=1.0, specular=0.08, shininess=40.0, vignetting=1.0, ambient=0.002),
+    ),
+    "Colon": SceneStyle(
+        shape=TubeShape(
+            radius=(1.1, 1.5),
+            radius_wavelength=10.0,
+            fold_period=(1.5, 2.4),
+            fold_depth=(0.15, 0.3),
+            fold_width=0.5,
+            curvature=0.15,
+            bend_spacing=0.35,
+        ),
+        motion=MotionStyle(speed=(0.1, 0.18), lateral=0.25, turn_deg=4.0, roll_deg=20.0),
+        mucosa=MucosaStyle(
+            base=(0.88, 0.45, 0.38),
+            mottle=(0.78, 0.35, 0.30),
+            vessel=(0.55, 0.12, 0.12),
+            mottle_strength=0.9,
+            vessel_trees_per_cm2=0.5,
+            vessel_strength=0.75,
+            grain=0.15,
+        ),
+        light=LightStyle(exposure=4.0, diffuse=1.0, specular=0.2, shininess=60.0, vignetting=1.5, ambient=0.002),
+    ),
+    "Small Intestine": SceneStyle(
+        shape=TubeShape(
+            radius=(0.8, 1.2),
+            radius_wavelength=8.0,
+            fold_period=(0.7, 1.1),
+            fold_depth=(0.15, 0.3),
+            fold_width=0.35,
+            curvature=0.2,
+            bend_spacing=0.2,
+        ),
+        motion=MotionStyle(speed=(0.1, 0.16), lateral=0.25, turn_deg=4.0, roll_deg=20.0),
+        mucosa=MucosaStyle(
+            base=(0.90, 0.55, 0.45),
+            mottle=(0.95, 0.70, 0.55),
+            vessel=(0.60, 0.18, 0.16),
+            mottle_strength=0.9,
+            vessel_trees_per_cm2=0.8,
+            vessel_strength=0.75,
+            grain=0.15,
+        ),
+        light=LightStyle(exposure=2.5, diffuse=1.0, specular=0.2, shininess=60.0, vignetting=1.5, ambient=0.002),
+    ),
+    "Stomach": SceneStyle(
+        shape=TubeShape(
+            radius=(3.0, 4.0),
+            radius_wavelength=12.0,
+            fold_period=(1.5, 2.5),
+            fold_depth=(0.06, 0.12),
+            fold_width=0.8,
+            curvature=0.06,
+            bend_spacing=0.5,
+        ),
+        motion=MotionStyle(speed=(0.1, 0.2), lateral=0.3, turn_deg=6.0, roll_deg=20.0),
+        mucosa=MucosaStyle(
+            base=(0.90, 0.52, 0.45),
+            mottle=(0.80, 0.40, 0.36),
+            vessel=(0.60, 0.16, 0.15),
+            mottle_strength=0.9,
+            vessel_trees_per_cm2=0.4,
+            vessel_strength=0.75,
+            grain=0.15,
+        ),
+        light=LightStyle(exposure=12.0, diffuse=1.0, specular=0.2, shininess=40.0, vignetting=1.5, ambient=0.002),
+    ),
+}
+
+
+@dataclass
+class TubeSequence:
+    scene: TubeScene
+    poses: np.ndarray  # [F, 4, 4] T_world_cam, OpenCV, cm
+
+
+def make_tube_sequence(style: SceneStyle, frames: int, rng: np.random.Generator, device: torch.device) -> TubeSequence:
+    """A random tube, texture and camera trajectory for ``frames`` frames, placed at a random world pose."""
+    arcs = trajectory_arcs(frames, style.motion, LEAD_IN_CM, rng)
+    tube = build_tube(style.shape, float(arcs[-1]) + VIEW_AHEAD_CM, rng)
+    poses = camera_poses(tube, arcs, style.motion, rng)
+    width = 8 * int(round(2 * np.pi * np.mean(style.shape.radius) / TEXEL_CM / 8))
+    texel_cm = 2 * np.pi * np.mean(style.shape.radius) / width
+    # Rows for the whole wall profile, plus the cap's disc (textured as the wall continued inwards).
+    rows = int(np.ceil((tube.wall_arc[-1] + tube.radii.max()) / texel_cm)) + 1
+    albedo = mucosa_atlas(style.mucosa, rows, width, texel_cm, rng)
+    slopes = bump_slopes(rows, width, texel_cm, style.mucosa.bump_cm, rng)
+    atlas = np.concatenate([albedo, slopes], axis=-1)
+    # An arbitrary world frame (as in the real data), so that readers and checks see general poses.
+    rotation = quaternion_xyzw_to_matrix(rng.standard_normal(4))
+    translation = rng.uniform(-40.0, 40.0, size=3)
+    tube = tube.transformed(rotation, translation)
+    moved = poses.copy()
+    moved[:, :3, :3] = rotation @ poses[:, :3, :3]
+    moved[:, :3, 3] = poses[:, :3, 3] @ rotation.T + translation
+    return TubeSequence(scene=make_scene(tube, atlas, texel_cm, style.light, device), poses=moved)

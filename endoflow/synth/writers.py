@@ -1,0 +1,329 @@
+"""Write procedural data in the native layouts of SimCol3D, EndoSLAM (UnityCam) and SceneNet RGB-D.
+
+The bytes follow ``docs/datasets.md`` so that our readers (and anyone else's) read synthetic and real
+data alike; each layout goes through the conversions a real copy needs (SimCol's and UnityCam's
+left-handed poses, SceneNet's ray-length depth in mm):
+
+- ``simcol``: ``SyntheticColon_I/`` (sequences S1..SN), ``_II/`` (B1..BN), ``_III/`` (O1..O min(N, 3),
+  another shape and texture), each with the real ``cam.txt`` (K for 475-px frames, scaled by the readers),
+  ``SavedPosition_<seq>.txt`` (``tx ty tz``), ``SavedRotationQuaternion_<seq>.txt`` (``qx qy qz qw``) in
+  Unity's left-handed frame (``M = TM P TM``, ``TM = diag(1, -1, 1, 1)``), and ``Frames_<seq>/`` with
+  ``FrameBuffer_%04d.png`` (16-bit RGBA: 8-bit values x 256, alpha 65280) and ``Depth_%04d.png`` (16-bit
+  grey, z-depth ``value / 255 / 256 * 20`` cm, here at full 16-bit precision).
+- ``endoslam``: ``UnityCam/<Organ>/Frames/image_%04d.png`` (8-bit RGB), ``Pixelwise Depths/aov_image_%04d.png``
+  (8-bit RGBA, equal channels, ``value / 255 * data.endoslam.depth_full_scale_cm``), ``Poses/<organ>_position_
+  rotation.csv`` (``tX,tY,tZ,rX,rY,rZ,rW,time(s)``, Unity left-handed, one row per frame). Organs in order:
+  Colon, Small Intestine, Stomach. Rendered with the documented UnityCam K scaled to the size.
+- ``scenenet``: ``<split>/0/<trajectory>/photo/<n>.jpg`` and ``depth/<n>.png`` (uint16 mm of ray length),
+  ``n = 0, 25, 50, ...``; every tenth trajectory goes to ``val``. ``size`` 128 gives the native 320x240.
+
+Every sequence is rendered into a hidden temporary folder next to its final place and renamed into place
+when complete, so an interrupted run leaves no half sequence. Sequences are independent (their random
+streams derive from the seed, the layout and the sequence), so the output is the same bytes whatever
+the number of worker processes.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import shutil
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import numpy as np
+import torch
+
+from endoflow.config import Params
+from endoflow.data.endoslam import UNITYCAM_K
+from endoflow.data.imageio import write_png
+from endoflow.data.scenenet import scenenet_intrinsics
+from endoflow.geometry.camera import scale_intrinsics
+from endoflow.geometry.pose import matrix_to_quaternion_xyzw, opencv_to_unity
+from endoflow.synth.render import MAX_DEPTH_CM, render_tube_frame
+from endoflow.synth.rooms import Room, camera_path, make_room, render_room
+from endoflow.synth.scenes import STYLES, TubeSequence, make_tube_sequence
+
+LAYOUTS = ("simcol", "endoslam", "scenenet")
+SIMCOL_SCENES = (("SyntheticColon_I", "S"), ("SyntheticColon_II", "B"), ("SyntheticColon_III", "O"))
+SIMCOL_SCENE_III_SEQUENCES = 3
+SIMCOL_CAM_TXT = "227.60416 0 227.60416 0 237.5 237.5 0 0 1"  # byte-identical to the real file
+SIMCOL_REFERENCE_WIDTH = 475
+SIMCOL_DEPTH_COUNTS_PER_CM = 255 * 256 / 20.0
+SIMCOL_ALPHA = 65280
+UNITYCAM_ORGANS = (("Colon", "colon"), ("Small Intestine", "intestine"), ("Stomach", "stomach"))
+UNITYCAM_SIZE = 320
+UNITYCAM_HEADER = "tX,tY,tZ,rX,rY,rZ,rW,time(s)"
+SCENENET_FRAME_STEP = 25
+SCENENET_VAL_EVERY = 10
+SCENENET_JPEG_QUALITY = 90
+
+
+@dataclass(frozen=True)
+class Job:
+    """One sequence to render; plain data so that it can be sent to a worker process."""
+
+    layout: str
+    group: str  # SimCol scene folder, UnityCam organ, SceneNet split
+    name: str  # SimCol sequence (S1), organ file stem (colon), SceneNet trajectory
+    target: str  # the folder that holds the finished sequence
+    frames: int
+    size: int
+    entropy: tuple[int, ...]
+    device: str
+    endoslam_depth_full_scale_cm: float
+    endoslam_translation_to_cm: float
+    endoslam_fps: float
+
+
+def synthesize_layout(
+    layout: str,
+    out: Path,
+    sequences: Optional[int] = None,
+    frames: Optional[int] = None,
+    size: Optional[int] = None,
+    seed: Optional[int] = None,
+    *,
+    params: Optional[Params] = None,
+    workers: Optional[int] = None,
+    device: Optional[str] = None,
+) -> str:
+    """Render ``layout`` (``simcol``, ``endoslam``, ``scenenet``) into dataset root ``out``; returns a summary.
+
+    ``None`` arguments take ``params.synth`` defaults (``Params()`` when ``params`` is None): sequences per
+    scene / organ count / trajectories, frames per sequence, square image size, seed, worker processes,
+    torch device. The EndoSLAM depth scale, pose unit and frame rate come from ``params.data.endoslam``,
+    so that the reader decodes what was written. Same arguments, same bytes.
+    """
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r}; expected one of {', '.join(LAYOUTS)}")
+    params = params or Params()
+    defaults = getattr(params.synth, layout)
+    sequences = defaults.sequences if sequences is None else sequences
+    frames = defaults.frames if frames is None else frames
+    size = params.synth.size if size is None else size
+    seed = params.synth.seed if seed is None else seed
+    device = params.synth.device if device is None else device
+    workers = params.synth.workers if workers is None else workers
+    if sequences < 1 or frames < 2 or size < 8:
+        raise ValueError(f"need sequences >= 1, frames >= 2, size >= 8; got {sequences}, {frames}, {size}")
+    out = Path(out)
+    jobs = plan_jobs(layout, out, sequences, frames, size, seed, device, params)
+    out.mkdir(parents=True, exist_ok=True)
+    if layout == "simcol":
+        for scene in sorted({job.group for job in jobs}):
+            _write_text_atomic(out / scene / "cam.txt", SIMCOL_CAM_TXT)
+
+    started = time.perf_counter()
+    if workers > 1 and len(jobs) > 1 and torch.device(device).type == "cpu":
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=context) as pool:
+            list(pool.map(render_job, jobs))
+    else:
+        for job in jobs:
+            render_job(job)
+    seconds = time.perf_counter() - started
+    total = sum(job.frames for job in jobs)
+    return (
+        f"{layout}: {len(jobs)} sequences, {total} frames at {_frame_size(layout, size)} written to {out} "
+        f"in {seconds:.1f} s ({total / seconds:.1f} frames/s, {workers} workers, device {device})"
+    )
+
+
+def _frame_size(layout: str, size: int) -> str:
+    height, width = scenenet_shape(size) if layout == "scenenet" else (size, size)
+    return f"{width}x{height}"
+
+
+def plan_jobs(
+    layout: str, out: Path, sequences: int, frames: int, size: int, seed: int, device: str, params: Params
+) -> list[Job]:
+    """The sequences a call of :func:`synthesize_layout` renders, in order."""
+    common = dict(
+        frames=frames,
+        size=size,
+        device=device,
+        endoslam_depth_full_scale_cm=params.data.endoslam.depth_full_scale_cm,
+        endoslam_translation_to_cm=params.data.endoslam.unitycam_translation_to_cm,
+        endoslam_fps=params.data.endoslam.fps,
+    )
+    layout_id = LAYOUTS.index(layout)
+    jobs = []
+    if layout == "simcol":
+        for scene_id, (scene, letter) in enumerate(SIMCOL_SCENES):
+            count = min(sequences, SIMCOL_SCENE_III_SEQUENCES) if scene.endswith("_III") else sequences
+            for i in range(1, count + 1):
+                name = f"{letter}{i}"
+                target = out / scene / f"Frames_{name}"
+                jobs.append(Job("simcol", scene, name, str(target), entropy=(seed, layout_id, scene_id, i), **common))
+    elif layout == "endoslam":
+        if sequences > len(UNITYCAM_ORGANS):
+            raise ValueError(f"the UnityCam layout has {len(UNITYCAM_ORGANS)} organs; asked for {sequences} sequences")
+        for organ_id, (organ, stem) in enumerate(UNITYCAM_ORGANS[:sequences]):
+            target = out / "UnityCam" / organ
+            jobs.append(Job("endoslam", organ, stem, str(target), entropy=(seed, layout_id, organ_id), **common))
+    else:
+        for i in range(sequences):
+            split = "val" if i % SCENENET_VAL_EVERY == SCENENET_VAL_EVERY - 1 else "train"
+            target = out / split / "0" / str(i)
+            jobs.append(Job("scenenet", split, str(i), str(target), entropy=(seed, layout_id, i), **common))
+    return jobs
+
+
+def render_job(job: Job) -> None:
+    """Render one sequence into a temporary folder and move it into place (runs in worker processes)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # same arithmetic, hence same bytes, in any process layout
+    try:
+        target = Path(job.target)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        staging = target.parent / f".{target.name}.tmp"
+        if staging.exists():
+            shutil.rmtree(staging)
+        staging.mkdir()
+        writer = {"simcol": _write_simcol, "endoslam": _write_endoslam, "scenenet": _write_scenenet}[job.layout]
+        extra_files = writer(job, staging)
+        # Files that live beside the sequence folder (SimCol's pose files) go first: readers list
+        # sequences by their frame folders, so a pose file without frames is never read.
+        for name in extra_files:
+            os.replace(staging / name, target.parent / name)
+        if target.exists():
+            shutil.rmtree(target)
+        os.rename(staging, target)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def job_rng(job: Job) -> np.random.Generator:
+    """The random stream of one sequence: depends on the seed, layout and sequence only."""
+    return np.random.default_rng(np.random.SeedSequence(list(job.entropy)))
+
+
+def tube_sequence(job: Job) -> TubeSequence:
+    """The scene and camera poses of a SimCol or EndoSLAM job (what its files are rendered from)."""
+    return make_tube_sequence(STYLES[job.group], job.frames, job_rng(job), torch.device(job.device))
+
+
+# -------------------------------------------------------------------------------------------- SimCol3D
+def simcol_intrinsics(size: int) -> np.ndarray:
+    """The K our SimCol reader derives for ``size``-px frames: ``cam.txt`` scaled from 475 px."""
+    K = np.array(SIMCOL_CAM_TXT.split(), dtype=np.float64).reshape(3, 3)
+    scale = size / SIMCOL_REFERENCE_WIDTH
+    return scale_intrinsics(K, scale, scale)
+
+
+def _write_simcol(job: Job, staging: Path) -> list[str]:
+    sequence = tube_sequence(job)
+    K = simcol_intrinsics(job.size)
+    for f, pose in enumerate(sequence.poses):
+        rgb, depth = render_tube_frame(sequence.scene, pose, K, job.size, job.size)
+        write_png(staging / f"FrameBuffer_{f:04d}.png", simcol_frame(rgb))
+        write_png(staging / f"Depth_{f:04d}.png", simcol_depth(depth))
+    unity = opencv_to_unity(sequence.poses)
+    positions = f"SavedPosition_{job.name}.txt"
+    rotations = f"SavedRotationQuaternion_{job.name}.txt"
+    _write_rows(staging / positions, unity[:, :3, 3], " ")
+    _write_rows(staging / rotations, matrix_to_quaternion_xyzw(unity[:, :3, :3]), " ")
+    return [positions, rotations]
+
+
+def simcol_frame(rgb: np.ndarray) -> np.ndarray:
+    """SimCol FrameBuffer pixels: ``H x W x 4`` uint16 RGBA, 8-bit values times 256, alpha 65280."""
+    values = to_uint8(rgb).astype(np.uint16) * 256
+    alpha = np.full(rgb.shape[:2] + (1,), SIMCOL_ALPHA, dtype=np.uint16)
+    return np.concatenate([values, alpha], axis=-1)
+
+
+def simcol_depth(depth_cm: np.ndarray) -> np.ndarray:
+    """SimCol depth counts (uint16, ``cm = value / 255 / 256 * 20``), refusing depths beyond the scale."""
+    if not np.isfinite(depth_cm).all() or depth_cm.max() > MAX_DEPTH_CM:
+        raise ValueError(f"depth outside SimCol's 0..20 cm scale (max {np.nanmax(depth_cm):.3f} cm)")
+    return np.round(depth_cm.astype(np.float64) * SIMCOL_DEPTH_COUNTS_PER_CM).clip(0, 65535).astype(np.uint16)
+
+
+# ---------------------------------------------------------------------------------- EndoSLAM UnityCam
+def unitycam_intrinsics(size: int) -> np.ndarray:
+    """The K our EndoSLAM reader derives for ``size``-px UnityCam frames (documented K scaled from 320)."""
+    scale = size / UNITYCAM_SIZE
+    return scale_intrinsics(UNITYCAM_K, scale, scale)
+
+
+def _write_endoslam(job: Job, staging: Path) -> list[str]:
+    sequence = tube_sequence(job)
+    K = unitycam_intrinsics(job.size)
+    for sub in ("Frames", "Pixelwise Depths", "Poses"):
+        (staging / sub).mkdir()
+    for f, pose in enumerate(sequence.poses):
+        rgb, depth = render_tube_frame(sequence.scene, pose, K, job.size, job.size)
+        write_png(staging / "Frames" / f"image_{f:04d}.png", to_uint8(rgb))
+        write_png(staging / "Pixelwise Depths" / f"aov_image_{f:04d}.png", unitycam_depth(depth, job.endoslam_depth_full_scale_cm))
+    unity = opencv_to_unity(sequence.poses)
+    times = np.arange(job.frames) / job.endoslam_fps
+    rows = np.concatenate(
+        [unity[:, :3, 3] / job.endoslam_translation_to_cm, matrix_to_quaternion_xyzw(unity[:, :3, :3]), times[:, None]],
+        axis=1,
+    )
+    _write_rows(staging / "Poses" / f"{job.name}_position_rotation.csv", rows, ",", header=UNITYCAM_HEADER)
+    return []
+
+
+def unitycam_depth(depth_cm: np.ndarray, full_scale_cm: float) -> np.ndarray:
+    """UnityCam depth pixels: ``H x W x 4`` uint8 RGBA with equal colour channels, ``cm = value / 255 * scale``."""
+    if depth_cm.max() > full_scale_cm:
+        raise ValueError(f"depth {depth_cm.max():.3f} cm beyond data.endoslam.depth_full_scale_cm = {full_scale_cm}")
+    value = np.round(depth_cm / full_scale_cm * 255).astype(np.uint8)
+    return np.stack([value, value, value, np.full_like(value, 255)], axis=-1)
+
+
+# ------------------------------------------------------------------------------------------ SceneNet
+def room_sequence(job: Job) -> tuple[Room, np.ndarray]:
+    """The room and camera poses ``[F, 4, 4]`` of a SceneNet job."""
+    rng = job_rng(job)
+    poses = camera_path(job.frames, rng)
+    return make_room(rng, poses[:, :3, 3]), poses
+
+
+def scenenet_shape(size: int) -> tuple[int, int]:
+    """``(height, width)`` of SceneNet frames for ``size`` (128 gives the native 240 x 320)."""
+    width = max(8, int(round(320 * size / 128 / 4)) * 4)
+    return width * 3 // 4, width
+
+
+def _write_scenenet(job: Job, staging: Path) -> list[str]:
+    height, width = scenenet_shape(job.size)
+    K = scenenet_intrinsics(height, width)
+    room, poses = room_sequence(job)
+    (staging / "photo").mkdir()
+    (staging / "depth").mkdir()
+    for f, pose in enumerate(poses):
+        rgb, length_cm = render_room(room, pose, K, height, width, torch.device(job.device))
+        n = f * SCENENET_FRAME_STEP
+        ok, jpeg = cv2.imencode(".jpg", cv2.cvtColor(to_uint8(rgb), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, SCENENET_JPEG_QUALITY])
+        if not ok:
+            raise RuntimeError(f"OpenCV could not encode photo {n}")
+        (staging / "photo" / f"{n}.jpg").write_bytes(jpeg.tobytes())
+        write_png(staging / "depth" / f"{n}.png", np.round(length_cm * 10).clip(1, 65535).astype(np.uint16))
+    return []
+
+
+# ------------------------------------------------------------------------------------------- helpers
+def to_uint8(rgb: np.ndarray) -> np.ndarray:
+    """Float RGB in [0, 1] to uint8 (rounded)."""
+    return np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
+
+
+def _write_rows(path: Path, rows: np.ndarray, separator: str, header: Optional[str] = None) -> None:
+    lines = [header] if header else []
+    lines += [separator.join(f"{value:.9g}" for value in row) for row in rows]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = path.with_name(f".{path.name}.tmp")
+    staging.write_text(text)
+    os.replace(staging, path)

@@ -1,0 +1,29 @@
+"""DVC stage `synthesize`: procedural data with exact ground truth in the native layouts.
+
+Usage: ``python stages/synthesize.py [--params params.yaml]``; writes ``<synth.out>/SimCol3D``,
+``<synth.out>/EndoSLAM`` and ``<synth.out>/SceneNet`` with the sizes in ``synth.*`` (and the EndoSLAM depth
+scale, pose unit and frame rate of ``data.endoslam``, so that the reader decodes what was written).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from endoflow.config import load_params
+from endoflow.synth.writers import synthesize_layout
+
+FOLDERS = {"simcol": "SimCol3D", "endoslam": "EndoSLAM", "scenenet": "SceneNet"}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
+    args = parser.parse_args()
+    params = load_params(args.params)
+    for layout, folder in FOLDERS.items():
+        print(synthesize_layout(layout, Path(params.synth.out) / folder, params=params), flush=True)
+
+
+if __name__ == "__main__":
+    main()
