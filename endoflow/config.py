@@ -115,7 +115,9 @@ class LatentBankConfig:
     channel_max: int = 128
     batch_size: int = 16
     steps_per_stage: int = 200  # generator steps at each resolution (the stage takes minutes on 2 cores)
-    lr: float = 1e-4
+    # The paper trains 100 epochs at a fixed 1e-4; in our few-minute budget (1000 generator steps) 1e-4
+    # leaves the SWD at 0.53-0.75 of the untrained value, 1e-3 (ProGAN's rate, same betas) gets 0.34.
+    lr: float = 1e-3
     betas: list[float] = field(default_factory=lambda: [0.0, 0.99])
     n_critic: int = 1
     gp_gamma: float = 10.0

@@ -1,0 +1,435 @@
+"""Evaluate a trained model on one test set, with trivial baselines on the same frames in the same run.
+
+For test set ``name`` (``params.eval.test_sets[name]``) the test shards are read in order, sequence by
+sequence. Every frame of a sequence is evaluated: the shards' target frames (``cur``, with GT depth) plus the
+first sample's ``prev`` and the last sample's ``next`` when they are the adjacent frames, so the predictions
+cover the whole sequence as the SimCol3D challenge expects. Per sequence:
+
+- depth (frames with GT depth): the ``paper`` and ``simcol`` protocols of :mod:`endoflow.evaluation.metrics`
+  for the model and two baselines: ``constant_depth`` (the training set's mean GT depth everywhere) and
+  ``mean_depth_map`` (the training set's per-pixel mean GT depth map);
+- pose (consecutive frames with GT pose; the longest such run when some are missing): the ``simcol`` and
+  ``endoslam`` protocols for the model and ``constant_velocity`` (every step is the training set's mean
+  relative pose).
+
+Metrics are computed at the stored shard size. The protocols aggregate as they are defined: the paper's
+depth errors are averaged over all images of the test set; the challenge's depth and pose figures are
+computed per sequence and then averaged over the sequences.
+
+Outputs: ``<eval.metrics>/<name>.json``; ``<eval.plots>/<name>/`` with PNG figures (``trajectory_<seq>.png``,
+``depth_examples.png``, ``errors_per_frame.png``) and CSV for ``dvc plots`` (``per_frame.csv``: ``index``,
+``sequence``, ``frame``, ``abs_rel_<method>``, ``rmse_<method>``, ``simcol_l1_<method>``, ``rte_<method>``,
+``rot_<method>``; ``per_sequence.csv``; ``trajectory.csv``: ``gt_x`` ... ``model_z``, ``constant_velocity_z``);
+``<eval.predictions>/<name>/`` in the challenge's layout (``<group>_Test/Frames_<sequence>_OP/depth/
+FrameBuffer_NNNN.npy``: float16 ``depth / 20`` in [0, 1] at the native (square) size; ``.../pose/
+FrameBuffer_NNNN_to_FrameBuffer_MMMM.txt``: the 16 numbers of ``inv(P_i) @ P_{i+1}``, row-major).
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator, Optional
+
+import cv2
+import numpy as np
+import pandas as pd
+import torch
+
+from endoflow import tracking
+from endoflow.config import Params, EvalSetConfig
+from endoflow.evaluation import metrics, plots
+from endoflow.evaluation.outputs import save_figure, staged_directory, write_csv, write_json
+from endoflow.training.checkpoint import TrainingBaselines, load_trained_model
+
+DEPTH_METHODS = ("model", "constant_depth", "mean_depth_map")
+POSE_METHODS = ("model", "constant_velocity")
+PROTOCOLS = ("depth_paper", "depth_simcol", "pose_simcol", "pose_endoslam")
+
+
+@dataclass
+class FrameRecord:
+    """One frame of a test sequence, in temporal order.
+
+    Attributes:
+        rgb: ``[3, H, W]`` float in [0, 1] at the stored size.
+        depth_cm: ``H x W`` GT z-depth in cm, or ``None`` (edge frames from ``prev``/``next``, or no GT).
+        pose: ``4 x 4`` GT ``T_world_cam`` or ``None``.
+    """
+
+    sequence: str
+    group: str
+    frame: int
+    rgb: torch.Tensor
+    depth_cm: Optional[np.ndarray]
+    pose: Optional[np.ndarray]
+    native_size: tuple[int, int]
+
+
+@dataclass
+class SequenceResult:
+    """Everything gathered for one sequence while its frames stream past."""
+
+    name: str
+    group: str
+    frames: list[int] = field(default_factory=list)
+    poses: list[Optional[np.ndarray]] = field(default_factory=list)
+    predicted_relative: list[np.ndarray] = field(default_factory=list)  # Q'_i between frames i and i+1
+    depth_frames: list[int] = field(default_factory=list)
+    # frames with GT only, encoded as the challenge's files are (float16 depth / 20 cm), so the challenge
+    # protocol sees the same quantisation as the official scorer
+    depth_pred: list[np.ndarray] = field(default_factory=list)
+    depth_gt: list[np.ndarray] = field(default_factory=list)
+    paper: dict[str, list[dict[str, float]]] = field(default_factory=lambda: {m: [] for m in DEPTH_METHODS})
+
+
+# ------------------------------------------------------------------------------------------ selection
+def eval_set(params: Params, name: str) -> EvalSetConfig:
+    """``params.eval.test_sets[name]``, or a clear error listing the known test sets."""
+    if name not in params.eval.test_sets:
+        raise ValueError(f"unknown test set {name!r}; params.eval.test_sets has {sorted(params.eval.test_sets)}")
+    return params.eval.test_sets[name]
+
+
+def eval_set_shards(shards_root: str, test_set: EvalSetConfig) -> list[str]:
+    """Shard URLs (in order) that hold samples of ``test_set``, from the dataset's ``manifest.parquet``."""
+    base = f"{shards_root.rstrip('/')}/{test_set.dataset}"
+    manifest = pd.read_parquet(f"{base}/manifest.parquet")
+    rows = manifest[manifest["split"] == test_set.split]
+    if test_set.groups:
+        rows = rows[rows["group"].isin(test_set.groups)]
+    if test_set.sequences:
+        rows = rows[rows["sequence"].isin(test_set.sequences)]
+    if rows.empty:
+        raise ValueError(
+            f"{base}/manifest.parquet: no {test_set.split} samples of groups {test_set.groups or 'any'} and "
+            f"sequences {test_set.sequences or 'any'} (found groups {sorted(manifest['group'].unique())})")
+    return [f"{base}/{name}" for name in sorted(rows["shard"].unique())]
+
+
+def belongs_to(meta: dict, test_set: EvalSetConfig) -> bool:
+    return (meta["split"] == test_set.split
+            and (not test_set.groups or meta["group"] in test_set.groups)
+            and (not test_set.sequences or meta["sequence"] in test_set.sequences))
+
+
+# ------------------------------------------------------------------------------------------- frames
+def frames_in_order(samples: Iterable[dict], max_frames: Optional[int] = None) -> Iterator[FrameRecord]:
+    """Every frame of every sequence in temporal order (see module docstring), from ordered samples."""
+    last: Optional[dict] = None
+    count = 0
+    for sample in samples:
+        meta = sample["meta"]
+        new_sequence = last is None or meta["sequence"] != last["meta"]["sequence"]
+        if new_sequence:
+            if last is not None:
+                yield from _edge_frame(last, "next")
+            count = 0
+            yield from _edge_frame(sample, "prev")
+        elif meta["frame"] <= last["meta"]["frame"]:
+            raise ValueError(f"sequence {meta['sequence']}: frame {meta['frame']} follows frame "
+                             f"{last['meta']['frame']}; test shards must hold frames in temporal order")
+        if max_frames is not None and count >= max_frames:
+            continue
+        count += 1
+        yield _record(sample, "cur")
+        last = sample
+    if last is not None:
+        yield from _edge_frame(last, "next")
+
+
+def _edge_frame(sample: dict, which: str) -> Iterator[FrameRecord]:
+    ids = sample["meta"]["frame_ids"]
+    if ids.get(which) is not None and abs(ids[which] - ids["cur"]) == 1:
+        yield _record(sample, which)
+
+
+def _record(sample: dict, which: str) -> FrameRecord:
+    meta = sample["meta"]
+    # the float64 pose from meta.json, not the float32 tensor: small rotation errors come from arccos
+    listed = meta["T_world_cam"][which]
+    pose = np.array(listed, dtype=np.float64) if listed is not None else None
+    depth = None
+    if which == "cur":
+        depth = sample["depth"][0].numpy().astype(np.float32)
+        depth = depth if (depth > 0).any() else None
+    return FrameRecord(
+        sequence=meta["sequence"], group=meta.get("group", ""), frame=int(meta["frame_ids"][which]),
+        rgb=sample[which], depth_cm=depth, pose=pose if pose is not None and np.isfinite(pose).all() else None,
+        native_size=(int(meta["native_size"][0]), int(meta["native_size"][1])),
+    )
+
+
+def batches_within_sequences(frames: Iterable[FrameRecord], size: int) -> Iterator[list[FrameRecord]]:
+    """Consecutive frames in lists of at most ``size``, never mixing two sequences."""
+    batch: list[FrameRecord] = []
+    for frame in frames:
+        if batch and (len(batch) == size or frame.sequence != batch[0].sequence):
+            yield batch
+            batch = []
+        batch.append(frame)
+    if batch:
+        yield batch
+
+
+# ------------------------------------------------------------------------------------- prediction
+class SequenceEvaluator:
+    """Runs the model over ordered frames, writes challenge predictions and gathers per-sequence results."""
+
+    def __init__(self, model: torch.nn.Module, baselines: TrainingBaselines, predictions_dir: Path,
+                 device: torch.device, max_examples: int) -> None:
+        self.model = model
+        self.max_examples = max_examples
+        self.baselines = baselines
+        self.predictions_dir = predictions_dir
+        self.device = device
+        self.sequences: list[SequenceResult] = []
+        self.examples: list[dict] = []
+        self._carry: Optional[FrameRecord] = None
+        self.frames_done = 0
+
+    @torch.inference_mode()
+    def process(self, batch: list[FrameRecord]) -> None:
+        """One batch of consecutive frames of one sequence."""
+        result = self._sequence_for(batch[0])
+        rgb = torch.stack([f.rgb for f in batch]).to(self.device)
+        depth = self.model.predict_depth(rgb)[:, 0].float().cpu().numpy()
+        earlier = [self._carry] + batch[:-1] if self._carry is not None else batch[:-1]
+        later = batch if self._carry is not None else batch[1:]
+        if later:
+            source = torch.stack([f.rgb for f in earlier]).to(self.device)
+            target = torch.stack([f.rgb for f in later]).to(self.device)
+            # T_earlier_later = inv(P_earlier) @ P_later: the challenge's relative pose
+            relative = self.model.predict_pose(target, source, source_is_next=False).double().cpu().numpy()
+            for first, second, pose in zip(earlier, later, relative):
+                self._write_pose(first, second, pose)
+                result.predicted_relative.append(pose)
+        for frame, prediction in zip(batch, depth):
+            self._add_frame(result, frame, prediction)
+        self._carry = batch[-1]
+        self.frames_done += len(batch)
+
+    def _sequence_for(self, frame: FrameRecord) -> SequenceResult:
+        if not self.sequences or self.sequences[-1].name != frame.sequence:
+            if any(s.name == frame.sequence for s in self.sequences):
+                raise ValueError(f"sequence {frame.sequence} appears twice in the test shards")
+            self.sequences.append(SequenceResult(frame.sequence, frame.group))
+            self._carry = None
+        return self.sequences[-1]
+
+    def _add_frame(self, result: SequenceResult, frame: FrameRecord, prediction: np.ndarray) -> None:
+        result.frames.append(frame.frame)
+        result.poses.append(frame.pose)
+        self._write_depth(frame, prediction)
+        if frame.depth_cm is None:
+            return
+        result.depth_frames.append(frame.frame)
+        result.depth_pred.append(metrics.depth_to_simcol_unit(prediction).astype(np.float16))
+        result.depth_gt.append(frame.depth_cm)
+        baselines = self.baseline_depths(frame.depth_cm.shape)
+        for method, pred in (("model", prediction), *baselines.items()):
+            result.paper[method].append(metrics.paper_depth_errors(frame.depth_cm, pred))
+        if len(result.depth_frames) == 1 and len(self.examples) < self.max_examples:
+            self.examples.append({"label": f"{frame.sequence} #{frame.frame}", "gt": frame.depth_cm,
+                                  "rgb": frame.rgb.permute(1, 2, 0).numpy(), "pred": prediction})
+
+    def baseline_depths(self, shape: tuple[int, int]) -> dict[str, np.ndarray]:
+        """The two depth baselines at ``shape`` (the mean map is resized if the stored size differs)."""
+        mean_map = self.baselines.mean_depth_map
+        if mean_map.shape != tuple(shape):
+            mean_map = cv2.resize(mean_map, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+        return {"constant_depth": np.full(shape, self.baselines.mean_depth_cm, np.float32),
+                "mean_depth_map": mean_map.astype(np.float32)}
+
+    def _frame_folder(self, frame: FrameRecord) -> Path:
+        slug = re.sub(r"[^A-Za-z0-9_-]", "_", frame.sequence)
+        group = re.sub(r"[^A-Za-z0-9_-]", "_", frame.group or "test")
+        return self.predictions_dir / f"{group}_Test" / f"Frames_{slug}_OP"
+
+    def _write_depth(self, frame: FrameRecord, depth_cm: np.ndarray) -> None:
+        side = min(frame.native_size)  # the stored image is the centred square crop of the native frame
+        native = cv2.resize(depth_cm, (side, side), interpolation=cv2.INTER_LINEAR)
+        path = self._frame_folder(frame) / "depth" / f"FrameBuffer_{frame.frame:04d}.npy"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.save(path, metrics.depth_to_simcol_unit(native).astype(np.float16))
+
+    def _write_pose(self, earlier: FrameRecord, later: FrameRecord, relative: np.ndarray) -> None:
+        path = (self._frame_folder(earlier) / "pose"
+                / f"FrameBuffer_{earlier.frame:04d}_to_FrameBuffer_{later.frame:04d}.txt")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        exact = np.array(relative, dtype=np.float64)
+        exact[3] = (0.0, 0.0, 0.0, 1.0)
+        path.write_text(" ".join(f"{v:.9g}" for v in exact.reshape(-1)) + "\n")
+
+
+# -------------------------------------------------------------------------------------- scoring
+def score_sequences(evaluator: SequenceEvaluator) -> tuple[dict, pd.DataFrame, pd.DataFrame, dict]:
+    """Aggregate metrics, per-frame table, per-sequence table and trajectories from a finished evaluator."""
+    summary: dict = {protocol: {} for protocol in PROTOCOLS}
+    frame_rows: list[dict] = []
+    sequence_rows: list[dict] = []
+    trajectories: dict = {}
+    simcol_depth: dict[str, list[dict]] = {m: [] for m in DEPTH_METHODS}
+    simcol_pose: dict[str, list[dict]] = {m: [] for m in POSE_METHODS}
+    endoslam_pose: dict[str, list[dict]] = {m: [] for m in POSE_METHODS}
+    paper: dict[str, list[dict]] = {m: [] for m in DEPTH_METHODS}
+    for seq in evaluator.sequences:
+        row: dict = {"sequence": seq.name, "group": seq.group, "frames": len(seq.frames)}
+        per_frame: dict[int, dict] = {f: {"sequence": seq.name, "frame": f} for f in seq.frames}
+        if seq.depth_frames:
+            gt = np.stack(seq.depth_gt)
+            for method in DEPTH_METHODS:
+                paper[method].extend(seq.paper[method])
+                pred = (np.stack(seq.depth_pred).astype(np.float32) * metrics.SIMCOL_DEPTH_RANGE_CM
+                        if method == "model" else
+                        np.broadcast_to(evaluator.baseline_depths(gt.shape[1:])[method], gt.shape))
+                result = metrics.simcol_depth_sequence(pred, gt)
+                simcol_depth[method].append(result)
+                row[f"simcol_l1_{method}"] = result["l1"]
+                for i, f in enumerate(seq.depth_frames):
+                    per_frame[f][f"abs_rel_{method}"] = seq.paper[method][i]["abs_rel"]
+                    per_frame[f][f"rmse_{method}"] = seq.paper[method][i]["rmse"]
+                    per_frame[f][f"simcol_l1_{method}"] = result["per_frame"]["l1"][i]
+        run = longest_posed_run(seq.poses)
+        if run is not None:
+            start, stop = run
+            gt_poses = np.stack(seq.poses[start:stop])
+            predicted = {"model": np.stack(seq.predicted_relative[start:stop - 1]),
+                         "constant_velocity": np.repeat(evaluator.baselines.mean_relative_pose[None],
+                                                        stop - start - 1, axis=0)}
+            trajectories[seq.name] = {"gt": gt_poses[:, :3, 3], "frames": seq.frames[start:stop]}
+            for method, relative in predicted.items():
+                result = metrics.simcol_pose_sequence(gt_poses, relative)
+                simcol_pose[method].append(result)
+                endoslam_pose[method].append(metrics.endoslam_pose_sequence(gt_poses, relative))
+                trajectories[seq.name][method] = result["trajectory"][:, :3, 3]
+                row[f"rte_{method}"] = result["rte"]
+                for i, f in enumerate(seq.frames[start + 1:stop]):
+                    per_frame[f][f"rte_{method}"] = result["per_frame"]["rte"][i]
+                    per_frame[f][f"rot_{method}"] = result["per_frame"]["rot"][i]
+        frame_rows.extend(per_frame.values())
+        sequence_rows.append(row)
+    for method in DEPTH_METHODS:
+        if paper[method]:
+            summary["depth_paper"][method] = metrics.mean_over(paper[method], metrics.PAPER_DEPTH_KEYS)
+            summary["depth_simcol"][method] = metrics.mean_over(simcol_depth[method], metrics.SIMCOL_DEPTH_KEYS)
+    for method in POSE_METHODS:
+        if simcol_pose[method]:
+            summary["pose_simcol"][method] = metrics.mean_over(simcol_pose[method], metrics.SIMCOL_POSE_KEYS)
+            summary["pose_endoslam"][method] = metrics.mean_over(endoslam_pose[method], metrics.ENDOSLAM_POSE_KEYS)
+    summary = {k: v for k, v in summary.items() if v}
+    frames_table = pd.DataFrame(frame_rows)
+    frames_table.insert(0, "index", np.arange(len(frames_table)))
+    return summary, frames_table, pd.DataFrame(sequence_rows), trajectories
+
+
+def longest_posed_run(poses: list[Optional[np.ndarray]]) -> Optional[tuple[int, int]]:
+    """``(start, stop)`` of the longest run of consecutive frames with GT poses (at least two), else None."""
+    best: Optional[tuple[int, int]] = None
+    start = None
+    for i, pose in enumerate([*poses, None]):
+        if pose is not None and start is None:
+            start = i
+        elif pose is None and start is not None:
+            if i - start >= 2 and (best is None or i - start > best[1] - best[0]):
+                best = (start, i)
+            start = None
+    return best
+
+
+# --------------------------------------------------------------------------------------- driver
+def evaluate_test_set(params: Params, name: str, samples: Iterable[dict], model_path: str | Path,
+                      out_metrics: Path, out_plots: Path, out_predictions: Path) -> dict:
+    """Evaluate the model in ``model_path`` on ordered ``samples`` of test set ``name``; write all outputs.
+
+    Returns the metrics written to ``out_metrics`` (with ``mlflow_run_id`` of the training run).
+    """
+    test_set = eval_set(params, name)
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    model, record = load_trained_model(model_path, device)
+    selected = (s for s in samples if belongs_to(s["meta"], test_set))
+    started = time.perf_counter()
+    with staged_directory(out_predictions) as predictions_dir:
+        evaluator = SequenceEvaluator(model, record.baselines, predictions_dir, device, params.eval.depth_examples)
+        frames = frames_in_order(selected, params.eval.max_frames_per_sequence)
+        for batch in batches_within_sequences(frames, params.eval.batch_size):
+            evaluator.process(batch)
+        if not evaluator.sequences:
+            raise ValueError(f"test set {name}: no frames found in the selected shards")
+    elapsed = time.perf_counter() - started
+    summary, frames_table, sequences_table, trajectories = score_sequences(evaluator)
+    result = {
+        "test_set": name,
+        "dataset": test_set.dataset,
+        "sequences": len(evaluator.sequences),
+        "frames": evaluator.frames_done,
+        "depth_frames": int(sum(len(s.depth_frames) for s in evaluator.sequences)),
+        **summary,
+        "frames_per_second": evaluator.frames_done / max(elapsed, 1e-9),
+        "mlflow_run_id": record.mlflow_run_id,
+    }
+    write_plots(name, out_plots, evaluator, frames_table, sequences_table, trajectories)
+    write_json(out_metrics, result)
+    return result
+
+
+def write_plots(name: str, out_plots: Path, evaluator: SequenceEvaluator, frames_table: pd.DataFrame,
+                sequences_table: pd.DataFrame, trajectories: dict) -> None:
+    """PNG figures and CSV tables of one test set, swapped in as a whole."""
+    with staged_directory(out_plots) as folder:
+        write_csv(folder / "per_frame.csv", frames_table)
+        write_csv(folder / "per_sequence.csv", sequences_table)
+        rows = [{"sequence": seq, "frame": f, **{f"{m}_{axis}": traj[m][i, k] for m in ("gt", *POSE_METHODS)
+                                                   for k, axis in enumerate("xyz")}}
+                for seq, traj in trajectories.items() for i, f in enumerate(traj["frames"])]
+        if rows:
+            write_csv(folder / "trajectory.csv", pd.DataFrame(rows))
+        for seq, traj in trajectories.items():
+            slug = re.sub(r"[^A-Za-z0-9_-]", "_", seq)
+            figure = plots.trajectory_figure(f"{name} {seq}: trajectory (scale fitted, chained from the first "
+                                             f"GT pose)", traj["gt"], {m: traj[m] for m in POSE_METHODS})
+            save_figure(folder / f"trajectory_{slug}.png", figure)
+        if evaluator.examples:
+            save_figure(folder / "depth_examples.png",
+                        plots.depth_examples_figure(f"{name}: depth examples", evaluator.examples))
+        curves = {metric: {m: frames_table[f"{key}_{m}"].to_numpy() for m in methods
+                           if f"{key}_{m}" in frames_table}
+                  for metric, key, methods in (("Abs Rel (paper)", "abs_rel", DEPTH_METHODS),
+                                               ("RTE (cm)", "rte", POSE_METHODS),
+                                               ("ROT (deg)", "rot", POSE_METHODS))}
+        curves = {k: v for k, v in curves.items() if v}
+        if curves:
+            save_figure(folder / "errors_per_frame.png", plots.error_curves_figure(f"{name}: per-frame errors",
+                                                                                   curves))
+
+
+def log_evaluation(params: Params, project_root: str | Path, result: dict, plots_dir: Path) -> None:
+    """Log the metrics (``eval/<test set>/<protocol>/<method>/<metric>``) and plots into the training run."""
+    run_id = result.get("mlflow_run_id")
+    if not run_id:
+        return
+    uri = tracking.tracking_uri(params, project_root)
+    prefix = f"eval/{result['test_set']}"
+    values = {f"{prefix}/{protocol}/{method}/{key}": value
+              for protocol in PROTOCOLS if protocol in result
+              for method, figures in result[protocol].items() for key, value in figures.items()}
+    values[f"{prefix}/frames_per_second"] = result["frames_per_second"]
+    tracking.log_metrics(uri, run_id, values)
+    tracking.log_artifact(uri, run_id, plots_dir, prefix)
+
+
+def run_evaluation(params: Params, name: str, project_root: str | Path = ".") -> dict:
+    """The ``evaluate`` stage for test set ``name``: read its shards, evaluate, write outputs, log to MLflow."""
+    from endoflow.data.loader import triplet_dataset
+    from endoflow.training.ray_trainer import absolute_location
+
+    root = Path(project_root).resolve()
+    urls = eval_set_shards(absolute_location(params.eval.shards, root), eval_set(params, name))
+    plots_dir = root / params.eval.plots / name
+    result = evaluate_test_set(params, name, triplet_dataset(urls), root / params.eval.model,
+                               root / params.eval.metrics / f"{name}.json", plots_dir,
+                               root / params.eval.predictions / name)
+    log_evaluation(params, root, result, plots_dir)
+    return result

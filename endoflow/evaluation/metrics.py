@@ -1,0 +1,256 @@
+"""Depth and pose error metrics, in the protocols the literature reports (pure numpy).
+
+Three protocols, each labelled in every output so tables never mix them:
+
+- ``paper``: the Monodepth2-style protocol of the paper's released code. Per image: keep ``gt > 0``,
+  median-scale the prediction (``median(gt) / median(pred)``), clamp it to ``[1e-3, 20]`` cm, then Abs Rel,
+  Sq Rel, RMSE, RMSE log, L1 and the three ``delta < 1.25^k`` accuracies; averaged over images.
+- ``simcol``: the SimCol3D challenge's evaluation scripts. Depth: predictions are ``depth / 20`` clipped to
+  ``[0, 1]``, ONE least-squares scale per sequence from per-image means, then per image L1 (cm), median
+  relative error (%) and RMSE (cm), averaged over the sequence's images; no mask, no cap. Pose: relative
+  GT poses ``Q_i = inv(P_i) @ P_{i+1}``, predicted relative poses ``Q'_i`` chained into a trajectory after a
+  scale fitted on relative translations; ``E_i = inv(Q_i) @ Q'_i``; medians of ``|t(E_i)|`` (RTE, cm), of the
+  rotation angle of ``E_i`` (ROT, degrees) and of ``|t(P_i) - t(P'_i)|`` (ATE, cm).
+- ``endoslam``: KITTI-odometry-style figures as EndoSLAM reports them: ATE as the RMSE of positions after a
+  least-squares scale alignment of the trajectory (both starting at the first GT pose), RPE as the mean
+  translation (cm) and rotation (degrees) error of consecutive relative poses.
+
+Conventions: depth maps are z-depth in cm, ``H x W`` (or ``N x H x W``); poses are ``4 x 4`` camera-to-world
+``T_world_cam``; a relative pose ``Q_i = inv(P_i) @ P_{i+1}`` maps points in frame ``i+1`` into frame ``i``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+PAPER_MIN_DEPTH_CM = 1e-3
+PAPER_MAX_DEPTH_CM = 20.0
+SIMCOL_DEPTH_RANGE_CM = 20.0  # challenge predictions are depth / 20 cm in [0, 1]
+SIMCOL_REL_EPS_CM = 1e-4  # the challenge code's 10e-5 added to the GT in the relative error
+
+PAPER_DEPTH_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "l1", "a1", "a2", "a3")
+SIMCOL_DEPTH_KEYS = ("l1", "rel", "rmse")
+SIMCOL_POSE_KEYS = ("ate", "rte", "rot")
+ENDOSLAM_POSE_KEYS = ("ate", "rpe_trans", "rpe_rot")
+
+
+# ------------------------------------------------------------------------------------------ depth
+def paper_depth_errors(gt_cm: np.ndarray, pred_cm: np.ndarray) -> dict[str, float]:
+    """Paper-protocol errors of ONE image (median scaling inside).
+
+    Args:
+        gt_cm: ``H x W`` GT z-depth in cm, ``0`` where unknown.
+        pred_cm: ``H x W`` predicted depth (any positive scale), same size as ``gt_cm``.
+
+    Returns:
+        ``abs_rel, sq_rel, rmse, rmse_log, l1, a1, a2, a3`` and the applied ``ratio``.
+    """
+    gt_cm, pred_cm = _same_shape_2d(gt_cm, pred_cm)
+    mask = gt_cm > 0
+    if not mask.any():
+        raise ValueError("paper depth protocol: the GT depth map has no valid (> 0) pixel")
+    gt = gt_cm[mask].astype(np.float64)
+    pred = pred_cm[mask].astype(np.float64)
+    ratio = float(np.median(gt) / np.median(pred))
+    pred = np.clip(pred * ratio, PAPER_MIN_DEPTH_CM, PAPER_MAX_DEPTH_CM)
+    thresh = np.maximum(gt / pred, pred / gt)
+    return {
+        "abs_rel": float(np.mean(np.abs(gt - pred) / gt)),
+        "sq_rel": float(np.mean((gt - pred) ** 2 / gt)),
+        "rmse": float(np.sqrt(np.mean((gt - pred) ** 2))),
+        "rmse_log": float(np.sqrt(np.mean((np.log(gt) - np.log(pred)) ** 2))),
+        "l1": float(np.mean(np.abs(gt - pred))),
+        "a1": float(np.mean(thresh < 1.25)),
+        "a2": float(np.mean(thresh < 1.25**2)),
+        "a3": float(np.mean(thresh < 1.25**3)),
+        "ratio": ratio,
+    }
+
+
+def depth_to_simcol_unit(depth_cm: np.ndarray) -> np.ndarray:
+    """Depth in cm to the challenge's prediction encoding: ``depth / 20`` clipped to ``[0, 1]``."""
+    return np.clip(np.asarray(depth_cm, dtype=np.float64) / SIMCOL_DEPTH_RANGE_CM, 0.0, 1.0)
+
+
+def simcol_depth_scale(pred_unit: np.ndarray, gt_cm: np.ndarray) -> float:
+    """The challenge's per-sequence scale ``sum(mean(p_k) mean(g_k)) / sum(mean(p_k)^2)``, in unit-space.
+
+    Args:
+        pred_unit: ``N x H x W`` predictions in ``[0, 1]`` (depth / 20 cm), already clipped.
+        gt_cm: ``N x H x W`` GT depth in cm.
+    """
+    pred_means = _image_means(pred_unit)
+    gt_means = _image_means(np.asarray(gt_cm, dtype=np.float64) / SIMCOL_DEPTH_RANGE_CM)
+    denominator = float(np.sum(pred_means * pred_means))
+    if denominator <= 0:
+        raise ValueError("SimCol3D depth protocol: every prediction of the sequence is zero")
+    return float(np.sum(pred_means * gt_means) / denominator)
+
+
+def simcol_depth_errors(pred_unit: np.ndarray, gt_cm: np.ndarray, scale: float) -> dict[str, float]:
+    """Challenge errors of ONE image: ``L1`` (cm), ``rel`` (median relative error, %), ``rmse`` (cm).
+
+    Args:
+        pred_unit: ``H x W`` prediction in ``[0, 1]`` (depth / 20 cm), already clipped.
+        gt_cm: ``H x W`` GT depth in cm.
+        scale: the sequence's scale from :func:`simcol_depth_scale`.
+    """
+    pred_unit, gt_cm = _same_shape_2d(pred_unit, gt_cm)
+    pred = np.asarray(pred_unit, dtype=np.float64) * scale * SIMCOL_DEPTH_RANGE_CM
+    gt = np.asarray(gt_cm, dtype=np.float64)
+    diff = pred - gt
+    return {
+        "l1": float(np.mean(np.abs(diff))),
+        "rel": float(np.median(np.abs(diff) / (gt + SIMCOL_REL_EPS_CM)) * 100.0),
+        "rmse": float(np.sqrt(np.mean(diff**2))),
+    }
+
+
+def simcol_depth_sequence(pred_cm: np.ndarray, gt_cm: np.ndarray) -> dict[str, object]:
+    """The challenge's depth protocol over one sequence.
+
+    Args:
+        pred_cm: ``N x H x W`` predicted depth in cm (converted with :func:`depth_to_simcol_unit`).
+        gt_cm: ``N x H x W`` GT depth in cm.
+
+    Returns:
+        ``scale``, the sequence means ``l1, rel, rmse`` and ``per_frame`` (dict of ``N`` arrays).
+    """
+    pred_cm = np.asarray(pred_cm)
+    gt_cm = np.asarray(gt_cm)
+    if pred_cm.ndim != 3 or pred_cm.shape != gt_cm.shape:
+        raise ValueError(f"expected pred and gt as N x H x W of equal shape, got {pred_cm.shape}, {gt_cm.shape}")
+    pred_unit = depth_to_simcol_unit(pred_cm)
+    scale = simcol_depth_scale(pred_unit, gt_cm)
+    per_frame = [simcol_depth_errors(p, g, scale) for p, g in zip(pred_unit, gt_cm)]
+    columns = {key: np.array([f[key] for f in per_frame]) for key in SIMCOL_DEPTH_KEYS}
+    return {"scale": scale, **{k: float(v.mean()) for k, v in columns.items()}, "per_frame": columns}
+
+
+# ------------------------------------------------------------------------------------------- pose
+def relative_poses(poses: np.ndarray) -> np.ndarray:
+    """``Q_i = inv(P_i) @ P_{i+1}`` for ``N x 4 x 4`` camera-to-world poses -> ``(N-1) x 4 x 4``."""
+    poses = _pose_stack(poses, "poses")
+    return np.linalg.inv(poses[:-1]) @ poses[1:]
+
+
+def chain_relative_poses(first: np.ndarray, relative: np.ndarray) -> np.ndarray:
+    """Trajectory ``P_0 = first``, ``P_{i+1} = P_i @ Q_i``; returns ``(M+1) x 4 x 4``."""
+    relative = _pose_stack(relative, "relative poses")
+    trajectory = [np.asarray(first, dtype=np.float64)]
+    for q in relative:
+        trajectory.append(trajectory[-1] @ q)
+    return np.stack(trajectory)
+
+
+def fit_translation_scale(gt_translations: np.ndarray, pred_translations: np.ndarray) -> float:
+    """Least-squares ``s`` minimising ``|gt - s * pred|^2`` over ``K x 3`` translations."""
+    denominator = float(np.sum(pred_translations**2))
+    if denominator <= 0:
+        return 1.0  # nothing predicted moves: any scale gives the same (zero) trajectory
+    return float(np.sum(gt_translations * pred_translations) / denominator)
+
+
+def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
+    """Rotation angle of ``... x 3 x 3`` matrices in degrees, trace clipped so rounding never gives NaN."""
+    trace = np.trace(rotations, axis1=-2, axis2=-1)
+    return np.degrees(np.arccos((np.clip(trace, -1.0, 3.0) - 1.0) / 2.0))
+
+
+def scaled_relative_poses(relative: np.ndarray, scale: float) -> np.ndarray:
+    """Copy of ``relative`` with every translation multiplied by ``scale``."""
+    scaled = np.array(relative, dtype=np.float64)
+    scaled[:, :3, 3] *= scale
+    return scaled
+
+
+def simcol_pose_sequence(gt_poses: np.ndarray, pred_relative: np.ndarray) -> dict[str, object]:
+    """The challenge's pose protocol over one sequence.
+
+    Args:
+        gt_poses: ``N x 4 x 4`` GT camera-to-world poses ``P_i``.
+        pred_relative: ``(N-1) x 4 x 4`` predicted ``Q'_i`` (frame ``i+1`` into frame ``i``).
+
+    Returns:
+        ``scale``, ``ate``, ``rte`` (cm), ``rot`` (degrees), ``trajectory`` (the scaled predicted
+        ``N x 4 x 4`` chain from ``P_0``) and ``per_frame`` arrays ``rte``, ``rot`` (``N-1``) and ``ate`` (``N``).
+    """
+    gt_poses = _pose_stack(gt_poses, "GT poses")
+    pred_relative = _pose_stack(pred_relative, "predicted relative poses")
+    if len(pred_relative) != len(gt_poses) - 1:
+        raise ValueError(f"expected {len(gt_poses) - 1} relative poses for {len(gt_poses)} GT poses, "
+                         f"got {len(pred_relative)}")
+    gt_relative = relative_poses(gt_poses)
+    scale = fit_translation_scale(gt_relative[:, :3, 3], pred_relative[:, :3, 3])
+    pred_scaled = scaled_relative_poses(pred_relative, scale)
+    trajectory = chain_relative_poses(gt_poses[0], pred_scaled)
+    errors = np.linalg.inv(gt_relative) @ pred_scaled
+    rte = np.linalg.norm(errors[:, :3, 3], axis=1)
+    rot = rotation_angle_deg(errors[:, :3, :3])
+    ate = np.linalg.norm(gt_poses[:, :3, 3] - trajectory[:, :3, 3], axis=1)
+    return {
+        "scale": scale,
+        "ate": float(np.median(ate)),
+        "rte": float(np.median(rte)),
+        "rot": float(np.median(rot)),
+        "trajectory": trajectory,
+        "per_frame": {"ate": ate, "rte": rte, "rot": rot},
+    }
+
+
+def endoslam_pose_sequence(gt_poses: np.ndarray, pred_relative: np.ndarray) -> dict[str, float]:
+    """EndoSLAM-style ATE (RMSE, cm) and RPE means over one sequence.
+
+    Both trajectories start at ``P_0``; the predicted positions (relative to ``P_0``) get the least-squares
+    scale onto the GT positions before ``ATE = sqrt(mean |t_gt - s t_pred|^2)``. RPE compares consecutive
+    relative poses with that scale: ``rpe_trans`` mean ``|t(E_i)|`` (cm), ``rpe_rot`` mean angle (degrees).
+    """
+    gt_poses = _pose_stack(gt_poses, "GT poses")
+    pred_relative = _pose_stack(pred_relative, "predicted relative poses")
+    if len(pred_relative) != len(gt_poses) - 1:
+        raise ValueError(f"expected {len(gt_poses) - 1} relative poses for {len(gt_poses)} GT poses, "
+                         f"got {len(pred_relative)}")
+    origin_inv = np.linalg.inv(gt_poses[0])
+    gt_local = (origin_inv @ gt_poses)[:, :3, 3]
+    pred_local = chain_relative_poses(np.eye(4), pred_relative)[:, :3, 3]
+    scale = fit_translation_scale(gt_local, pred_local)
+    ate = float(np.sqrt(np.mean(np.sum((gt_local - scale * pred_local) ** 2, axis=1))))
+    errors = np.linalg.inv(relative_poses(gt_poses)) @ scaled_relative_poses(pred_relative, scale)
+    return {
+        "scale": scale,
+        "ate": ate,
+        "rpe_trans": float(np.mean(np.linalg.norm(errors[:, :3, 3], axis=1))),
+        "rpe_rot": float(np.mean(rotation_angle_deg(errors[:, :3, :3]))),
+    }
+
+
+# -------------------------------------------------------------------------------------- helpers
+def mean_over(records: list[dict[str, float]], keys: tuple[str, ...]) -> dict[str, float]:
+    """Average each of ``keys`` over ``records`` (images or sequences)."""
+    if not records:
+        raise ValueError("nothing to average: no images or sequences were evaluated")
+    return {key: float(np.mean([r[key] for r in records])) for key in keys}
+
+
+def _image_means(stack: np.ndarray) -> np.ndarray:
+    stack = np.asarray(stack, dtype=np.float64)
+    if stack.ndim != 3:
+        raise ValueError(f"expected N x H x W depth maps, got shape {stack.shape}")
+    return stack.mean(axis=(1, 2))
+
+
+def _same_shape_2d(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.asarray(a)
+    b = np.asarray(b)
+    if a.ndim != 2 or a.shape != b.shape:
+        raise ValueError(f"expected two H x W depth maps of equal shape, got {a.shape} and {b.shape}")
+    return a, b
+
+
+def _pose_stack(poses: np.ndarray, what: str) -> np.ndarray:
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"expected {what} as N x 4 x 4, got shape {poses.shape}")
+    if not np.isfinite(poses).all():
+        raise ValueError(f"{what} contain non-finite values")
+    return poses

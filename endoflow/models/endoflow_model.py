@@ -1,0 +1,115 @@
+"""The full model: DepthNet (with or without the latent bank) and the VAE-constrained PoseNet.
+
+Pose direction (as Monodepth2): the pose network always reads a pair in temporal order, earlier frame as
+``target`` and later frame as ``source``, so what it predicts is the motion forward in time,
+``T_later_earlier`` (maps points in the earlier camera frame into the later one). For the next frame that
+is directly ``T_next_cur``; for the previous frame it predicts ``T_cur_prev`` and the warp uses its inverse
+``T_prev_cur``. Both predicted vectors are forward motions, so one prior (N(0, I)) fits both.
+
+In training mode with ``pose_vae`` the vector driving the warp is the reparameterised sample
+``mean + exp(logvar / 2) * eps``; in eval mode (and without ``pose_vae``) it is the mean.
+
+Depth: disparity ``sigma`` in (0, 1) maps linearly to inverse depth between ``1 / max_depth`` and
+``1 / min_depth`` (Monodepth2's ``disp_to_depth``), so depth lies in ``[min_depth, max_depth]`` cm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from endoflow.config import ModelConfig, Params
+from endoflow.geometry.pose import invert_pose, pose_vec_to_matrix
+from endoflow.models.depth_net import DepthNet
+from endoflow.models.latent_bank import GeneratorSpec, LatentBankGenerator, load_generator
+from endoflow.models.pose_net import PoseNet
+
+
+@dataclass
+class PoseEstimate:
+    """One source frame's pose for the warp.
+
+    Attributes:
+        T_source_target: ``[B, 4, 4]`` what the warp uses (maps target-frame points into the source frame).
+        vec: ``[B, 6]`` the forward-in-time motion vector behind it (sample in training, else the mean).
+        mean, logvar: ``[B, 6]`` the predicted Gaussian over ``vec`` (``logvar`` ``None`` without pose_vae).
+    """
+
+    T_source_target: torch.Tensor
+    vec: torch.Tensor
+    mean: torch.Tensor
+    logvar: torch.Tensor | None
+
+
+class EndoflowModel(nn.Module):
+    def __init__(self, model_cfg: ModelConfig, generator: LatentBankGenerator | None) -> None:
+        super().__init__()
+        self.cfg = model_cfg
+        self.depth_net = DepthNet(model_cfg, generator)
+        self.pose_net = PoseNet(model_cfg.pose_vae, model_cfg.encoder_weights, model_cfg.pose_logvar_init)
+
+    def disp_to_depth(self, disp: torch.Tensor) -> torch.Tensor:
+        """Sigmoid disparity (any shape) -> z-depth in cm within ``[min_depth, max_depth]``."""
+        min_disp, max_disp = 1.0 / self.cfg.max_depth, 1.0 / self.cfg.min_depth
+        return 1.0 / (min_disp + (max_disp - min_disp) * disp)
+
+    def predict_depth(self, rgb: torch.Tensor) -> torch.Tensor:
+        """Full-resolution z-depth ``[B, 1, H, W]`` in cm of RGB ``[B, 3, H, W]`` in [0, 1]."""
+        return self.disp_to_depth(self.depth_net(rgb)[0])
+
+    def forward_motion(
+        self, earlier: torch.Tensor, later: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """(vector used, mean, logvar) of ``T_later_earlier``; the vector is sampled in training mode."""
+        mean, logvar = self.pose_net(earlier, later)
+        if self.training and logvar is not None:
+            vec = mean + torch.exp(0.5 * logvar) * torch.randn_like(mean)
+        else:
+            vec = mean
+        return vec, mean, logvar
+
+    def source_pose(self, target: torch.Tensor, source: torch.Tensor, source_is_next: bool) -> PoseEstimate:
+        """The pose that warps ``source`` (the next or the previous frame) into ``target``."""
+        if source_is_next:
+            vec, mean, logvar = self.forward_motion(target, source)
+            T = pose_vec_to_matrix(vec)
+        else:
+            vec, mean, logvar = self.forward_motion(source, target)
+            T = invert_pose(pose_vec_to_matrix(vec))
+        return PoseEstimate(T_source_target=T, vec=vec, mean=mean, logvar=logvar)
+
+    @torch.no_grad()
+    def predict_pose(self, target: torch.Tensor, source: torch.Tensor, source_is_next: bool = True) -> torch.Tensor:
+        """Mean ``T_source_target [B, 4, 4]``; ``source`` is the next frame unless ``source_is_next=False``."""
+        if source_is_next:
+            return pose_vec_to_matrix(self.pose_net(target, source)[0])
+        return invert_pose(pose_vec_to_matrix(self.pose_net(source, target)[0]))
+
+
+def generator_spec(params: Params) -> GeneratorSpec:
+    """The generator architecture that ``params.latent_bank`` describes."""
+    cfg = params.latent_bank
+    return GeneratorSpec(
+        resolution=cfg.resolution,
+        start_resolution=cfg.start_resolution,
+        latent_dim=cfg.latent_dim,
+        style_dim=cfg.style_dim,
+        mapping_layers=cfg.mapping_layers,
+        channel_base=cfg.channel_base,
+        channel_max=cfg.channel_max,
+    )
+
+
+def build_model(params: Params, latent_bank_path: str | None) -> EndoflowModel:
+    """The model ``params.model`` describes.
+
+    With ``model.latent_bank`` the generator is loaded from ``latent_bank_path`` (its architecture comes
+    from the file) and frozen; ``latent_bank_path=None`` gives a randomly initialised, frozen bank of the
+    ``params.latent_bank`` architecture (for summaries and tests; training passes the pretrained file).
+    """
+    generator = None
+    if params.model.latent_bank:
+        generator = load_generator(latent_bank_path) if latent_bank_path else LatentBankGenerator(generator_spec(params))
+    return EndoflowModel(params.model, generator)

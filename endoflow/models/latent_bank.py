@@ -1,0 +1,276 @@
+"""The generative latent bank: a StyleGAN-like generator of one-channel depth maps.
+
+Two modes share one set of weights:
+
+- Generative (pretraining, :meth:`LatentBankGenerator.forward`): a Gaussian latent ``z`` goes through
+  the mapping network to a style vector ``w``; a learned constant at ``start_resolution`` is upsampled by
+  transposed convolutions, block by block, to ``resolution``. Every block injects per-pixel noise with a
+  learned per-channel strength and modulates its features with AdaIN driven by ``w``. A 1x1 "to-depth"
+  convolution per resolution allows progressive growing: at a new resolution the output fades in from the
+  upsampled coarser output with weight ``alpha``.
+- Latent bank (:meth:`LatentBankGenerator.bank_features`): the frozen cascade (constant, transposed and
+  3x3 convolutions, noise strengths) is driven by *spatial* style maps computed from an image encoder, fused
+  by AdaIN blocks the caller owns and trains (the paper's "new set of trainable AdaIN blocks"). It returns the
+  feature map of every block. The cascade runs on the caller's grid: the constant is resized to the
+  coarsest style map and each block exactly doubles it, so any grid ``(h, w) * 2^k`` works, not only powers
+  of two.
+
+Depth maps are in the normalised space of :mod:`endoflow.training.pretrain` (log-depth centred per map,
+in [-1, 1]).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from endoflow.data.base import DataFormatError
+
+
+@dataclass(frozen=True)
+class GeneratorSpec:
+    """Architecture of a :class:`LatentBankGenerator`; stored beside its weights in ``latent_bank.pt``."""
+
+    resolution: int = 64
+    start_resolution: int = 4
+    latent_dim: int = 128
+    style_dim: int = 128
+    mapping_layers: int = 4
+    channel_base: int = 512
+    channel_max: int = 128
+
+    def __post_init__(self) -> None:
+        for name in ("resolution", "start_resolution"):
+            value = getattr(self, name)
+            if value < 4 or value & (value - 1):
+                raise ValueError(f"{name} must be a power of two >= 4, got {value}")
+        if self.start_resolution > self.resolution:
+            raise ValueError(
+                f"start_resolution {self.start_resolution} exceeds resolution {self.resolution}"
+            )
+
+    @property
+    def resolutions(self) -> list[int]:
+        """Output resolution of each block, coarsest first."""
+        count = int(math.log2(self.resolution // self.start_resolution)) + 1
+        return [self.start_resolution * 2**i for i in range(count)]
+
+    def channels(self, resolution: int) -> int:
+        """Feature channels at ``resolution`` (ProGAN's rule: base / resolution, capped)."""
+        return max(1, min(self.channel_base // resolution, self.channel_max))
+
+    def to_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+def pixel_norm(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
+    """Normalise each vector to unit root-mean-square over dimension 1."""
+    return x * torch.rsqrt(x.pow(2).mean(dim=1, keepdim=True) + eps)
+
+
+class MappingNetwork(nn.Module):
+    """MLP latent ``z [B, latent_dim]`` -> style ``w [B, style_dim]``."""
+
+    def __init__(self, latent_dim: int, style_dim: int, layers: int) -> None:
+        super().__init__()
+        blocks: list[nn.Module] = []
+        width = latent_dim
+        for _ in range(layers):
+            blocks += [nn.Linear(width, style_dim), nn.LeakyReLU(0.2)]
+            width = style_dim
+        self.net = nn.Sequential(*blocks)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.net(pixel_norm(z))
+
+
+class AdaIN(nn.Module):
+    """Adaptive instance normalisation: ``(1 + gamma(s)) * instance_norm(x) + beta(s)``.
+
+    The style ``s`` is a vector ``[B, S]`` (one style per image, as in StyleGAN) or a map ``[B, S, H, W]``
+    on ``x``'s grid (one style per pixel); the affine map from style to ``(gamma, beta)`` is the same
+    linear layer in both cases. The generator's own blocks start with a random affine map (so different
+    latents give different maps from the first step); ``zero_init`` starts at the identity modulation, so
+    a block added to a pretrained cascade first passes normalised features through.
+    """
+
+    def __init__(self, channels: int, style_dim: int, zero_init: bool = False) -> None:
+        super().__init__()
+        self.channels = channels
+        self.affine = nn.Linear(style_dim, 2 * channels)
+        nn.init.zeros_(self.affine.bias)
+        if zero_init:
+            nn.init.zeros_(self.affine.weight)
+
+    def forward(self, x: torch.Tensor, style: torch.Tensor) -> torch.Tensor:
+        if style.ndim == 2:
+            params = self.affine(style)[:, :, None, None]
+        elif style.ndim == 4:
+            if style.shape[-2:] != x.shape[-2:]:
+                raise ValueError(f"style map grid {tuple(style.shape[-2:])} != features {tuple(x.shape[-2:])}")
+            params = F.conv2d(style, self.affine.weight[:, :, None, None], self.affine.bias)
+        else:
+            raise ValueError(f"style: expected [B, S] or [B, S, H, W], got {tuple(style.shape)}")
+        gamma, beta = params.chunk(2, dim=1)
+        return (1 + gamma) * instance_norm(x) + beta
+
+
+def instance_norm(x: torch.Tensor, eps: float = 1e-5) -> torch.Tensor:
+    """Per-sample, per-channel normalisation over the grid; a 1x1 map (a 32-pixel input's coarsest
+    level) normalises to zero instead of failing as ``nn.InstanceNorm2d`` does in training."""
+    mean = x.mean(dim=(2, 3), keepdim=True)
+    var = x.var(dim=(2, 3), keepdim=True, unbiased=False)
+    return (x - mean) * torch.rsqrt(var + eps)
+
+
+class NoiseInjection(nn.Module):
+    """Adds per-pixel Gaussian noise ``[B, 1, H, W]`` scaled by a learned per-channel strength (init 0)."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.strength = nn.Parameter(torch.zeros(1, channels, 1, 1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        noise = torch.randn(x.shape[0], 1, *x.shape[-2:], device=x.device, dtype=x.dtype)
+        return x + self.strength * noise
+
+
+def blur(x: torch.Tensor) -> torch.Tensor:
+    """Fixed 3x3 binomial low-pass filter per channel. After a stride-2 transposed convolution it removes
+    the checkerboard pattern the upsampling leaves (as StyleGAN filters its upsampling)."""
+    kernel = torch.tensor([1.0, 2.0, 1.0], device=x.device, dtype=x.dtype)
+    kernel = (kernel[:, None] * kernel[None, :] / 16).expand(x.shape[1], 1, 3, 3)
+    return F.conv2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), kernel, groups=x.shape[1])
+
+
+class SynthesisBlock(nn.Module):
+    """One resolution: (transposed-conv upsampling + blur, or nothing) -> noise -> AdaIN -> conv -> noise -> AdaIN.
+
+    The two AdaIN slots are :attr:`adains`; in latent-bank mode the caller passes its own modules instead.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, style_dim: int, upsample: bool) -> None:
+        super().__init__()
+        self.up = nn.ConvTranspose2d(in_channels, out_channels, 4, stride=2, padding=1) if upsample else None
+        self.conv = nn.Conv2d(out_channels, out_channels, 3, padding=1)
+        self.noises = nn.ModuleList([NoiseInjection(out_channels), NoiseInjection(out_channels)])
+        self.adains = nn.ModuleList([AdaIN(out_channels, style_dim), AdaIN(out_channels, style_dim)])
+        self.out_channels = out_channels
+
+    def forward(
+        self, x: torch.Tensor, style: torch.Tensor, adains: Sequence[nn.Module] | None = None, noise: bool = True
+    ) -> torch.Tensor:
+        adains = self.adains if adains is None else adains
+        if self.up is not None:
+            x = F.leaky_relu(blur(self.up(x)), 0.2)
+        x = adains[0](self.noises[0](x) if noise else x, style)
+        x = F.leaky_relu(self.conv(x), 0.2)
+        return adains[1](self.noises[1](x) if noise else x, style)
+
+
+class LatentBankGenerator(nn.Module):
+    """StyleGAN-like depth generator; see the module docstring for its two modes."""
+
+    def __init__(self, spec: GeneratorSpec | None = None) -> None:
+        super().__init__()
+        self.spec = spec or GeneratorSpec()
+        res = self.spec.resolutions
+        self.mapping = MappingNetwork(self.spec.latent_dim, self.spec.style_dim, self.spec.mapping_layers)
+        self.const = nn.Parameter(torch.randn(1, self.spec.channels(res[0]), res[0], res[0]))
+        blocks, to_depth = [], []
+        for i, r in enumerate(res):
+            c_in = self.spec.channels(res[i - 1]) if i else self.spec.channels(r)
+            blocks.append(SynthesisBlock(c_in, self.spec.channels(r), self.spec.style_dim, upsample=i > 0))
+            to_depth.append(nn.Conv2d(self.spec.channels(r), 1, 1))
+        self.blocks = nn.ModuleList(blocks)
+        self.to_depth = nn.ModuleList(to_depth)
+
+    @property
+    def block_channels(self) -> list[int]:
+        """Feature channels of each block's output, coarsest first."""
+        return [b.out_channels for b in self.blocks]
+
+    def forward(self, z: torch.Tensor, resolution: int | None = None, alpha: float = 1.0) -> torch.Tensor:
+        """Generate depth maps ``[B, 1, r, r]`` from latents ``z [B, latent_dim]`` at ``resolution`` r.
+
+        ``alpha`` in [0, 1] fades the newest block in: the output is ``alpha * block_r`` plus
+        ``(1 - alpha) *`` the nearest-upsampled output of the previous resolution.
+        """
+        resolution = resolution or self.spec.resolution
+        if resolution not in self.spec.resolutions:
+            raise ValueError(f"resolution {resolution} not in {self.spec.resolutions}")
+        if z.ndim != 2 or z.shape[1] != self.spec.latent_dim:
+            raise ValueError(f"z: expected [B, {self.spec.latent_dim}], got {tuple(z.shape)}")
+        w = self.mapping(z)
+        x = self.const.expand(z.shape[0], -1, -1, -1)
+        last = self.spec.resolutions.index(resolution)
+        previous = x
+        for i in range(last + 1):
+            previous = x
+            x = self.blocks[i](x, w)
+        out = self.to_depth[last](x)
+        if last > 0 and alpha < 1.0:
+            coarse = F.interpolate(self.to_depth[last - 1](previous), scale_factor=2, mode="nearest")
+            out = alpha * out + (1 - alpha) * coarse
+        return out
+
+    def bank_features(
+        self, styles: Sequence[torch.Tensor], adains: Sequence[Sequence[nn.Module]], noise: bool = False
+    ) -> list[torch.Tensor]:
+        """Latent-bank mode: the cascade's feature maps, driven by external spatial styles.
+
+        Args:
+            styles: one style map per block used, coarsest first: ``styles[k]`` is ``[B, style_dim, h*2^k,
+                w*2^k]`` (at most ``len(self.blocks)`` maps).
+            adains: ``adains[k]`` are the two AdaIN modules (caller-owned, e.g. trainable) for block k.
+            noise: inject the learned per-pixel noise (stochastic) or not (deterministic).
+
+        Returns:
+            ``[B, block_channels[k], h*2^k, w*2^k]`` for each block k. Gradients flow to ``styles`` and
+            ``adains``; the generator's own weights are left as they are (freeze them with
+            ``requires_grad_(False)``).
+        """
+        if not 1 <= len(styles) <= len(self.blocks) or len(adains) != len(styles):
+            raise ValueError(
+                f"expected 1..{len(self.blocks)} style maps with one AdaIN pair each, "
+                f"got {len(styles)} styles and {len(adains)} pairs"
+            )
+        h, w = styles[0].shape[-2:]
+        x = F.interpolate(self.const, size=(h, w), mode="bilinear", align_corners=False)
+        x = x.expand(styles[0].shape[0], -1, -1, -1)
+        features = []
+        for k, (style, pair) in enumerate(zip(styles, adains)):
+            expected = (h * 2**k, w * 2**k)
+            if style.ndim != 4 or tuple(style.shape[-2:]) != expected or style.shape[1] != self.spec.style_dim:
+                raise ValueError(
+                    f"styles[{k}]: expected [B, {self.spec.style_dim}, {expected[0]}, {expected[1]}], "
+                    f"got {tuple(style.shape)}"
+                )
+            x = self.blocks[k](x, style, adains=pair, noise=noise)
+            features.append(x)
+        return features
+
+
+def generator_payload(generator: LatentBankGenerator, extra: dict | None = None) -> dict:
+    """The dict written to ``latent_bank.pt``: tensors and plain values only (``weights_only`` loadable)."""
+    return {
+        "format": "endoflow.latent_bank/1",
+        "spec": generator.spec.to_dict(),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in generator.state_dict().items()},
+        **(extra or {}),
+    }
+
+
+def load_generator(path: str, map_location: str | torch.device = "cpu") -> LatentBankGenerator:
+    """Rebuild the generator saved by :func:`endoflow.training.pretrain.pretrain_latent_bank`."""
+    payload = torch.load(path, map_location=map_location, weights_only=True)
+    if not isinstance(payload, dict) or payload.get("format") != "endoflow.latent_bank/1":
+        raise DataFormatError(path, "expected a latent bank file written by pretrain_latent_bank")
+    generator = LatentBankGenerator(GeneratorSpec(**payload["spec"]))
+    generator.load_state_dict(payload["state_dict"])
+    return generator

@@ -1,0 +1,51 @@
+"""PoseNet: a pair encoder with Gaussian heads over the 6-DoF relative pose (the paper's VAE encoder).
+
+``forward(target, source)`` reads the two RGB frames stacked on the channel axis (6 channels, ResNet-18)
+and returns the mean and log-variance of the pose vector ``(rx, ry, rz, tx, ty, tz)`` (axis-angle in
+radians, translation in the depth unit, cm) of ``T_source_target``: the transform mapping points in the
+target camera frame into the source camera frame. Heads follow Monodepth2's pose decoder (1x1 squeeze, two
+3x3 convolutions, spatial mean); the mean is scaled by 0.01 so the initial motion is near identity, and the
+log-variance starts near ``logvar_init`` (a small spread, so early samples do not swamp the warp). With
+``pose_vae`` false there is no log-variance head and ``logvar`` is ``None``.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from endoflow.models.resnet_encoder import ResNetEncoder
+
+MEAN_SCALE = 0.01
+
+
+class PoseNet(nn.Module):
+    def __init__(self, pose_vae: bool, encoder_weights: str | None = None, logvar_init: float = -9.0) -> None:
+        super().__init__()
+        self.encoder = ResNetEncoder(num_images=2, weights=encoder_weights)
+        self.squeeze = nn.Conv2d(ResNetEncoder.channels[-1], 256, 1)
+        self.trunk = nn.Sequential(
+            nn.Conv2d(256, 256, 3, padding=1), nn.ReLU(), nn.Conv2d(256, 256, 3, padding=1), nn.ReLU()
+        )
+        self.mean_head = nn.Conv2d(256, 6, 1)
+        self.logvar_head = nn.Conv2d(256, 6, 1) if pose_vae else None
+        if self.logvar_head is not None:
+            nn.init.normal_(self.logvar_head.weight, std=1e-3)
+            nn.init.constant_(self.logvar_head.bias, logvar_init)
+
+    @property
+    def pose_vae(self) -> bool:
+        return self.logvar_head is not None
+
+    def forward(self, target: torch.Tensor, source: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``target, source [B, 3, H, W]`` in [0, 1] -> (``mean [B, 6]``, ``logvar [B, 6]`` or ``None``)."""
+        if target.shape != source.shape or target.ndim != 4 or target.shape[1] != 3:
+            raise ValueError(
+                f"target and source: expected two [B, 3, H, W] tensors, got {tuple(target.shape)}, {tuple(source.shape)}"
+            )
+        x = self.encoder(torch.cat([target, source], dim=1))[-1]
+        x = self.trunk(F.relu(self.squeeze(x)))
+        mean = MEAN_SCALE * self.mean_head(x).mean(dim=(2, 3))
+        logvar = self.logvar_head(x).mean(dim=(2, 3)) if self.logvar_head is not None else None
+        return mean, logvar

@@ -1,0 +1,163 @@
+"""Markdown tables like the paper's Tables 1-3 from the evaluation metrics of the workspace and experiments.
+
+Sources: ``<eval.metrics>/*.json`` of the workspace, and (unless disabled) every DVC experiment and its
+baseline commit as ``dvc exp show --json`` reports them, so after
+
+    dvc exp run -S model.latent_bank=false
+    dvc exp run -S model.pose_vae=false
+    dvc exp run -S model.latent_bank=false -S model.pose_vae=false
+
+``endoflow report`` prints the four-way ablation. Each run is labelled with its name and its ablation
+switches (latent bank, pose VAE). The trivial baselines are shown once per test set, from the first run.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Optional
+
+PAPER_COLUMNS = (("abs_rel", "Abs Rel"), ("sq_rel", "Sq Rel"), ("rmse", "RMSE"), ("rmse_log", "RMSE log"),
+                 ("l1", "L1"), ("a1", "δ<1.25"), ("a2", "δ<1.25²"), ("a3", "δ<1.25³"))
+SIMCOL_DEPTH_COLUMNS = (("l1", "L1 (cm)"), ("rel", "Rel (%)"), ("rmse", "RMSE (cm)"))
+SIMCOL_POSE_COLUMNS = (("ate", "ATE (cm)"), ("rte", "RTE (cm)"), ("rot", "ROT (°)"))
+ENDOSLAM_POSE_COLUMNS = (("ate", "ATE (cm)"), ("rpe_trans", "RPE trans (cm)"), ("rpe_rot", "RPE rot (°)"))
+BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map": "baseline: mean depth map",
+                   "constant_velocity": "baseline: constant velocity"}
+
+
+@dataclass
+class RunResults:
+    """One run (workspace, commit or experiment): its label and ``{test set: metrics JSON}``."""
+
+    name: str
+    params: dict[str, Any] = field(default_factory=dict)
+    test_sets: dict[str, dict] = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        model = self.params.get("model", {})
+        switches = [f"{text} {'on' if model[key] else 'off'}" for key, text in
+                    (("latent_bank", "bank"), ("pose_vae", "VAE")) if key in model]
+        return f"{self.name} ({', '.join(switches)})" if switches else self.name
+
+
+def workspace_results(metrics_dir: str | Path, params: Optional[dict] = None) -> RunResults:
+    """The workspace's ``<metrics_dir>/*.json``."""
+    folder = Path(metrics_dir)
+    test_sets = {path.stem: json.loads(path.read_text()) for path in sorted(folder.glob("*.json"))}
+    return RunResults("workspace", params or {}, test_sets)
+
+
+def experiment_results(exp_show: list[dict], metrics_dir: str) -> list[RunResults]:
+    """Runs from parsed ``dvc exp show --json`` output (baseline commits and their experiments)."""
+    prefix = metrics_dir.rstrip("/") + "/"
+    runs = []
+    for state in _states(exp_show):
+        data = state.get("data") or {}
+        test_sets = {Path(path).stem: result["data"] for path, result in (data.get("metrics") or {}).items()
+                     if path.startswith(prefix) and result.get("data")}
+        if not test_sets or state.get("rev") == "workspace":
+            continue
+        params = ((data.get("params") or {}).get("params.yaml") or {}).get("data") or {}
+        runs.append(RunResults(state.get("name") or str(state.get("rev", "?"))[:7], params, test_sets))
+    return runs
+
+
+def _states(exp_show: Iterable[dict]) -> Iterable[dict]:
+    for state in exp_show:
+        yield state
+        for group in state.get("experiments") or []:
+            yield from _states(group.get("revs") or [])
+
+
+def dvc_experiments(project_root: str | Path) -> list[dict]:
+    """``dvc exp show --json`` of the project (an empty list outside a DVC/git project)."""
+    try:
+        completed = subprocess.run(["dvc", "exp", "show", "--json"], cwd=project_root, capture_output=True,
+                                   text=True, check=True)
+    except (OSError, subprocess.CalledProcessError):
+        return []
+    return json.loads(completed.stdout or "[]")
+
+
+def markdown_table(headers: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join(" --- " for _ in headers) + "|"]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def _number(value: Any) -> str:
+    return f"{value:.4f}" if isinstance(value, (int, float)) else "–"
+
+
+def protocol_table(runs: list[RunResults], test_set: str, protocol: str,
+                   columns: tuple[tuple[str, str], ...]) -> Optional[str]:
+    """Rows: every run's model, then the first run's baselines; ``None`` when no run has this protocol."""
+    rows = []
+    baselines: dict[str, dict] = {}
+    for run in runs:
+        methods = run.test_sets.get(test_set, {}).get(protocol)
+        if not methods:
+            continue
+        if "model" in methods:
+            rows.append([run.label] + [_number(methods["model"].get(key)) for key, _ in columns])
+        for method, values in methods.items():
+            if method != "model":
+                baselines.setdefault(method, values)
+    if not rows:
+        return None
+    rows += [[BASELINE_LABELS.get(m, m)] + [_number(v.get(key)) for key, _ in columns] for m, v in baselines.items()]
+    return markdown_table(["run"] + [title for _, title in columns], rows)
+
+
+def format_report(runs: list[RunResults], order: Iterable[str] = ()) -> str:
+    """Markdown: per test set (those in ``order`` first), the paper depth protocol (Table 1 style), the
+    SimCol3D challenge depth protocol, and pose (Table 2 style); then an ablation summary (Table 3 style)."""
+    if not runs:
+        return "No evaluation metrics found: run `dvc repro` (or `dvc exp run`) first.\n"
+    found = {name for run in runs for name in run.test_sets}
+    test_sets = [name for name in order if name in found] + sorted(found - set(order))
+    sections = []
+    for test_set in test_sets:
+        parts = [f"## {test_set}"]
+        for title, protocol, columns in (
+                ("Depth, paper protocol (per-image median scaling, capped at 20 cm)", "depth_paper", PAPER_COLUMNS),
+                ("Depth, SimCol3D challenge protocol (one scale per sequence)", "depth_simcol", SIMCOL_DEPTH_COLUMNS),
+                ("Pose, SimCol3D challenge protocol (medians)", "pose_simcol", SIMCOL_POSE_COLUMNS),
+                ("Pose, EndoSLAM protocol (ATE RMSE, RPE means)", "pose_endoslam", ENDOSLAM_POSE_COLUMNS)):
+            table = protocol_table(runs, test_set, protocol, columns)
+            if table:
+                parts.append(f"### {title}\n\n{table}")
+        sections.append("\n\n".join(parts))
+    sections.append("## Ablation summary\n\n" + ablation_table(runs, test_sets))
+    return "\n\n".join(sections) + "\n"
+
+
+def ablation_table(runs: list[RunResults], test_sets: list[str]) -> str:
+    """One row per run: Abs Rel (paper protocol) and RTE (challenge protocol) on every test set."""
+    headers = ["run"] + [f"{t} {m}" for t in test_sets for m in ("Abs Rel", "RTE")]
+    rows = []
+    for run in runs:
+        row = [run.label]
+        for test_set in test_sets:
+            metrics = run.test_sets.get(test_set, {})
+            row.append(_number(metrics.get("depth_paper", {}).get("model", {}).get("abs_rel")))
+            row.append(_number(metrics.get("pose_simcol", {}).get("model", {}).get("rte")))
+        rows.append(row)
+    return markdown_table(headers, rows)
+
+
+def build_report(project_root: str | Path, metrics_dir: str, params: Optional[dict] = None,
+                 experiments: bool = True) -> str:
+    """The whole report for a project: workspace metrics plus, if asked, DVC experiments."""
+    root = Path(project_root)
+    runs = []
+    workspace = workspace_results(root / metrics_dir, params)
+    if workspace.test_sets:
+        runs.append(workspace)
+    if experiments:
+        runs += experiment_results(dvc_experiments(root), metrics_dir)
+    return format_report(runs, order=((params or {}).get("eval") or {}).get("test_sets") or ())

@@ -1,0 +1,361 @@
+"""The per-worker training loop that Ray Train runs on every rank (DDP).
+
+It lives in the installed package because Ray workers unpickle it by module path. ``config`` (built by
+:mod:`endoflow.training.ray_trainer`) holds plain data only: the params as a nested dict, absolute paths or
+fsspec URLs of the shards and the latent bank, the MLflow tracking URI and run id, and ``resume_from``.
+
+Per epoch every rank trains on its own shards (:func:`endoflow.data.loader.rank_batches`: disjoint shards,
+the same number of batches on every rank, so no rank waits forever in an all-reduce). The losses are
+all-reduced every step: the mean is what gets logged, and a non-finite value stops every rank at the same
+step with :class:`NonFiniteLossError` before any weight is touched, leaving the last checkpoint as it was
+(non-finite weights after an epoch's last update stop it the same way). After each epoch rank 0's BatchNorm
+statistics are broadcast, the ranks validate disjoint parts of the val split (median-scaled Abs Rel and
+RMSE, the paper's protocol) and reduce the sums, and every rank reports a checkpoint through Ray:
+``state.pt`` from rank 0 and a ``rank-<r>.json`` audit from every rank (see
+:mod:`endoflow.training.checkpoint`). A restarted run continues after the newest complete checkpoint
+(Ray's restored one or the driver's ``resume_from``, whichever is newer).
+
+Only rank 0 writes to MLflow (SQLite allows one writer): losses every ``train.log_every`` steps, validation
+metrics every epoch, and depth beside GT for fixed val frames every epoch.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import fsspec
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import ray.train  # noqa: E402
+import ray.train.torch  # noqa: E402
+import torch  # noqa: E402
+import torch.distributed as dist  # noqa: E402
+from torch import nn  # noqa: E402
+
+from endoflow import tracking  # noqa: E402
+from endoflow.config import Params, TrainConfig, params_from_dict  # noqa: E402
+from endoflow.data.loader import rank_batches, shard_sample_counts, triplet_dataset  # noqa: E402
+from endoflow.evaluation import metrics, plots  # noqa: E402
+from endoflow.models.endoflow_model import EndoflowModel, build_model  # noqa: E402
+from endoflow.training.checkpoint import (  # noqa: E402
+    load_training_state,
+    save_training_state,
+    weights_digest,
+    write_rank_audit,
+)
+from endoflow.training.objective import training_step_losses  # noqa: E402
+
+LOGGED_LOSSES = ("total", "photometric", "smoothness", "kl")
+
+
+class NonFiniteLossError(RuntimeError):
+    """The training loss became NaN or infinite; the message names the epoch and step."""
+
+
+class LossModule(nn.Module):
+    """The model and its objective as one module, so DDP sees the forward pass and syncs gradients."""
+
+    def __init__(self, model: EndoflowModel, params: Params) -> None:
+        super().__init__()
+        self.model = model
+        self.loss_cfg = params.loss
+
+    def forward(self, batch: dict) -> dict[str, torch.Tensor]:
+        return training_step_losses(self.model, batch, self.loss_cfg)
+
+
+def train_loop_per_worker(config: dict[str, Any]) -> None:
+    """Ray Train entry point (see module docstring for ``config``)."""
+    params = params_from_dict(config["params"])
+    context = ray.train.get_context()
+    rank, world = context.get_world_rank(), context.get_world_size()
+    device = ray.train.torch.get_device()
+    on_gpu = device.type == "cuda"
+    torch.manual_seed(params.seed)  # identical initial weights on every rank (DDP also broadcasts them)
+
+    model = build_model(params, local_file(config["latent_bank"]) if config["latent_bank"] else None)
+    if on_gpu and params.train.bf16:
+        model = model.to(memory_format=torch.channels_last)
+    module = ray.train.torch.prepare_model(LossModule(model, params), move_to_device=True)
+    trainable = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.Adam(trainable, lr=params.train.lr, weight_decay=params.train.weight_decay)
+    scheduler = make_scheduler(optimizer, params.train)
+
+    state = {"epoch": -1, "global_step": 0, "best": None, "history": []}
+    saved = restored_state(config.get("resume_from"))
+    if saved is not None:
+        model.load_state_dict(saved["model"])
+        optimizer.load_state_dict(saved["optimizer"])
+        scheduler.load_state_dict(saved["scheduler"])
+        state = {k: saved[k] for k in state}
+        if rank == 0:
+            progress(f"[train] resuming after epoch {state['epoch'] + 1} (global step {state['global_step']})")
+
+    logger = RankZeroLogger(config, params, rank)
+    sizes = shard_sample_counts(config["train_shards"] + config["val_shards"])
+    examples = fixed_examples(config["val_shards"], params.train.image_examples) if rank == 0 else []
+    for epoch in range(state["epoch"] + 1, params.train.epochs):
+        seen = train_one_epoch(module, model, optimizer, params, config, sizes, epoch, state, rank, world,
+                               device, logger)
+        check_finite_weights(model, epoch, state)
+        broadcast_buffers(model, world)
+        lr = optimizer.param_groups[0]["lr"]
+        scheduler.step()
+        val = validate(model, params, config, sizes, rank, world, device)
+        record = {"epoch": epoch, "lr": lr, "train_loss": seen["mean_loss"], **val}
+        state["history"].append(record)
+        if improves_on(val, state["best"]):
+            state["best"] = {"epoch": epoch, "val": val, "model": cpu_copy(model.state_dict())}
+        state["epoch"] = epoch
+        logger.epoch_end(record, model, examples, device)
+        report_checkpoint(model, optimizer, scheduler, state, seen["keys"], rank, record)
+
+
+def restored_state(resume_from: str | None) -> dict | None:
+    """The newest of Ray's restored checkpoint and the driver's pick (the latest complete one in storage):
+    Ray's record of checkpoints can lag behind the files when a run is killed just after a checkpoint."""
+    candidates = []
+    checkpoint = ray.train.get_checkpoint()
+    if checkpoint is not None:
+        with checkpoint.as_directory() as folder:
+            candidates.append(load_training_state(folder))
+    if resume_from:
+        candidates.append(load_training_state(resume_from))
+    return max(candidates, key=lambda state: state["epoch"], default=None)
+
+
+def train_one_epoch(module: nn.Module, model: EndoflowModel, optimizer: torch.optim.Optimizer, params: Params,
+                    config: dict, sizes: dict[str, int], epoch: int, state: dict, rank: int, world: int,
+                    device: torch.device, logger: "RankZeroLogger") -> dict[str, Any]:
+    """One pass over this rank's share; returns the sample keys trained on and the mean loss."""
+    cfg = params.train
+    batches = rank_batches(config["train_shards"], rank, world, cfg.batch_size, epoch, params.seed,
+                           shard_sizes=sizes)
+    total_steps = steps_in_epoch(config["train_shards"], world, cfg, sizes)
+    module.train()
+    keys: list[str] = []
+    losses: list[float] = []
+    started = time.perf_counter()
+    for step, batch in enumerate(batches):
+        if step >= total_steps:
+            break
+        keys.extend(batch["key"])
+        inputs = to_device(batch, device, channels_last=device.type == "cuda" and cfg.bf16)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda" and cfg.bf16):
+            out = module(inputs)
+        reduced = mean_over_ranks(torch.stack([out[k].detach().float() for k in LOGGED_LOSSES]), world)
+        if not torch.isfinite(reduced).all():
+            raise NonFiniteLossError(
+                f"non-finite training loss {dict(zip(LOGGED_LOSSES, reduced.tolist()))} at epoch {epoch}, "
+                f"step {step} (global step {state['global_step']}); stopped before updating the weights, "
+                f"the last checkpoint (epoch {state['epoch']}) is kept; lower train.lr or check the data")
+        optimizer.zero_grad(set_to_none=True)
+        out["total"].backward()
+        if cfg.grad_clip is not None:
+            torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], cfg.grad_clip)
+        optimizer.step()
+        state["global_step"] += 1
+        losses.append(float(reduced[0]))
+        logger.step(state["global_step"], epoch, step, total_steps, dict(zip(LOGGED_LOSSES, reduced.tolist())),
+                    samples=(step + 1) * cfg.batch_size * world, elapsed=time.perf_counter() - started)
+    return {"keys": keys, "mean_loss": float(np.mean(losses)) if losses else math.nan}
+
+
+def improves_on(val: dict[str, float], best: dict | None) -> bool:
+    """Lower (or equal: later) val Abs Rel wins; without validation data the latest epoch is kept."""
+    if best is None:
+        return True
+    return val.get("val_abs_rel", math.inf) <= best["val"].get("val_abs_rel", math.inf)
+
+
+def check_finite_weights(model: EndoflowModel, epoch: int, state: dict) -> None:
+    """Refuse to checkpoint non-finite weights (the last step's update can break them after a finite loss)."""
+    broken = [name for name, p in model.named_parameters() if p.requires_grad and not torch.isfinite(p).all()]
+    if broken:
+        raise NonFiniteLossError(
+            f"non-finite weights ({broken[0]} and {len(broken) - 1} more) after the last step of epoch {epoch} "
+            f"(global step {state['global_step']}); the last checkpoint (epoch {state['epoch']}) is kept; "
+            f"lower train.lr or check the data")
+
+
+def steps_in_epoch(urls: list[str], world: int, cfg: TrainConfig, sizes: dict[str, int]) -> int:
+    """Batches per rank this epoch: the even share, capped by ``train.steps_per_epoch``."""
+    share = sum(sizes[u] for u in urls) // world // cfg.batch_size
+    return share if cfg.steps_per_epoch is None else min(share, cfg.steps_per_epoch)
+
+
+@torch.no_grad()
+def validate(model: EndoflowModel, params: Params, config: dict, sizes: dict[str, int], rank: int, world: int,
+             device: torch.device) -> dict[str, float]:
+    """Median-scaled Abs Rel and RMSE (paper protocol) over the val split, shared out over the ranks."""
+    if not config["val_shards"]:
+        return {}
+    model.eval()
+    sums = torch.zeros(3, dtype=torch.float64, device=device)  # abs_rel, rmse, images (on the backend's device)
+    batches = rank_batches(config["val_shards"], rank, world, params.train.batch_size, 0, params.seed,
+                           shard_sizes=sizes)
+    for index, batch in enumerate(batches):
+        if params.train.val_batches is not None and index >= params.train.val_batches:
+            break
+        depth = model.predict_depth(batch["cur"].to(device)).float().cpu().numpy()[:, 0]
+        for gt, pred in zip(batch["depth"][:, 0].numpy(), depth):
+            if (gt > 0).any():
+                errors = metrics.paper_depth_errors(gt, pred)
+                sums += torch.tensor([errors["abs_rel"], errors["rmse"], 1.0], dtype=torch.float64, device=device)
+    if world > 1:
+        dist.all_reduce(sums)
+    model.train()
+    abs_rel, rmse, images = sums.cpu().tolist()
+    if images == 0:
+        return {}
+    return {"val_abs_rel": abs_rel / images, "val_rmse": rmse / images, "val_images": int(images)}
+
+
+def report_checkpoint(model: EndoflowModel, optimizer: torch.optim.Optimizer, scheduler: Any, state: dict,
+                      keys: list[str], rank: int, record: dict[str, Any]) -> None:
+    """Every rank reports (Ray needs that); rank 0 adds the training state, every rank its audit."""
+    with tempfile.TemporaryDirectory() as folder:
+        if rank == 0:
+            save_training_state(Path(folder), {**state, "model": model.state_dict(),
+                                               "optimizer": optimizer.state_dict(),
+                                               "scheduler": scheduler.state_dict()})
+        write_rank_audit(Path(folder), rank, state["epoch"], keys, weights_digest(model))
+        ray.train.report({k: v for k, v in record.items() if isinstance(v, (int, float))},
+                         checkpoint=ray.train.Checkpoint.from_directory(folder),
+                         checkpoint_dir_name=f"epoch-{state['epoch']:04d}")
+
+
+# -------------------------------------------------------------------------------------- helpers
+def make_scheduler(optimizer: torch.optim.Optimizer, cfg: TrainConfig) -> torch.optim.lr_scheduler.LRScheduler:
+    """Per-epoch learning-rate schedule from ``train.schedule``."""
+    if cfg.schedule == "step":
+        return torch.optim.lr_scheduler.StepLR(optimizer, step_size=cfg.step_epochs, gamma=cfg.gamma)
+    if cfg.schedule == "cosine":
+        return torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(cfg.epochs, 1))
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
+
+
+def broadcast_buffers(model: nn.Module, world: int) -> None:
+    """Give every rank rank 0's buffers (BatchNorm statistics). DDP syncs gradients, so parameters agree, but
+    each rank's last forward pass updated its running statistics with its own batch; after this all ranks
+    validate and checkpoint the same model."""
+    if world > 1:
+        for buffer in model.buffers():
+            dist.broadcast(buffer, src=0)
+
+
+def mean_over_ranks(values: torch.Tensor, world: int) -> torch.Tensor:
+    """Mean of ``values`` over all ranks, on the CPU (a sum with any NaN stays NaN, so every rank sees it).
+
+    The reduction runs on the values' device: NCCL (GPU) reduces CUDA tensors only, gloo CPU ones."""
+    values = values.detach().double()
+    if world > 1:
+        dist.all_reduce(values)
+    return values.cpu() / world
+
+
+def to_device(batch: dict, device: torch.device, channels_last: bool) -> dict:
+    moved = {}
+    for key, value in batch.items():
+        if isinstance(value, torch.Tensor):
+            value = value.to(device, non_blocking=True)
+            if channels_last and value.dim() == 4:
+                value = value.contiguous(memory_format=torch.channels_last)
+        moved[key] = value
+    return moved
+
+
+def cpu_copy(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    return {k: v.detach().cpu().clone() for k, v in state_dict.items()}
+
+
+def local_file(location: str) -> str:
+    """A local path for ``location`` (fsspec URLs are copied into a temporary file once per process)."""
+    if "://" not in location or location.startswith("file://"):
+        return fsspec.core.url_to_fs(location)[1] if location.startswith("file://") else location
+    with fsspec.open(location, "rb") as remote:
+        data = remote.read()
+    local = Path(tempfile.mkdtemp(prefix="endoflow-")) / Path(location).name
+    local.write_bytes(data)
+    return str(local)
+
+
+def fixed_examples(val_urls: list[str], count: int) -> list[dict]:
+    """The first sample of each of the first ``count`` val shards: the same frames every epoch."""
+    examples = []
+    for url in val_urls[:count]:
+        sample = next(iter(triplet_dataset([url])), None)
+        if sample is not None:
+            examples.append(sample)
+    return examples
+
+
+class RankZeroLogger:
+    """Progress lines and MLflow logging; a no-op on ranks other than 0."""
+
+    def __init__(self, config: dict, params: Params, rank: int) -> None:
+        self.active = rank == 0
+        self.uri = config["tracking_uri"]
+        self.run_id = config["run_id"]
+        self.log_every = max(params.train.log_every, 1)
+        self.epochs = params.train.epochs
+
+    def step(self, global_step: int, epoch: int, step: int, total_steps: int, losses: dict[str, float],
+             samples: int, elapsed: float) -> None:
+        if not self.active or (step + 1) % self.log_every and step + 1 != total_steps:
+            return
+        rate = samples / max(elapsed, 1e-9)
+        steps_left = (total_steps - step - 1) + (self.epochs - epoch - 1) * total_steps
+        seconds_left = steps_left * elapsed / (step + 1)
+        progress(f"[train] epoch {epoch + 1}/{self.epochs} step {step + 1}/{total_steps} "
+                 f"loss {losses['total']:.4f} | {rate:.1f} samples/s | ~{format_duration(seconds_left)} left "
+                 f"(training only)")
+        tracking.log_metrics(self.uri, self.run_id, {**{f"loss/{k}": v for k, v in losses.items()},
+                                                     "samples_per_second": rate}, step=global_step)
+
+    def epoch_end(self, record: dict[str, Any], model: EndoflowModel, examples: list[dict],
+                  device: torch.device) -> None:
+        if not self.active:
+            return
+        values = {k: v for k, v in record.items() if k != "epoch" and isinstance(v, (int, float))}
+        progress(f"[train] epoch {record['epoch'] + 1}/{self.epochs} done: "
+                 + ", ".join(f"{k} {v:.4g}" for k, v in values.items()))
+        tracking.log_metrics(self.uri, self.run_id, values, step=record["epoch"])
+        if examples:
+            figure = examples_figure(model, examples, device, f"validation frames after epoch {record['epoch'] + 1}")
+            tracking.log_figure(self.uri, self.run_id, figure, f"val_depth/epoch_{record['epoch']:04d}.png")
+            plt.close(figure)
+
+
+@torch.no_grad()
+def examples_figure(model: EndoflowModel, examples: list[dict], device: torch.device, title: str):
+    was_training = model.training
+    model.eval()
+    rgb = torch.stack([e["cur"] for e in examples]).to(device)
+    depth = model.predict_depth(rgb).float().cpu().numpy()[:, 0]
+    model.train(was_training)
+    rows = [{"label": f"{e['meta']['sequence']} #{e['meta']['frame']}", "rgb": e["cur"].permute(1, 2, 0).numpy(),
+             "gt": e["depth"][0].numpy(), "pred": d} for e, d in zip(examples, depth)]
+    return plots.depth_examples_figure(title, rows)
+
+
+def format_duration(seconds: float) -> str:
+    seconds = int(max(seconds, 0))
+    hours, rest = divmod(seconds, 3600)
+    minutes, seconds = divmod(rest, 60)
+    return f"{hours}h{minutes:02d}m" if hours else f"{minutes}m{seconds:02d}s"
+
+
+def progress(line: str) -> None:
+    """One progress line on the process's real stdout (Ray forwards it to the driver once; Ray Train's
+    patched ``print`` would also copy it into its logger, printing it twice)."""
+    sys.__stdout__.write(line + "\n")
+    sys.__stdout__.flush()

@@ -1,0 +1,102 @@
+"""The self-supervised training objective (paper eq. 3, with Monodepth2's options).
+
+For a target frame ``cur`` and its neighbours ``prev`` and ``next``:
+
+- DepthNet predicts disparity at each scale; with ``loss.multiscale`` every scale's disparity is upsampled
+  to full resolution before it becomes depth (Monodepth2), else only scale 0 is used.
+- PoseNet gives ``T_prev_cur`` and ``T_next_cur`` (sampled in training mode with the pose VAE, see
+  :mod:`endoflow.models.endoflow_model`); both neighbours are warped into ``cur`` with ``warp_frame`` at full
+  resolution and the intrinsics ``K`` of the stored size.
+- ``photometric``: :func:`reprojection_loss` (MSE as the paper, or SSIM + L1; per-pixel minimum and
+  auto-masking as ``loss.*`` says), averaged over scales.
+- ``smoothness``: edge-aware smoothness of each scale's disparity, divided by ``2^scale``, averaged.
+- ``kl``: the closed-form KL of both predicted pose distributions to N(0, I), summed over the two poses,
+  averaged over the batch (zero without the pose VAE).
+- ``total = photometric + loss.smoothness_weight * smoothness + loss.kl_weight * kl`` (``kl_weight`` is beta).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from endoflow.config import LossConfig
+from endoflow.geometry.warp import warp_frame
+from endoflow.losses.kl import kl_standard_normal
+from endoflow.losses.photometric import reprojection_loss
+from endoflow.losses.smoothness import edge_aware_smoothness
+from endoflow.models.endoflow_model import EndoflowModel, PoseEstimate
+
+REQUIRED_KEYS = ("prev", "cur", "next", "K")
+
+
+def _check_batch(batch: dict) -> None:
+    missing = [k for k in REQUIRED_KEYS if k not in batch]
+    if missing:
+        raise ValueError(f"batch lacks {missing}; expected the loader's keys {list(REQUIRED_KEYS)}")
+    shape = batch["cur"].shape
+    if len(shape) != 4 or shape[1] != 3:
+        raise ValueError(f"batch['cur']: expected [B, 3, H, W], got {tuple(shape)}")
+    for key in ("prev", "next"):
+        if batch[key].shape != shape:
+            raise ValueError(f"batch[{key!r}]: expected {tuple(shape)}, got {tuple(batch[key].shape)}")
+    if tuple(batch["K"].shape) != (shape[0], 3, 3):
+        raise ValueError(f"batch['K']: expected [{shape[0]}, 3, 3], got {tuple(batch['K'].shape)}")
+
+
+def pose_kl(poses: list[PoseEstimate]) -> torch.Tensor:
+    """Batch mean of the summed KL of the pose distributions (0 when they are deterministic)."""
+    terms = [kl_standard_normal(p.mean, p.logvar) for p in poses if p.logvar is not None]
+    if not terms:
+        return poses[0].mean.new_zeros(())
+    return torch.stack(terms).sum(dim=0).mean()
+
+
+def reprojection(
+    target: torch.Tensor,
+    sources: list[torch.Tensor],
+    depth: torch.Tensor,
+    T_source_target: list[torch.Tensor],
+    K: torch.Tensor,
+    loss_cfg: LossConfig,
+) -> torch.Tensor:
+    """Photometric loss of ``target [B, 3, H, W]`` rebuilt from each source with target ``depth [B, 1, H, W]``
+    and ``T_source_target[i] [B, 4, 4]`` (one per source), as ``loss_cfg`` says."""
+    warped = [warp_frame(src, depth, T, K)[0] for src, T in zip(sources, T_source_target)]
+    return reprojection_loss(warped, target, sources, loss_cfg)[0]
+
+
+def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig) -> dict[str, torch.Tensor]:
+    """Losses of one batch (keys as the loader's: ``prev``, ``cur``, ``next`` ``[B, 3, H, W]`` in [0, 1],
+    ``K [B, 3, 3]``).
+
+    Returns:
+        ``total`` (what to back-propagate), ``photometric``, ``smoothness``, ``kl``, and per scale s
+        ``photometric/s`` and ``smoothness/s``; all scalars.
+    """
+    _check_batch(batch)
+    cur, sources = batch["cur"], [batch["prev"], batch["next"]]
+    K = batch["K"].to(cur.dtype)
+    disps = model.depth_net(cur)
+    poses = [
+        model.source_pose(cur, batch["prev"], source_is_next=False),
+        model.source_pose(cur, batch["next"], source_is_next=True),
+    ]
+    scales = range(len(disps)) if loss_cfg.multiscale else range(1)
+    out: dict[str, torch.Tensor] = {}
+    photometric, smoothness = [], []
+    for s in scales:
+        disp = disps[s]
+        if disp.shape[-2:] != cur.shape[-2:]:
+            disp = F.interpolate(disp, size=cur.shape[-2:], mode="bilinear", align_corners=False)
+        transforms = [pose.T_source_target for pose in poses]
+        loss = reprojection(cur, sources, model.disp_to_depth(disp), transforms, K, loss_cfg)
+        smooth = edge_aware_smoothness(disps[s], cur) / 2**s
+        out[f"photometric/{s}"], out[f"smoothness/{s}"] = loss, smooth
+        photometric.append(loss)
+        smoothness.append(smooth)
+    out["photometric"] = torch.stack(photometric).mean()
+    out["smoothness"] = torch.stack(smoothness).mean()
+    out["kl"] = pose_kl(poses)
+    out["total"] = out["photometric"] + loss_cfg.smoothness_weight * out["smoothness"] + loss_cfg.kl_weight * out["kl"]
+    return out

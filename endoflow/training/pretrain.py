@@ -1,0 +1,334 @@
+"""Generative pretraining of the latent bank on depth maps (paper section 3.1.2): WGAN-GP, progressive growing.
+
+Data: every ``depth.png`` of the SceneNet shards (``<shards_dir>/{train,val}-*.tar``; z-depth in cm =
+value * ``meta.depth_unit``, 0 = unknown). Training uses the train split; the held-out maps for the
+sliced Wasserstein distance are the val split (or, when a dataset has no val shards, the last
+``latent_bank.holdout_fraction`` of the train maps, which are then not trained on).
+
+Depth normalisation (what the generator learns to produce, in [-1, 1]): centred log-depth,
+``x = clip((log d - mean log d) / latent_bank.depth_log_range, -1, 1)`` with the mean over the map's known
+pixels; unknown pixels get 0 (the map's geometric-mean depth). Centring makes the prior scale-free: a
+monocular depth network only knows depth up to scale, and indoor scenes (metres) must inform colon scenes
+(centimetres). Maps are normalised at the stored size, then area-resized to each training resolution.
+
+Training: for each resolution from ``start_resolution`` to ``resolution``, ``steps_per_stage`` generator
+steps, each after ``n_critic`` critic steps; a new resolution fades in over the first ``fade_fraction`` of
+its stage (generator, critic and the real maps alike, as ProGAN). Losses from :mod:`endoflow.losses.gan`
+(WGAN-GP, ``gp_gamma``) plus ProGAN's small drift penalty on real scores; Adam ``betas``, fixed ``lr``. The
+saved generator is an exponential moving average of the trained weights (``ema_decay``, warmed up).
+
+Outputs: ``out_path`` (``{"format", "spec", "state_dict", "normalisation"}``, loadable with
+``torch.load(weights_only=True)`` and :func:`endoflow.models.latent_bank.load_generator`), ``metrics_path``
+(JSON: ``swd_untrained``, ``swd_final``, ``swd_real_reference`` (train vs held-out real: the floor),
+per-level values, steps, seconds), sample grids under ``plots_dir`` and an MLflow run in
+``tracking.latent_bank_experiment`` with the same params, metrics and files.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import json
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from endoflow.config import Params
+from endoflow.data.base import DataFormatError
+from endoflow.data.loader import decode_sample, list_shards, raw_samples
+from endoflow.evaluation.swd import multiscale_swd
+from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
+from endoflow.models.critic import Critic
+from endoflow.models.endoflow_model import generator_spec
+from endoflow.models.latent_bank import LatentBankGenerator, generator_payload
+
+SWD_MIN_RESOLUTION = 16
+
+
+# ------------------------------------------------------------------------------------------------ data
+def normalise_depth(depth_cm: np.ndarray, log_range: float) -> np.ndarray:
+    """Centred log-depth in [-1, 1] (see the module docstring); 0 where depth is unknown (<= 0)."""
+    known = depth_cm > 0
+    out = np.zeros_like(depth_cm, dtype=np.float32)
+    if known.any():
+        log_depth = np.log(depth_cm[known])
+        out[known] = np.clip((log_depth - log_depth.mean()) / log_range, -1.0, 1.0)
+    return out
+
+
+def load_depth_maps(urls: list[str], resolution: int, log_range: float) -> torch.Tensor:
+    """All depth maps of ``urls``, normalised, area-resized to ``[N, 1, resolution, resolution]``."""
+    maps = []
+    for sample in raw_samples(urls):
+        normalised = normalise_depth(decode_sample(sample)["depth"][0].numpy(), log_range)
+        maps.append(cv2.resize(normalised, (resolution, resolution), interpolation=cv2.INTER_AREA))
+    if not maps:
+        raise DataFormatError(urls[0] if urls else "?", "no depth samples in these shards")
+    return torch.from_numpy(np.stack(maps))[:, None]
+
+
+def train_and_heldout(shards_dir: Path, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+    cfg = params.latent_bank
+    train_urls = list_shards(str(shards_dir), "train")
+    if not train_urls:
+        raise DataFormatError(shards_dir, "no train-*.tar shards (run the preprocess stage for scenenet)")
+    train = load_depth_maps(train_urls, cfg.resolution, cfg.depth_log_range)
+    val_urls = list_shards(str(shards_dir), "val")
+    if val_urls:
+        return train, load_depth_maps(val_urls, cfg.resolution, cfg.depth_log_range)
+    cut = len(train) - max(1, int(round(cfg.holdout_fraction * len(train))))
+    if cut < 1:
+        raise DataFormatError(shards_dir, f"too few depth maps ({len(train)}) to hold some out")
+    return train[:cut], train[cut:]
+
+
+def at_resolution(maps: torch.Tensor, resolution: int, alpha: float) -> torch.Tensor:
+    """Maps at ``resolution``, blended with their upsampled half-resolution version during a fade-in."""
+    if maps.shape[-1] != resolution:
+        maps = F.interpolate(maps, size=(resolution, resolution), mode="area")
+    if alpha < 1.0:
+        coarse = F.interpolate(F.avg_pool2d(maps, 2), scale_factor=2, mode="nearest")
+        maps = alpha * maps + (1 - alpha) * coarse
+    return maps
+
+
+# -------------------------------------------------------------------------------------------- training
+class EMA:
+    """Exponential moving average of a model's parameters and buffers, warmed up over the first steps."""
+
+    def __init__(self, model: torch.nn.Module, decay: float) -> None:
+        self.model = copy.deepcopy(model).requires_grad_(False)
+        self.decay = decay
+        self.updates = 0
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module) -> None:
+        self.updates += 1
+        # Early on the average would be mostly the random initialisation; ramp the decay up.
+        decay = min(self.decay, (1 + self.updates) / (10 + self.updates))
+        for avg, new in zip(self.model.state_dict().values(), model.state_dict().values()):
+            avg.lerp_(new, 1 - decay)
+
+
+def stage_schedule(params: Params) -> list[tuple[int, int]]:
+    """(resolution, generator steps) per progressive stage."""
+    spec = generator_spec(params)
+    return [(r, params.latent_bank.steps_per_stage) for r in spec.resolutions]
+
+
+@torch.no_grad()
+def generate(generator: LatentBankGenerator, count: int, latent_dim: int, seed: int, batch: int = 64) -> torch.Tensor:
+    """``count`` maps at the full resolution from latents drawn with ``seed``."""
+    rng = torch.Generator().manual_seed(seed)
+    z = torch.randn(count, latent_dim, generator=rng)
+    return torch.cat([generator(z[i : i + batch]) for i in range(0, count, batch)])
+
+
+def swd_against(heldout: torch.Tensor, fake: torch.Tensor, seed: int) -> dict:
+    n = min(len(heldout), len(fake))
+    return multiscale_swd(heldout[:n], fake[:n], min_resolution=SWD_MIN_RESOLUTION, seed=seed)
+
+
+def train_gan(
+    params: Params,
+    train: torch.Tensor,
+    log: Callable[[dict[str, float], int], None],
+) -> tuple[EMA, list[dict[str, float]]]:
+    """Progressive WGAN-GP training; returns the generator's moving average and the loss history."""
+    cfg = params.latent_bank
+    spec = generator_spec(params)
+    generator, critic = LatentBankGenerator(spec), Critic(spec)
+    ema = EMA(generator, cfg.ema_decay)
+    opt_g = torch.optim.Adam(generator.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
+    opt_c = torch.optim.Adam(critic.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
+    rng = torch.Generator().manual_seed(params.seed)
+    history: list[dict[str, float]] = []
+    step = 0
+    for stage, (resolution, steps) in enumerate(stage_schedule(params)):
+        reals = at_resolution(train, resolution, 1.0)
+        fade_steps = max(1, int(cfg.fade_fraction * steps)) if stage > 0 else 0
+        for i in range(steps):
+            alpha = min(1.0, i / fade_steps) if fade_steps else 1.0
+
+            def score(x: torch.Tensor) -> torch.Tensor:
+                return critic(x, resolution, alpha)
+
+            for _ in range(cfg.n_critic):
+                index = torch.randint(len(reals), (cfg.batch_size,), generator=rng)
+                real = at_resolution(reals[index], resolution, alpha)
+                flip = torch.rand(cfg.batch_size, generator=rng) < 0.5
+                real = torch.where(flip[:, None, None, None], real.flip(-1), real)
+                with torch.no_grad():
+                    fake = generator(torch.randn(cfg.batch_size, spec.latent_dim, generator=rng), resolution, alpha)
+                real_scores, fake_scores = score(real), score(fake)
+                loss_c = (
+                    critic_loss(real_scores, fake_scores)
+                    + gradient_penalty(score, real, fake, cfg.gp_gamma)
+                    + cfg.drift_weight * real_scores.square().mean()
+                )
+                opt_c.zero_grad(set_to_none=True)
+                loss_c.backward()
+                opt_c.step()
+            fake = generator(torch.randn(cfg.batch_size, spec.latent_dim, generator=rng), resolution, alpha)
+            loss_g = generator_loss(score(fake))
+            opt_g.zero_grad(set_to_none=True)
+            loss_g.backward()
+            opt_g.step()
+            ema.update(generator)
+            record = {
+                "critic_loss": loss_c.item(),
+                "wasserstein": (real_scores.mean() - fake_scores.mean()).item(),
+                "generator_loss": loss_g.item(),
+                "resolution": float(resolution),
+                "alpha": alpha,
+            }
+            history.append(record)
+            if step % 25 == 0:
+                log(record, step)
+            step += 1
+    return ema, history
+
+
+# -------------------------------------------------------------------------------------------- outputs
+def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+    os.replace(tmp, path)
+
+
+def save_sample_grid(fake: torch.Tensor, real: torch.Tensor, path: Path, title: str) -> None:
+    """PNG: generated maps (left block) beside real held-out maps (right block), same colour scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = min(16, len(fake), len(real))
+    cols = int(math.ceil(math.sqrt(n)))
+    rows = int(math.ceil(n / cols))
+    fig, axes = plt.subplots(rows, 2 * cols, figsize=(2 * cols * 1.3, rows * 1.3 + 0.5), squeeze=False)
+    for ax in axes.flat:
+        ax.axis("off")
+    for block, maps in enumerate((fake, real)):
+        for i in range(n):
+            ax = axes[i // cols, block * cols + i % cols]
+            ax.imshow(maps[i, 0].numpy(), cmap="magma_r", vmin=-1, vmax=1)
+    axes[0, 0].set_title("generated", loc="left", fontsize=9)
+    axes[0, cols].set_title("real (held out)", loc="left", fontsize=9)
+    fig.suptitle(title, fontsize=9)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=80)
+    plt.close(fig)
+    _atomic_write_bytes(path, buffer.getvalue())
+
+
+def save_loss_curves(history: list[dict[str, float]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3))
+    steps = np.arange(len(history))
+    for key in ("wasserstein", "generator_loss"):
+        ax.plot(steps, [h[key] for h in history], label=key, linewidth=0.8)
+    for i in range(1, len(history)):
+        if history[i]["resolution"] != history[i - 1]["resolution"]:
+            ax.axvline(i, color="grey", linewidth=0.5)
+    ax.set_xlabel("generator step (grey lines: new resolution)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=80)
+    plt.close(fig)
+    _atomic_write_bytes(path, buffer.getvalue())
+
+
+# ------------------------------------------------------------------------------------------ entry point
+def pretrain_latent_bank(
+    params: Params,
+    shards_dir: str | Path,
+    out_path: str | Path,
+    metrics_path: str | Path,
+    plots_dir: str | Path,
+    project_root: str | Path | None = None,
+) -> dict:
+    """Pretrain the latent bank on the depth maps in ``shards_dir`` and write all outputs.
+
+    ``project_root`` (default: the working directory) locates the MLflow store (see
+    :mod:`endoflow.tracking`). Returns the metrics dict written to ``metrics_path``.
+    """
+    from endoflow import tracking
+
+    started = time.time()
+    torch.manual_seed(params.seed)
+    cfg = params.latent_bank
+    shards_dir, out_path, metrics_path, plots_dir = map(Path, (shards_dir, out_path, metrics_path, plots_dir))
+    project_root = Path(project_root) if project_root is not None else Path.cwd()
+    train, heldout = train_and_heldout(shards_dir, params)
+    swd_count = min(cfg.swd_samples, len(heldout))
+    heldout = heldout[:swd_count]
+
+    uri = tracking.tracking_uri(params, project_root)
+    run_id = tracking.start_run(params, project_root, params.tracking.latent_bank_experiment, "pretrain_latent_bank")
+    try:
+        spec = generator_spec(params)
+        untrained = LatentBankGenerator(spec)
+        fake_untrained = generate(untrained, swd_count, spec.latent_dim, params.seed + 1)
+        swd_untrained = swd_against(heldout, fake_untrained, params.seed)
+        swd_reference = swd_against(heldout, train[:swd_count], params.seed)
+
+        ema, history = train_gan(
+            params, train, lambda values, step: tracking.log_metrics(uri, run_id, values, step)
+        )
+        fake_final = generate(ema.model, swd_count, spec.latent_dim, params.seed + 1)
+        swd_final = swd_against(heldout, fake_final, params.seed)
+
+        payload = generator_payload(
+            ema.model,
+            {"normalisation": {"kind": "centred_log_depth", "depth_log_range": cfg.depth_log_range}},
+        )
+        buffer = io.BytesIO()
+        torch.save(payload, buffer)
+        _atomic_write_bytes(out_path, buffer.getvalue())
+
+        plots_dir.mkdir(parents=True, exist_ok=True)
+        save_sample_grid(fake_final, heldout, plots_dir / "samples_final.png", f"EMA generator, SWD {swd_final['mean']:.1f}")
+        save_sample_grid(
+            fake_untrained, heldout, plots_dir / "samples_untrained.png", f"untrained generator, SWD {swd_untrained['mean']:.1f}"
+        )
+        save_loss_curves(history, plots_dir / "losses.png")
+
+        metrics = {
+            "swd_untrained": swd_untrained["mean"],
+            "swd_final": swd_final["mean"],
+            "swd_real_reference": swd_reference["mean"],
+            "swd_untrained_levels": swd_untrained["levels"],
+            "swd_final_levels": swd_final["levels"],
+            "swd_ratio": swd_final["mean"] / swd_untrained["mean"],
+            "generator_steps": len(history),
+            "train_maps": len(train),
+            "heldout_maps": swd_count,
+            "seconds": time.time() - started,
+        }
+        _atomic_write_bytes(metrics_path, (json.dumps(metrics, indent=2) + "\n").encode())
+        scalars = {k: v for k, v in metrics.items() if isinstance(v, (int, float))}
+        tracking.log_metrics(uri, run_id, scalars, step=len(history))
+        tracking.log_artifact(uri, run_id, plots_dir, "plots")
+        tracking.log_artifact(uri, run_id, metrics_path)
+        tracking.log_artifact(uri, run_id, out_path)
+    except BaseException:
+        tracking.end_run(uri, run_id, failed=True)
+        raise
+    tracking.end_run(uri, run_id)
+    return metrics

@@ -1,0 +1,223 @@
+"""The driver side of training: Ray, the MLflow run, Ray Train's ``TorchTrainer``, and the stage outputs.
+
+Locations (``train.shards``, ``train.latent_bank``, ``ray.storage_path``) may be local paths, made absolute
+against the project root because Ray workers run in their own session folders, or fsspec URLs
+(``s3://...``, ``file:///...``) that every node of a cluster can reach.
+
+Resuming: the Ray run is named ``<ray.run_name>-<fingerprint>``, where the fingerprint covers every param
+that changes what training computes (not ``train.epochs``, so raising it continues a run) and the bytes of
+the train manifest and the latent bank. Ray Train restores a run of the same name and storage path from its
+latest checkpoint, so re-running an interrupted ``train`` stage continues with the next epoch, while any
+change of params or data starts afresh. The driver also looks for the newest complete checkpoint itself
+and passes it to the workers (Ray's own record can lag behind a kill); when it already covers
+``train.epochs``, Ray is not started and the outputs are rewritten from it. The MLflow run of an unfinished
+training is reopened likewise.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any, Optional
+
+import cv2
+import fsspec
+import numpy as np
+import pandas as pd
+import torch
+
+from endoflow import tracking
+from endoflow.config import Params, RayConfig, flatten_params, params_to_dict
+from endoflow.data.loader import list_shards, raw_samples
+from endoflow.evaluation import plots
+from endoflow.evaluation.outputs import save_figure, staged_directory, write_csv, write_json
+from endoflow.geometry.pose import matrix_to_pose_vec, pose_vec_to_matrix
+from endoflow.training.checkpoint import (
+    ModelRecord,
+    TrainingBaselines,
+    latest_checkpoint,
+    load_training_state,
+    save_model_file,
+)
+
+# Params that do not change what training computes: excluded from the fingerprint.
+NOT_FINGERPRINTED = ("train.epochs", "train.log_every", "train.image_examples", "train.out", "train.metrics",
+                     "train.plots", "train.shards", "train.latent_bank", "tracking.", "eval.", "synth.",
+                     "ray.address", "ray.storage_path", "ray.num_cpus", "ray.object_store_mb", "ray.run_name",
+                     "ray.use_gpu", "ray.cpus_per_worker")
+
+
+class TrainingError(RuntimeError):
+    """Training failed on the workers; the message carries the workers' own error."""
+
+
+def absolute_location(location: str, project_root: Path) -> str:
+    """fsspec URLs unchanged; local paths made absolute against the project root."""
+    if "://" in location:
+        return location
+    path = Path(location)
+    return str(path if path.is_absolute() else (project_root / path).resolve())
+
+
+def connect_ray(cfg: RayConfig) -> bool:
+    """Join ``ray.address`` or start a small local Ray; returns whether this call started Ray."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    if cfg.address:
+        ray.init(address=cfg.address, log_to_driver=True)
+    else:
+        ray.init(num_cpus=cfg.num_cpus or os.cpu_count(), include_dashboard=False,
+                 object_store_memory=cfg.object_store_mb * 2**20, log_to_driver=True,
+                 runtime_env={"worker_process_setup_hook": "endoflow.training.ray_trainer.quiet_worker_logs"})
+    return True
+
+
+def quiet_worker_logs() -> None:
+    """Ray worker setup: without the dashboard, Ray Train's placement-group cleaner cannot reach the state
+    API and warns about it every second; its job (cleaning up after a crashed controller) is unaffected."""
+    logging.getLogger("ray.train.v2._internal.execution.controller.placement_group_cleaner").setLevel(logging.ERROR)
+
+
+def training_fingerprint(params: Params, train_shards: str, latent_bank: Optional[str]) -> str:
+    """SHA-256 (hex, 16 chars) of the params that shape training and of the train manifest and latent bank."""
+    digest = hashlib.sha256()
+    flat = {k: v for k, v in flatten_params(params).items() if not k.startswith(NOT_FINGERPRINTED)}
+    digest.update(json.dumps(flat, sort_keys=True, default=str).encode())
+    for location in [f"{train_shards.rstrip('/')}/manifest.parquet", *([latent_bank] if latent_bank else [])]:
+        with fsspec.open(location, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()[:16]
+
+
+def training_baselines(train_urls: list[str]) -> TrainingBaselines:
+    """Mean GT depth (scalar and per pixel) and mean relative pose ``inv(T_cur) @ T_next`` of the train shards."""
+    depth_sum: Optional[np.ndarray] = None
+    depth_count: Optional[np.ndarray] = None
+    pose_vectors = []
+    for sample in raw_samples(train_urls):
+        meta = json.loads(sample["meta.json"])
+        counts = cv2.imdecode(np.frombuffer(sample["depth.png"], np.uint8), cv2.IMREAD_UNCHANGED)
+        depth = counts.astype(np.float64) * meta["depth_unit"]
+        if depth_sum is None:
+            depth_sum, depth_count = np.zeros_like(depth), np.zeros_like(depth)
+        if depth.shape == depth_sum.shape:
+            depth_sum += depth
+            depth_count += depth > 0
+        poses = meta["T_world_cam"]
+        if poses.get("cur") is not None and poses.get("next") is not None:
+            relative = np.linalg.inv(np.array(poses["cur"])) @ np.array(poses["next"])
+            pose_vectors.append(matrix_to_pose_vec(torch.from_numpy(relative)).numpy())
+    if depth_sum is None or depth_count.sum() == 0:
+        raise ValueError(f"train shards {train_urls[:1]}...: no GT depth to compute the baselines from")
+    mean_depth = float(depth_sum.sum() / depth_count.sum())
+    mean_map = np.where(depth_count > 0, depth_sum / np.maximum(depth_count, 1), mean_depth)
+    mean_relative = (pose_vec_to_matrix(torch.from_numpy(np.mean(pose_vectors, axis=0))).numpy()
+                     if pose_vectors else np.eye(4))
+    return TrainingBaselines(mean_depth, mean_map.astype(np.float32), mean_relative)
+
+
+def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
+    """Run the ``train`` stage: Ray training, then the model file, metrics and plots. Returns the metrics."""
+    root = Path(project_root).resolve()
+    shards = absolute_location(params.train.shards, root)
+    train_urls, val_urls = list_shards(shards, "train"), list_shards(shards, "val")
+    if not train_urls:
+        raise FileNotFoundError(f"{shards}: no train-*.tar shards (run the preprocess stage first)")
+    latent_bank = absolute_location(params.train.latent_bank, root) if params.model.latent_bank else None
+    fingerprint = training_fingerprint(params, shards, latent_bank)
+    uri = tracking.tracking_uri(params, root)
+    run_id = tracking.start_run(params, root, params.tracking.experiment, "train", fingerprint)
+    baselines = training_baselines(train_urls)
+    storage = absolute_location(params.ray.storage_path, root)
+    run_name = f"{params.ray.run_name}-{fingerprint}"
+    resume_from = latest_checkpoint(f"{storage.rstrip('/')}/{run_name}")
+    state = load_training_state(resume_from) if resume_from else None
+    if state is not None:
+        print(f"[train] resuming after epoch {state['epoch'] + 1} from {resume_from}", flush=True)
+    if state is None or state["epoch"] + 1 < params.train.epochs:
+        config = {"params": params_to_dict(params), "train_shards": train_urls, "val_shards": val_urls,
+                  "latent_bank": latent_bank, "tracking_uri": uri, "run_id": run_id, "resume_from": resume_from}
+        try:
+            state = fit_on_ray(params, config, storage, run_name)
+        except Exception as exc:
+            tracking.end_run(uri, run_id, failed=True)
+            raise TrainingError(f"training failed (rerun the stage to resume from the last checkpoint): "
+                                f"{worker_error(exc)}") from exc
+    summary = write_training_outputs(params, root, state, run_id, baselines, fingerprint)
+    tracking.log_metrics(uri, run_id, {f"best/{k}": v for k, v in summary.items()
+                                       if isinstance(v, (int, float)) and not isinstance(v, bool)})
+    tracking.log_artifact(uri, run_id, root / params.train.out, "model")
+    tracking.log_artifact(uri, run_id, root / params.train.plots, "plots/train")
+    tracking.end_run(uri, run_id)
+    return summary
+
+
+def fit_on_ray(params: Params, config: dict[str, Any], storage: str, run_name: str) -> dict[str, Any]:
+    """Train with Ray Train's ``TorchTrainer`` (DDP); returns the final training state."""
+    from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig
+    from ray.train.torch import TorchTrainer
+
+    from endoflow.training.loop import train_loop_per_worker
+
+    started_ray = connect_ray(params.ray)
+    trainer = TorchTrainer(
+        train_loop_per_worker,
+        train_loop_config=config,
+        scaling_config=ScalingConfig(num_workers=params.ray.num_workers, use_gpu=params.ray.use_gpu,
+                                     resources_per_worker={"CPU": params.ray.cpus_per_worker}),
+        run_config=RunConfig(name=run_name, storage_path=storage, failure_config=FailureConfig(max_failures=0),
+                             checkpoint_config=CheckpointConfig(num_to_keep=None)),
+    )
+    try:
+        result = trainer.fit()
+    finally:
+        if started_ray:
+            import ray
+
+            ray.shutdown()
+    if result.checkpoint is None:
+        raise TrainingError("training finished without a checkpoint (train.epochs must be at least 1)")
+    with result.checkpoint.as_directory() as folder:
+        return load_training_state(folder)
+
+
+def worker_error(exc: BaseException) -> str:
+    """The first worker's own error message when Ray wraps it, else the exception's text."""
+    failures = getattr(exc, "worker_failures", None)
+    if failures:
+        first = failures[min(failures)]
+        cause = getattr(first, "cause", None) or first
+        return f"{type(cause).__name__}: {cause}"
+    return f"{type(exc).__name__}: {exc}"
+
+
+def write_training_outputs(params: Params, root: Path, state: dict, run_id: str, baselines: TrainingBaselines,
+                           fingerprint: str) -> dict[str, Any]:
+    """``train.out`` (best epoch's weights), ``train.metrics`` and ``train.plots`` from the final state."""
+    best = state["best"]
+    save_model_file(root / params.train.out, ModelRecord(params=params, state=best["model"], epoch=best["epoch"],
+                                                         val=best["val"], mlflow_run_id=run_id,
+                                                         baselines=baselines))
+    history = pd.DataFrame(state["history"])
+    with staged_directory(root / params.train.plots) as folder:
+        write_csv(folder / "history.csv", history)
+        keys = [k for k in ("train_loss", "val_abs_rel", "val_rmse", "lr") if k in history]
+        save_figure(folder / "curves.png", plots.training_curves_figure(state["history"], keys))
+    summary = {
+        "epochs": int(state["epoch"]) + 1,
+        "global_steps": int(state["global_step"]),
+        "best_epoch": int(best["epoch"]),
+        **{k: float(v) for k, v in best["val"].items()},
+        "final_train_loss": float(state["history"][-1]["train_loss"]),
+        "mlflow_run_id": run_id,
+        "fingerprint": fingerprint,
+    }
+    write_json(root / params.train.metrics, summary)
+    return summary

@@ -1,0 +1,33 @@
+"""DVC stage `pretrain_latent_bank`: SceneNet depth shards -> the pretrained generative latent bank.
+
+Usage: ``python stages/pretrain_latent_bank.py [--params params.yaml]``; reads ``latent_bank.shards`` and writes
+``latent_bank.out``, ``metrics/latent_bank.json`` and ``plots/latent_bank/``, and logs an MLflow run in
+``tracking.latent_bank_experiment``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from endoflow.config import load_params
+from endoflow.training.pretrain import pretrain_latent_bank
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
+    args = parser.parse_args()
+    params = load_params(args.params)
+    metrics = pretrain_latent_bank(
+        params,
+        shards_dir=params.latent_bank.shards,
+        out_path=params.latent_bank.out,
+        metrics_path="metrics/latent_bank.json",
+        plots_dir="plots/latent_bank",
+    )
+    print(json.dumps(metrics, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,26 @@
+"""DVC stage `train`: shards + latent bank -> trained model, on Ray Train (DDP), tracked in MLflow.
+
+Usage: ``python stages/train.py``; reads ``params.yaml`` (``train.*``, ``ray.*``, ``model.*``, ``loss.*``) and
+writes ``train.out`` (models/endoflow.pt), ``train.metrics`` (metrics/train.json) and ``train.plots``
+(plots/train/). Re-running after an interruption resumes from the latest Ray checkpoint in
+``ray.storage_path``; progress lines show loss, samples per second and time left.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from endoflow.config import load_params
+from endoflow.training.ray_trainer import train
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
+    args = parser.parse_args()
+    print(json.dumps(train(load_params(args.params)), indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,223 @@
+"""Evaluation end to end on tiny shards: an oracle scores zero, baselines do not, outputs follow the formats.
+
+The shards hold "oracle-readable" frames: the red channel encodes the GT depth of each pixel and the green
+channel the frame's index, so :class:`OracleModel` can answer with the exact GT depth and pose. Everything
+the evaluation does between shards and metrics (frame order, edge frames, relative-pose direction, the
+challenge files) must then give zero error.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from endoflow import tracking
+from endoflow.config import Params, EvalSetConfig
+from endoflow.data.base import Sequence
+from endoflow.data.loader import triplet_dataset
+from endoflow.data.shards import write_dataset_shards
+from endoflow.evaluation import metrics
+from endoflow.evaluation.evaluate import (
+    SequenceEvaluator,
+    batches_within_sequences,
+    evaluate_test_set,
+    frames_in_order,
+    longest_posed_run,
+    score_sequences,
+    eval_set_shards,
+)
+from endoflow.training.checkpoint import ModelRecord, TrainingBaselines, save_model_file
+
+SIZE = 64  # the smallest size the depth network accepts (its deepest features are 2x2)
+FRAMES = 7
+DEPTH_STEP_CM = 0.05  # depth = 1 cm + red * step: exactly representable in the shards' 0.001 cm unit
+K = np.array([[40.0, 0.0, 31.5], [0.0, 40.0, 31.5], [0.0, 0.0, 1.0]])
+SEQUENCES = {"S1": ("SyntheticColon_I", "train"), "S2": ("SyntheticColon_I", "train"),
+             "S4": ("SyntheticColon_I", "val"), "S9": ("SyntheticColon_I", "val"),
+             "S5": ("SyntheticColon_I", "test"), "B5": ("SyntheticColon_II", "test"),
+             "O1": ("SyntheticColon_III", "test")}
+
+
+def trajectory(index: int) -> np.ndarray:
+    """GT ``T_world_cam`` of frame ``index``: forward along z while yawing and drifting."""
+    angle = 0.05 * index
+    pose = np.eye(4)
+    pose[:3, :3] = [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
+    pose[:3, 3] = (0.3 * index, -0.1 * index, 1.0 + 0.8 * index)
+    return pose
+
+
+def oracle_rgb(index: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng([seed, index])
+    rgb = rng.integers(0, 256, size=(SIZE, SIZE, 3), dtype=np.uint8)
+    rgb[..., 1] = 10 * index  # the frame index, read back by the oracle
+    return rgb
+
+
+def oracle_depth(index: int, seed: int) -> np.ndarray:
+    return (1.0 + oracle_rgb(index, seed)[..., 0].astype(np.float32) * DEPTH_STEP_CM).astype(np.float32)
+
+
+@dataclass
+class OracleSource:
+    """Picklable source of the sequences above (frames 0..FRAMES-1, poses of :func:`trajectory`)."""
+
+    def __call__(self) -> list[Sequence]:
+        return [self.sequence(i, name, group, split) for i, (name, (group, split)) in enumerate(SEQUENCES.items())]
+
+    @staticmethod
+    def sequence(seed: int, name: str, group: str, split: str) -> Sequence:
+        return Sequence(dataset="simcol", name=name, split=split, K=K, image_size=(SIZE, SIZE),
+                        frame_ids=list(range(FRAMES)), poses=np.stack([trajectory(i) for i in range(FRAMES)]),
+                        load_rgb=lambda i: oracle_rgb(i, seed), load_depth=lambda i: oracle_depth(i, seed),
+                        group=group)
+
+
+class OracleModel(torch.nn.Module):
+    """Reads GT depth and frame index back out of the oracle frames."""
+
+    def predict_depth(self, rgb: torch.Tensor) -> torch.Tensor:
+        red = torch.round(rgb[:, :1] * 255)
+        return 1.0 + red * DEPTH_STEP_CM
+
+    def predict_pose(self, target: torch.Tensor, source: torch.Tensor, source_is_next: bool = True) -> torch.Tensor:
+        assert not source_is_next, "the evaluation asks for T_earlier_later with the earlier frame as source"
+        poses = []
+        for t, s in zip(target, source):
+            t_index, s_index = (int(round(float(x[1, 0, 0]) * 255 / 10)) for x in (t, s))
+            poses.append(np.linalg.inv(trajectory(s_index)) @ trajectory(t_index))
+        return torch.from_numpy(np.stack(poses))
+
+
+def shard_params(out_root: Path) -> Params:
+    params = Params()
+    params.data.size = SIZE
+    params.preprocess = replace(params.preprocess, workers=1, samples_per_shard=4, shard_multiple=2)
+    params.eval.shards = str(out_root)
+    params.eval.batch_size = 4
+    return params
+
+
+@pytest.fixture(scope="session")
+def oracle_shards(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``<root>/simcol/`` shards of the oracle sequences (train, val and test splits)."""
+    root = tmp_path_factory.mktemp("oracle_shards")
+    write_dataset_shards(OracleSource(), "simcol", shard_params(root), root / "simcol")
+    return root
+
+
+def oracle_baselines() -> TrainingBaselines:
+    mean_pose = np.eye(4)
+    mean_pose[:3, 3] = (0.3, -0.1, 0.8)
+    return TrainingBaselines(mean_depth_cm=7.0, mean_depth_map=np.full((SIZE, SIZE), 7.0, np.float32),
+                             mean_relative_pose=mean_pose)
+
+
+def run_oracle(root: Path, test_set: EvalSetConfig, out: Path) -> SequenceEvaluator:
+    evaluator = SequenceEvaluator(OracleModel(), oracle_baselines(), out, torch.device("cpu"), max_examples=2)
+    samples = triplet_dataset(eval_set_shards(str(root), test_set))
+    selected = (s for s in samples if s["meta"]["group"] in test_set.groups)
+    for batch in batches_within_sequences(frames_in_order(selected), size=3):
+        evaluator.process(batch)
+    return evaluator
+
+
+def test_oracle_scores_zero_in_every_protocol_and_baselines_do_not(oracle_shards: Path, tmp_path: Path):
+    test_set = EvalSetConfig("simcol", groups=["SyntheticColon_I", "SyntheticColon_II"])
+    evaluator = run_oracle(oracle_shards, test_set, tmp_path)
+    assert [s.name for s in evaluator.sequences] == ["S5", "B5"]
+    # every frame, including the first (a prev) and the last (a next), in temporal order
+    assert all(s.frames == list(range(FRAMES)) for s in evaluator.sequences)
+    summary, per_frame, per_sequence, trajectories = score_sequences(evaluator)
+
+    model = summary["depth_paper"]["model"]
+    assert model["abs_rel"] == pytest.approx(0.0, abs=1e-4) and model["a1"] == 1.0
+    # the challenge protocol scores float16 predictions of depth / 20, as its files hold them
+    assert summary["depth_simcol"]["model"]["l1"] == pytest.approx(0.0, abs=5e-3)
+    assert summary["depth_simcol"]["model"]["rel"] == pytest.approx(0.0, abs=0.05)
+    for key in metrics.SIMCOL_POSE_KEYS:
+        assert summary["pose_simcol"]["model"][key] == pytest.approx(0.0, abs=1e-4), key
+    assert summary["pose_endoslam"]["model"]["ate"] == pytest.approx(0.0, abs=1e-4)
+    np.testing.assert_allclose(trajectories["S5"]["model"], trajectories["S5"]["gt"], atol=1e-4)
+
+    assert summary["depth_paper"]["constant_depth"]["abs_rel"] > 0.1
+    assert summary["depth_paper"]["mean_depth_map"]["abs_rel"] > 0.1
+    assert summary["pose_simcol"]["constant_velocity"]["rot"] > 1.0  # the GT turns, the baseline does not
+    assert len(per_frame) == 2 * FRAMES and list(per_sequence["sequence"]) == ["S5", "B5"]
+    # GT depth exists for the shards' target frames only (not the edge frames)
+    assert per_frame["abs_rel_model"].notna().sum() == 2 * (FRAMES - 2)
+
+
+def test_challenge_files_have_the_official_names_sizes_and_values(oracle_shards: Path, tmp_path: Path):
+    test_set = EvalSetConfig("simcol", groups=["SyntheticColon_III"])
+    run_oracle(oracle_shards, test_set, tmp_path)
+    folder = tmp_path / "SyntheticColon_III_Test" / "Frames_O1_OP"
+    depth_files = sorted((folder / "depth").iterdir())
+    pose_files = sorted((folder / "pose").iterdir())
+    assert [p.name for p in depth_files] == [f"FrameBuffer_{i:04d}.npy" for i in range(FRAMES)]
+    assert [p.name for p in pose_files] == [f"FrameBuffer_{i:04d}_to_FrameBuffer_{i + 1:04d}.txt"
+                                            for i in range(FRAMES - 1)]
+    depth = np.load(depth_files[3])
+    assert depth.dtype == np.float16 and depth.shape == (SIZE, SIZE)
+    np.testing.assert_allclose(depth.astype(np.float64) * 20, oracle_depth(3, seed=6), rtol=2e-3)
+    relative = np.array(pose_files[2].read_text().split(), dtype=np.float64).reshape(4, 4)
+    np.testing.assert_allclose(relative, np.linalg.inv(trajectory(2)) @ trajectory(3), atol=1e-6)
+
+
+def test_missing_poses_leave_the_longest_posed_run():
+    pose = np.eye(4)
+    assert longest_posed_run([pose, None, pose, pose, pose, None, pose, pose]) == (2, 5)
+    assert longest_posed_run([pose, None, pose]) is None
+
+
+def test_unknown_test_set_groups_fail_naming_what_exists(oracle_shards: Path):
+    with pytest.raises(ValueError, match="found groups .*SyntheticColon_III"):
+        eval_set_shards(str(oracle_shards), EvalSetConfig("simcol", groups=["Colon"]))
+
+
+def write_untrained_model(path: Path, params: Params, run_id: str | None) -> None:
+    from endoflow.models.endoflow_model import build_model
+
+    torch.manual_seed(0)
+    model = build_model(params, latent_bank_path=None)
+    save_model_file(path, ModelRecord(params=params, state=model.state_dict(), epoch=0, val={"val_abs_rel": 1.0},
+                                      mlflow_run_id=run_id, baselines=oracle_baselines()))
+
+
+def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_training_run(
+        oracle_shards: Path, tmp_path: Path):
+    from endoflow.evaluation.evaluate import log_evaluation
+
+    params = shard_params(oracle_shards)
+    params.model = replace(params.model, latent_bank=False)
+    uri = tracking.tracking_uri(params, tmp_path)
+    run_id = tracking.start_run(params, tmp_path, "endoflow", "train")
+    tracking.end_run(uri, run_id)
+    write_untrained_model(tmp_path / "endoflow.pt", params, run_id)
+    samples = triplet_dataset(eval_set_shards(str(oracle_shards), params.eval.test_sets["simcol_3"]))
+    result = evaluate_test_set(params, "simcol_3", samples, tmp_path / "endoflow.pt", tmp_path / "m.json",
+                               tmp_path / "plots", tmp_path / "predictions")
+    log_evaluation(params, tmp_path, result, tmp_path / "plots")
+
+    written = json.loads((tmp_path / "m.json").read_text())
+    assert written["sequences"] == 1 and written["frames"] == FRAMES and written["mlflow_run_id"] == run_id
+    assert set(written["depth_paper"]) == {"model", "constant_depth", "mean_depth_map"}
+    assert set(written["pose_simcol"]) == {"model", "constant_velocity"}
+    assert set(written["depth_simcol"]["model"]) == {"l1", "rel", "rmse"}
+    for name in ("per_frame.csv", "per_sequence.csv", "trajectory.csv", "trajectory_O1.png",
+                 "depth_examples.png", "errors_per_frame.png"):
+        assert (tmp_path / "plots" / name).is_file(), name
+    assert len(pd.read_csv(tmp_path / "plots" / "per_frame.csv")) == FRAMES
+    assert len(list((tmp_path / "predictions").rglob("*.npy"))) == FRAMES
+    assert not list(tmp_path.glob(".*partial*"))
+
+    run = tracking.client(uri).get_run(run_id)
+    assert "eval/simcol_3/depth_paper/model/abs_rel" in run.data.metrics
+    artifacts = [a.path for a in tracking.client(uri).list_artifacts(run_id, "eval/simcol_3")]
+    assert "eval/simcol_3/trajectory_O1.png" in artifacts

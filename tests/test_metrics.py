@@ -1,0 +1,190 @@
+"""Evaluation metrics against values worked out by hand on tiny arrays, in every protocol."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from endoflow.evaluation import metrics
+
+
+def translation(x: float, y: float, z: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, 3] = (x, y, z)
+    return pose
+
+
+def rotation_z(degrees: float) -> np.ndarray:
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    pose = np.eye(4)
+    pose[:2, :2] = [[c, -s], [s, c]]
+    return pose
+
+
+def rotation_y(degrees: float) -> np.ndarray:
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    pose = np.eye(4)
+    pose[[0, 0, 2, 2], [0, 2, 0, 2]] = [c, s, -s, c]
+    return pose
+
+
+def curved_trajectory(n: int = 12) -> np.ndarray:
+    """A camera moving forward while turning and rising: non-trivial rotations and translations."""
+    poses = [translation(3.0, -1.0, 2.0) @ rotation_y(30.0)]
+    for i in range(n - 1):
+        step = translation(0.1 * i, 0.05, 1.0) @ rotation_y(4.0 + i) @ rotation_z(2.0)
+        poses.append(poses[-1] @ step)
+    return np.stack(poses)
+
+
+# ---------------------------------------------------------------------------------- paper depth
+def test_paper_protocol_hand_computed_errors_on_masked_pixels():
+    gt = np.array([[1.0, 2.0], [4.0, 0.0]])  # the 0 is unknown and must be ignored
+    pred = np.array([[1.0, 2.0], [2.0, 99.0]])  # medians 2 and 2: ratio 1; errors 0, 0, 2
+    errors = metrics.paper_depth_errors(gt, pred)
+    assert errors["ratio"] == pytest.approx(1.0)
+    assert errors["abs_rel"] == pytest.approx((2 / 4) / 3)
+    assert errors["sq_rel"] == pytest.approx((4 / 4) / 3)
+    assert errors["rmse"] == pytest.approx(math.sqrt(4 / 3))
+    assert errors["rmse_log"] == pytest.approx(math.log(2) / math.sqrt(3))
+    assert errors["l1"] == pytest.approx(2 / 3)
+    # the third pixel is off by a factor 2 > 1.25^3 = 1.95: it fails every threshold
+    assert (errors["a1"], errors["a2"], errors["a3"]) == pytest.approx((2 / 3, 2 / 3, 2 / 3))
+
+
+def test_paper_protocol_median_scaling_makes_a_scaled_prediction_exact():
+    gt = np.array([[1.0, 2.0], [4.0, 0.0]])
+    errors = metrics.paper_depth_errors(gt, 7.0 * np.where(gt > 0, gt, 5.0))
+    assert errors["ratio"] == pytest.approx(1 / 7)
+    assert errors["abs_rel"] == pytest.approx(0.0, abs=1e-12)
+    assert errors["a1"] == 1.0
+
+
+def test_paper_protocol_clamps_the_scaled_prediction_to_20_cm():
+    gt = np.array([[10.0, 10.0, 10.0]])
+    pred = np.array([[1.0, 1.0, 5.0]])  # ratio 10: the last pixel becomes 50 cm, clamped to 20
+    errors = metrics.paper_depth_errors(gt, pred)
+    assert errors["l1"] == pytest.approx(10 / 3)
+
+
+def test_paper_protocol_rejects_mismatched_or_empty_maps():
+    with pytest.raises(ValueError, match="equal shape"):
+        metrics.paper_depth_errors(np.ones((2, 2)), np.ones((2, 3)))
+    with pytest.raises(ValueError, match="no valid"):
+        metrics.paper_depth_errors(np.zeros((2, 2)), np.ones((2, 2)))
+
+
+# --------------------------------------------------------------------------------- simcol depth
+def test_simcol_depth_protocol_one_scale_per_sequence_hand_computed():
+    gt = np.array([[[3.0, 5.0]], [[8.0, 8.0]]])  # image means 4 and 8 cm
+    pred = np.array([[[1.0, 3.0]], [[4.0, 4.0]]])  # image means 2 and 4 cm: the scale is exactly 2
+    result = metrics.simcol_depth_sequence(pred, gt)
+    assert result["scale"] == pytest.approx(2.0)
+    # frame 0: 2*pred = [2, 6] against [3, 5]; frame 1 exact
+    frame0_rel = np.median([1 / (3 + 1e-4), 1 / (5 + 1e-4)]) * 100
+    np.testing.assert_allclose(result["per_frame"]["l1"], [1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(result["per_frame"]["rmse"], [1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(result["per_frame"]["rel"], [frame0_rel, 0.0], atol=1e-9)
+    assert result["l1"] == pytest.approx(0.5)
+    assert result["rel"] == pytest.approx(frame0_rel / 2)
+    assert result["rmse"] == pytest.approx(0.5)
+
+
+def test_simcol_depth_protocol_clips_predictions_beyond_20_cm_before_scaling():
+    gt = np.full((1, 1, 2), 10.0)
+    pred = np.array([[[10.0, 35.0]]])  # 35 cm -> 1.0 in the challenge encoding, i.e. 20 cm
+    assert metrics.simcol_depth_scale(metrics.depth_to_simcol_unit(pred), gt) == pytest.approx(
+        0.5 / 0.75)
+    result = metrics.simcol_depth_sequence(pred, gt)
+    s = 0.5 / 0.75
+    assert result["l1"] == pytest.approx((abs(10 * s - 10) + abs(20 * s - 10)) / 2)
+
+
+# ---------------------------------------------------------------------------------- simcol pose
+def test_simcol_pose_exact_recovery_gives_zero_error():
+    gt = curved_trajectory()
+    result = metrics.simcol_pose_sequence(gt, metrics.relative_poses(gt))
+    assert result["scale"] == pytest.approx(1.0)
+    for key in metrics.SIMCOL_POSE_KEYS:
+        assert result[key] == pytest.approx(0.0, abs=1e-6), key
+    np.testing.assert_allclose(result["trajectory"], gt, atol=1e-9)
+
+
+def test_simcol_pose_scaled_prediction_is_exact_after_the_scale_fit():
+    gt = curved_trajectory()
+    predicted = metrics.scaled_relative_poses(metrics.relative_poses(gt), 0.25)
+    result = metrics.simcol_pose_sequence(gt, predicted)
+    assert result["scale"] == pytest.approx(4.0)
+    for key in metrics.SIMCOL_POSE_KEYS:
+        assert result[key] == pytest.approx(0.0, abs=1e-6), key
+
+
+def test_simcol_pose_hand_computed_straight_line():
+    gt = np.stack([translation(0, 0, z) for z in (0.0, 1.0, 2.0)])
+    predicted = np.stack([translation(0, 0, 1.0), translation(0, 0, 2.0)])
+    result = metrics.simcol_pose_sequence(gt, predicted)
+    assert result["scale"] == pytest.approx(0.6)  # (1*1 + 1*2) / (1 + 4)
+    np.testing.assert_allclose(result["per_frame"]["rte"], [0.4, 0.2], atol=1e-12)
+    np.testing.assert_allclose(result["per_frame"]["ate"], [0.0, 0.4, 0.2], atol=1e-12)
+    assert result["rte"] == pytest.approx(0.3)
+    assert result["ate"] == pytest.approx(0.2)
+    assert result["rot"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_simcol_pose_rotation_error_in_degrees():
+    gt = np.stack([translation(0, 0, z) for z in (0.0, 1.0, 2.0)])
+    predicted = np.stack([translation(0, 0, 1.0) @ rotation_z(10.0)] * 2)
+    result = metrics.simcol_pose_sequence(gt, predicted)
+    np.testing.assert_allclose(result["per_frame"]["rot"], [10.0, 10.0], atol=1e-9)
+    np.testing.assert_allclose(result["per_frame"]["rte"], [0.0, 0.0], atol=1e-12)
+
+
+def test_pose_metrics_do_not_depend_on_the_world_frame():
+    gt = curved_trajectory()
+    noisy = metrics.relative_poses(gt) @ rotation_z(1.5) @ translation(0.02, -0.01, 0.03)
+    world_change = translation(-7.0, 2.0, 11.0) @ rotation_y(-70.0) @ rotation_z(25.0)
+    base = metrics.simcol_pose_sequence(gt, noisy)
+    moved = metrics.simcol_pose_sequence(world_change @ gt, noisy)
+    for key in metrics.SIMCOL_POSE_KEYS:
+        assert moved[key] == pytest.approx(base[key], rel=1e-9), key
+    assert base["rte"] > 0.01 and base["rot"] > 1.0
+    endoslam_base = metrics.endoslam_pose_sequence(gt, noisy)
+    endoslam_moved = metrics.endoslam_pose_sequence(world_change @ gt, noisy)
+    for key in metrics.ENDOSLAM_POSE_KEYS:
+        assert endoslam_moved[key] == pytest.approx(endoslam_base[key], rel=1e-9), key
+
+
+def test_pose_protocols_reject_wrong_shapes_and_counts():
+    gt = curved_trajectory(4)
+    with pytest.raises(ValueError, match="expected 3 relative poses"):
+        metrics.simcol_pose_sequence(gt, metrics.relative_poses(gt)[:2])
+    with pytest.raises(ValueError, match="N x 4 x 4"):
+        metrics.endoslam_pose_sequence(gt[:, :3], metrics.relative_poses(gt))
+
+
+# -------------------------------------------------------------------------------- endoslam pose
+def test_endoslam_pose_hand_computed_straight_line():
+    gt = np.stack([translation(0, 0, z) for z in (0.0, 1.0, 2.0)])
+    predicted = np.stack([translation(0, 0, 1.0), translation(0, 0, 2.0)])  # positions 0, 1, 3
+    result = metrics.endoslam_pose_sequence(gt, predicted)
+    assert result["scale"] == pytest.approx(0.7)  # (1*1 + 2*3) / (1 + 9)
+    assert result["ate"] == pytest.approx(math.sqrt((0.3**2 + 0.1**2) / 3))
+    assert result["rpe_trans"] == pytest.approx((0.3 + 0.4) / 2)
+    assert result["rpe_rot"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_endoslam_pose_exact_and_scaled_recovery():
+    gt = curved_trajectory()
+    scaled = metrics.scaled_relative_poses(metrics.relative_poses(gt), 3.0)
+    result = metrics.endoslam_pose_sequence(gt, scaled)
+    assert result["scale"] == pytest.approx(1 / 3)
+    for key in metrics.ENDOSLAM_POSE_KEYS:
+        assert result[key] == pytest.approx(0.0, abs=1e-6), key
+
+
+def test_mean_over_averages_each_key_and_refuses_nothing():
+    assert metrics.mean_over([{"a": 1.0, "b": 4.0}, {"a": 3.0, "b": 0.0}], ("a",)) == {"a": 2.0}
+    with pytest.raises(ValueError, match="nothing to average"):
+        metrics.mean_over([], ("a",))

@@ -1,0 +1,147 @@
+"""The training objective on real SimCol3D frames: ground truth explains the motion, and the model learns it.
+
+Data: the ten real SimCol3D frames of ``/work/shared/samples/simcol3d`` (through our reader, so poses are
+converted and K is the literal cam.txt), resized to 64x64; each target frame has its two neighbours.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from endoflow.config import LossConfig, Params
+from endoflow.geometry.camera import scale_intrinsics
+from endoflow.geometry.pose import pose_vec_to_matrix, relative_pose
+from endoflow.models.endoflow_model import build_model
+from endoflow.training.objective import reprojection, training_step_losses
+
+SAMPLES = Path("/work/shared/samples/simcol3d")
+SIZE = 64
+STEPS = 60
+TRIPLETS = 4
+
+pytestmark = pytest.mark.skipif(not SAMPLES.is_dir(), reason="real SimCol3D sample folder not present")
+
+
+def simcol_triplets(size: int = SIZE) -> dict[str, torch.Tensor]:
+    """All 8 (prev, cur, next) triplets of the sample as a batch in the loader's keys, plus GT depth/poses."""
+    from endoflow.data.simcol import SimColReader
+
+    sequence = SimColReader(SAMPLES, Params().data.simcol).sequences()[0]
+    frames = [sequence.frame(i) for i in range(len(sequence))]
+    rgb = torch.stack(
+        [torch.from_numpy(cv2.resize(f.rgb, (size, size), interpolation=cv2.INTER_AREA)).permute(2, 0, 1) for f in frames]
+    ).float() / 255
+    depth = torch.stack(
+        [torch.from_numpy(cv2.resize(f.depth_cm, (size, size), interpolation=cv2.INTER_NEAREST)) for f in frames]
+    )[:, None]
+    height, width = sequence.image_size
+    K = torch.from_numpy(scale_intrinsics(sequence.K, size / width, size / height)).float()
+    poses = [f.T_world_cam for f in frames]
+    cur = range(1, len(frames) - 1)
+    return {
+        "prev": rgb[[c - 1 for c in cur]],
+        "cur": rgb[list(cur)],
+        "next": rgb[[c + 1 for c in cur]],
+        "K": K.expand(len(cur), 3, 3).clone(),
+        "depth": depth[list(cur)],
+        "T_prev_cur": torch.from_numpy(np.stack([relative_pose(poses[c - 1], poses[c]) for c in cur])).float(),
+        "T_next_cur": torch.from_numpy(np.stack([relative_pose(poses[c + 1], poses[c]) for c in cur])).float(),
+    }
+
+
+def loss_with(batch: dict, depth: torch.Tensor, T_prev: torch.Tensor, T_next: torch.Tensor, cfg: LossConfig) -> float:
+    sources = [batch["prev"], batch["next"]]
+    return reprojection(batch["cur"], sources, depth, [T_prev, T_next], batch["K"], cfg).item()
+
+
+# Per-pixel MSE gains less from the right motion on these smooth, camera-lit frames than SSIM + L1 does.
+@pytest.mark.parametrize("photometric, no_motion_ratio", [("ssim_l1", 0.3), ("mse", 0.9)])
+def test_ground_truth_depth_and_pose_explain_the_motion_best(photometric, no_motion_ratio):
+    batch = simcol_triplets()
+    cfg = LossConfig(photometric=photometric, automask=False)
+    gt = loss_with(batch, batch["depth"], batch["T_prev_cur"], batch["T_next_cur"], cfg)
+    # A few mm and a couple of degrees off: about the size of one frame's motion.
+    nudge = pose_vec_to_matrix(torch.tensor([0.03, -0.03, 0.02, 0.2, -0.2, 0.2])).expand(8, 4, 4)
+    perturbed = loss_with(batch, batch["depth"], nudge @ batch["T_prev_cur"], nudge @ batch["T_next_cur"], cfg)
+    identity = torch.eye(4).expand(8, 4, 4)
+    no_motion = loss_with(batch, batch["depth"], identity, identity, cfg)
+    assert gt < 0.5 * perturbed
+    assert gt < no_motion_ratio * no_motion
+
+
+def test_ground_truth_depth_beats_a_constant_depth():
+    batch = simcol_triplets()
+    # SSIM sees the misplaced structure; the per-pixel MSE of these smooth frames barely does.
+    cfg = LossConfig(photometric="ssim_l1", automask=False)
+    gt = loss_with(batch, batch["depth"], batch["T_prev_cur"], batch["T_next_cur"], cfg)
+    flat = torch.full_like(batch["depth"], batch["depth"].mean().item())
+    assert gt < 0.6 * loss_with(batch, flat, batch["T_prev_cur"], batch["T_next_cur"], cfg)
+
+
+def test_swapping_the_pose_direction_breaks_the_reconstruction():
+    batch = simcol_triplets()
+    cfg = LossConfig(automask=False)
+    right = loss_with(batch, batch["depth"], batch["T_prev_cur"], batch["T_next_cur"], cfg)
+    inverted = loss_with(batch, batch["depth"], batch["T_prev_cur"].inverse(), batch["T_next_cur"].inverse(), cfg)
+    assert right < 0.5 * inverted
+
+
+def test_losses_have_every_term_and_the_total_adds_up():
+    batch = simcol_triplets(size=32)
+    params = Params()
+    model = build_model(params, None).train()
+    out = training_step_losses(model, batch, params.loss)
+    for key in ("total", "photometric", "smoothness", "kl", "photometric/0", "photometric/3", "smoothness/3"):
+        assert out[key].ndim == 0 and torch.isfinite(out[key])
+    cfg = params.loss
+    expected = out["photometric"] + cfg.smoothness_weight * out["smoothness"] + cfg.kl_weight * out["kl"]
+    torch.testing.assert_close(out["total"], expected)
+    single = training_step_losses(model.eval(), batch, dataclasses.replace(cfg, multiscale=False))
+    assert "photometric/1" not in single
+
+
+def test_short_optimisation_learns_depth_and_motion():
+    """Sixty steps on four triplets bring the loss well below its start and below the no-motion loss.
+
+    (Measured: 0.071 at the start and with no motion, about 0.015 after 60 steps, 0.013 with GT.)
+    """
+    torch.manual_seed(0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        batch = {key: value[:TRIPLETS] for key, value in simcol_triplets().items()}
+        params = Params()
+        cfg = dataclasses.replace(params.loss, automask=False)
+        model = build_model(params, None)
+        optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=3e-4)
+        identity = torch.eye(4).expand(TRIPLETS, 4, 4)
+
+        def evaluation_loss() -> tuple[float, float]:
+            model.eval()
+            with torch.no_grad():
+                depth = model.predict_depth(batch["cur"])
+                T_prev = model.predict_pose(batch["cur"], batch["prev"], source_is_next=False)
+                T_next = model.predict_pose(batch["cur"], batch["next"])
+                return loss_with(batch, depth, T_prev, T_next, cfg), loss_with(batch, depth, identity, identity, cfg)
+
+        start, no_motion = evaluation_loss()
+        started = time.time()
+        model.train()
+        for _ in range(STEPS):
+            optimiser.zero_grad(set_to_none=True)
+            training_step_losses(model, batch, cfg)["total"].backward()
+            optimiser.step()
+        end, _ = evaluation_loss()
+    finally:
+        torch.set_num_threads(threads)
+    print(f"start {start:.4f} no-motion {no_motion:.4f} end {end:.4f} ({time.time() - started:.1f} s)")
+    assert end < 0.6 * start
+    assert end < 0.6 * no_motion
+

@@ -1,0 +1,103 @@
+"""The whole pipeline, as a user runs it: the smoke preset through `dvc repro` in a fresh copy of the project.
+
+One run (a few minutes on 2 cores) is shared by every assertion below, so the module keeps its state in a
+module-scoped fixture.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from mlflow import MlflowClient
+
+from endoflow.config import load_params
+
+PROJECT = Path(__file__).resolve().parents[1]
+VENV_BIN = Path(sys.executable).parent
+
+pytestmark = pytest.mark.slow
+
+
+def project_files() -> list[str]:
+    """What a clean clone holds: tracked files plus untracked ones git does not ignore."""
+    listing = subprocess.run(
+        ["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"],
+        cwd=PROJECT, capture_output=True, text=True, check=True,
+    ).stdout
+    return [name for name in listing.split("\0") if name and (PROJECT / name).is_file()]
+
+
+def run(args: list[str], cwd: Path, env: dict[str, str], timeout: int = 900) -> subprocess.CompletedProcess:
+    result = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+    assert result.returncode == 0, f"{' '.join(args)} failed:\n{result.stdout[-4000:]}\n{result.stderr[-4000:]}"
+    return result
+
+
+@pytest.fixture(scope="module")
+def smoke_repro(tmp_path_factory) -> Path:
+    clone = tmp_path_factory.mktemp("e2e") / "endoflow"
+    for name in project_files():
+        (clone / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(PROJECT / name, clone / name)
+    shutil.copy2(PROJECT / "presets" / "smoke.yaml", clone / "params.yaml")
+    env = {
+        **os.environ,
+        "PATH": f"{VENV_BIN}{os.pathsep}{os.environ['PATH']}",
+        "DVC_NO_ANALYTICS": "1",
+        "RAY_USAGE_STATS_ENABLED": "0",
+        "GIT_AUTHOR_NAME": "e2e", "GIT_AUTHOR_EMAIL": "e2e@example.invalid",
+        "GIT_COMMITTER_NAME": "e2e", "GIT_COMMITTER_EMAIL": "e2e@example.invalid",
+    }
+    run(["git", "init", "-q"], clone, env)
+    run(["git", "add", "-A"], clone, env)
+    run(["git", "commit", "-q", "-m", "smoke"], clone, env)
+    run(["dvc", "repro"], clone, env)
+    return clone
+
+
+def test_every_stage_output_exists(smoke_repro):
+    params = load_params(smoke_repro / "params.yaml")
+    for dataset in ("simcol", "endoslam", "scenenet"):
+        shards = smoke_repro / params.preprocess.out / dataset
+        assert (shards / "manifest.parquet").is_file()
+        assert list(shards.glob("*.tar"))
+    for path in (params.latent_bank.out, params.train.out, "metrics/latent_bank.json", params.train.metrics):
+        assert (smoke_repro / path).is_file(), path
+    assert list((smoke_repro / "plots" / "latent_bank").glob("*.png"))
+    for test_set in params.eval.test_sets:
+        assert (smoke_repro / "metrics" / "eval" / f"{test_set}.json").is_file()
+        assert any((smoke_repro / "predictions" / test_set).rglob("*.npy"))
+
+
+def test_dvc_metrics_show_lists_training_and_evaluation(smoke_repro):
+    env = {**os.environ, "PATH": f"{VENV_BIN}{os.pathsep}{os.environ['PATH']}", "DVC_NO_ANALYTICS": "1"}
+    shown = json.loads(run(["dvc", "metrics", "show", "--json"], smoke_repro, env).stdout)
+    files = {name for workspace in shown.values() for name in workspace.get("data", {})}
+    assert "metrics/train.json" in files
+    assert "metrics/latent_bank.json" in files
+    assert any(name.startswith("metrics/eval/") for name in files)
+
+
+def test_one_mlflow_run_holds_training_and_evaluation(smoke_repro):
+    params = load_params(smoke_repro / "params.yaml")
+    client = MlflowClient(tracking_uri=f"sqlite:///{smoke_repro / 'mlflow.db'}")
+    experiment = client.get_experiment_by_name(params.tracking.experiment)
+    runs = client.search_runs([experiment.experiment_id])
+    assert len(runs) == 1, "one `dvc repro` is one training run"
+    run_data = runs[0].data
+    assert run_data.params["model.latent_bank"] == str(params.model.latent_bank)
+    metric_names = set(run_data.metrics)
+    assert any(name.startswith("val_") for name in metric_names), metric_names
+    assert any(name.startswith("loss/") for name in metric_names), metric_names
+    for test_set in params.eval.test_sets:
+        assert any(name.startswith(f"eval/{test_set}/") for name in metric_names), test_set
+    artifacts = {item.path for item in client.list_artifacts(runs[0].info.run_id)}
+    assert {"model", "eval"} <= artifacts, artifacts
+    bank = client.get_experiment_by_name(params.tracking.latent_bank_experiment)
+    assert len(client.search_runs([bank.experiment_id])) == 1

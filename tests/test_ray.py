@@ -1,0 +1,166 @@
+"""Training on Ray Train with DDP, on tiny shards (64 px, one or two steps per epoch).
+
+Ray costs about 20 s per run on two cores, so each test combines several checks:
+
+- two CPU workers, killed after the first epoch's checkpoint and run again: the rerun continues with the
+  next epoch (the finished epoch is neither lost nor repeated), both ranks hold identical weights after
+  every epoch and trained on disjoint samples, the storage path may be a ``file://`` URL, and the MLflow run
+  (reopened by the rerun) holds params, losses, validation metrics, depth images and the model;
+- a learning rate that turns NaN after the first epoch (shards read through a ``file://`` URL): training
+  stops with an error naming the epoch and step, the first epoch's checkpoint stays, no model file is
+  written and the MLflow run is marked failed.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import yaml
+
+from endoflow import tracking
+from endoflow.config import Params, params_to_dict
+from endoflow.data.shards import write_dataset_shards
+from endoflow.training.checkpoint import latest_checkpoint, load_model_file, read_rank_audits, weights_digest
+from endoflow.training.ray_trainer import TrainingError, train, training_fingerprint
+from tests.test_evaluate import OracleSource, shard_params
+
+def project(tmp_path: Path, **train_overrides) -> Params:
+    """A project folder with shards and params for a tiny training (no latent bank)."""
+    params = shard_params(tmp_path / "data" / "shards")
+    write_dataset_shards(OracleSource(), "simcol", params, tmp_path / "data" / "shards" / "simcol")
+    params.model = replace(params.model, latent_bank=False)
+    tiny = {"batch_size": 2, "steps_per_epoch": 1, "val_batches": 1, "log_every": 1, "image_examples": 1}
+    params.train = replace(params.train, **{**tiny, **train_overrides})
+    params.ray = replace(params.ray, num_workers=1, num_cpus=2)
+    return params
+
+
+def checkpoint_folders(storage: Path) -> list[Path]:
+    return sorted(storage.glob("endoflow-train-*/epoch-*"))
+
+
+def first_checkpoint_complete(storage: Path) -> bool:
+    """Ray has finished copying epoch 0: a complete ``state.pt`` and both ranks' audits."""
+    runs = list(storage.glob("endoflow-train-*"))
+    return bool(runs) and latest_checkpoint(str(runs[0])) is not None and len(
+        list(runs[0].glob("epoch-0000/rank-*.json"))) == 2
+
+
+def run_stage_until_first_checkpoint(root: Path, storage: Path, timeout: float = 300) -> None:
+    """Run ``stages/train.py`` in its own process group and kill it all once epoch 0 is checkpointed."""
+    stage = Path(__file__).resolve().parents[1] / "stages" / "train.py"
+    process = subprocess.Popen([sys.executable, str(stage)], cwd=root, start_new_session=True,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + timeout
+        while not first_checkpoint_complete(storage):
+            assert process.poll() is None, "the training stage exited before its first checkpoint"
+            assert time.monotonic() < deadline, "no checkpoint within the time limit"
+            time.sleep(0.2)
+    finally:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+
+
+@pytest.mark.slow
+def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint_samples(tmp_path: Path):
+    params = project(tmp_path, epochs=2)
+    storage = tmp_path / "checkpoints"
+    params.ray = replace(params.ray, num_workers=2, storage_path=storage.as_uri())  # an fsspec URL
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params_to_dict(params)))
+
+    run_stage_until_first_checkpoint(tmp_path, storage)
+    assert [f.name for f in checkpoint_folders(storage)] == ["epoch-0000"]
+    first_epoch = (checkpoint_folders(storage)[0] / "state.pt").read_bytes()
+
+    summary = train(params, tmp_path)
+
+    folders = checkpoint_folders(storage)
+    assert [f.name for f in folders] == ["epoch-0000", "epoch-0001"]
+    assert (folders[0] / "state.pt").read_bytes() == first_epoch  # epoch 0 was not trained again
+    assert summary["epochs"] == 2 and summary["global_steps"] == 2
+    for folder in folders:
+        audits = read_rank_audits(folder)
+        assert [a["rank"] for a in audits] == [0, 1]
+        assert audits[0]["weights_sha256"] == audits[1]["weights_sha256"]
+        assert audits[0]["keys"] and not set(audits[0]["keys"]) & set(audits[1]["keys"])
+
+    record = load_model_file(tmp_path / params.train.out)
+    assert record.epoch == summary["best_epoch"] and record.baselines.mean_depth_map.shape == (64, 64)
+    assert (tmp_path / params.train.metrics).is_file()
+    assert (tmp_path / params.train.plots / "curves.png").is_file()
+
+    uri = tracking.tracking_uri(params, tmp_path)
+    runs = tracking.client(uri).search_runs([tracking.ensure_experiment(params, tmp_path, "endoflow")])
+    assert [r.info.run_id for r in runs] == [summary["mlflow_run_id"]]  # the rerun reopened the run
+    run = runs[0]
+    assert run.info.status == "FINISHED"
+    assert run.data.params["ray.num_workers"] == "2"
+    history = tracking.client(uri).get_metric_history(run.info.run_id, "val_abs_rel")
+    assert sorted(m.step for m in history) == [0, 1]
+    assert "loss/total" in run.data.metrics
+    artifacts = {a.path for folder in ("val_depth", "model")
+                 for a in tracking.client(uri).list_artifacts(run.info.run_id, folder)}
+    assert {"val_depth/epoch_0000.png", "val_depth/epoch_0001.png", "model/endoflow.pt"} <= artifacts
+
+
+@pytest.mark.slow
+def test_a_non_finite_loss_stops_training_naming_the_step_and_keeps_the_last_checkpoint(tmp_path: Path):
+    # the learning rate becomes NaN after epoch 0, so the first update of epoch 1 breaks the weights
+    params = project(tmp_path, epochs=3, steps_per_epoch=2, schedule="step", step_epochs=1, gamma=float("nan"))
+    params.ray = replace(params.ray, storage_path=str(tmp_path / "checkpoints"))
+    params.train.shards = (tmp_path / "data" / "shards" / "simcol").as_uri()  # shards through fsspec
+
+    with pytest.raises(TrainingError, match=r"NonFiniteLossError: non-finite training loss .* at epoch 1, step 1"):
+        train(params, tmp_path)
+
+    assert [f.name for f in checkpoint_folders(tmp_path / "checkpoints")] == ["epoch-0000"]
+    assert not (tmp_path / params.train.out).exists()
+    uri = tracking.tracking_uri(params, tmp_path)
+    runs = tracking.client(uri).search_runs([tracking.ensure_experiment(params, tmp_path, "endoflow")])
+    assert [r.info.status for r in runs] == ["FAILED"]
+
+
+def test_weights_digest_tells_models_apart():
+    import torch
+
+    first, second = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
+    second.load_state_dict(first.state_dict())
+    assert weights_digest(first) == weights_digest(second)
+    with torch.no_grad():
+        second.bias.add_(1e-6)
+    assert weights_digest(first) != weights_digest(second)
+
+
+def test_resume_picks_the_newest_complete_checkpoint_also_through_a_url(tmp_path: Path):
+    import torch
+
+    run = tmp_path / "endoflow-train-abc"
+    for epoch in range(3):
+        (run / f"epoch-{epoch:04d}").mkdir(parents=True)
+        torch.save({"epoch": epoch}, run / f"epoch-{epoch:04d}" / "state.pt")
+    data = (run / "epoch-0002" / "state.pt").read_bytes()
+    (run / "epoch-0002" / "state.pt").write_bytes(data[: len(data) // 2])  # killed while copying
+    assert latest_checkpoint(str(run)) == str(run / "epoch-0001")
+    assert latest_checkpoint(run.as_uri()) == (run / "epoch-0001").as_uri()
+    assert latest_checkpoint(str(tmp_path / "never-ran")) is None
+
+
+def test_fingerprint_ignores_the_epoch_count_but_not_what_training_computes(tmp_path: Path):
+    (tmp_path / "manifest.parquet").write_bytes(b"manifest")
+    params = Params()
+    base = training_fingerprint(params, str(tmp_path), None)
+    params.train = replace(params.train, epochs=params.train.epochs + 5, log_every=1)
+    assert training_fingerprint(params, str(tmp_path), None) == base  # more epochs continue the run
+    params.train = replace(params.train, lr=params.train.lr * 2)
+    assert training_fingerprint(params, str(tmp_path), None) != base
+    (tmp_path / "manifest.parquet").write_bytes(b"other data")
+    params.train = replace(params.train, lr=params.train.lr / 2)
+    assert training_fingerprint(params, str(tmp_path), None) != base

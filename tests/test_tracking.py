@@ -1,0 +1,61 @@
+"""MLflow helpers: the embedded store lives at the project root, runs carry flat params and reopen on resume."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from endoflow import tracking  # noqa: E402
+from endoflow.config import Params  # noqa: E402
+
+
+def test_default_store_is_an_absolute_sqlite_file_with_artifacts_beside_it(tmp_path: Path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    params = Params()
+    assert tracking.tracking_uri(params, ".") == f"sqlite:///{tmp_path.resolve()}/mlflow.db"
+    assert tracking.artifact_location(params, ".") == (tmp_path.resolve() / "mlartifacts").as_uri()
+    params.tracking.uri = "http://mlflow.example:5000"
+    assert tracking.tracking_uri(params, ".") == "http://mlflow.example:5000"
+    assert tracking.artifact_location(params, ".") is None
+
+
+def test_flat_params_reach_into_nested_sections_and_test_sets():
+    flat = tracking.flat_params(Params())
+    assert flat["model.latent_bank"] == "True"
+    assert flat["train.lr"] == "0.0001"
+    assert flat["eval.test_sets.simcol_3.groups"] == "['SyntheticColon_III']"
+    assert all(isinstance(v, str) for v in flat.values())
+
+
+def test_run_has_params_commit_metrics_artifacts_and_reopens_while_unfinished(tmp_path: Path):
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
+    subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "--allow-empty",
+                    "-m", "init"], cwd=tmp_path, check=True)
+    params = Params()
+    uri = tracking.tracking_uri(params, tmp_path)
+    run_id = tracking.start_run(params, tmp_path, "exp", "train", fingerprint="abc")
+    tracking.log_metrics(uri, run_id, {"loss/total": 1.5, "val abs_rel(paper)": 0.2}, step=3)
+    figure = plt.figure()
+    tracking.log_figure(uri, run_id, figure, "val_depth/epoch_000.png")
+    plt.close(figure)
+
+    # an interrupted training resumed with the same inputs logs into the same run
+    assert tracking.start_run(params, tmp_path, "exp", "train", fingerprint="abc") == run_id
+    assert tracking.start_run(params, tmp_path, "exp", "train", fingerprint="other") != run_id
+    tracking.end_run(uri, run_id)
+    assert tracking.start_run(params, tmp_path, "exp", "train", fingerprint="abc") != run_id
+
+    run = tracking.client(uri).get_run(run_id)
+    assert run.data.params["model.pose_vae"] == "True"
+    assert run.data.tags[tracking.GIT_COMMIT_TAG].startswith(
+        subprocess.run(["git", "rev-parse", "HEAD"], cwd=tmp_path, capture_output=True, text=True).stdout.strip())
+    assert run.data.metrics == {"loss/total": 1.5, "val abs_rel_paper_": 0.2}
+    assert run.info.status == "FINISHED"
+    assert (tmp_path / "mlflow.db").is_file()
+    assert (tmp_path / "mlartifacts").is_dir()
+    assert list((tmp_path / "mlartifacts").rglob("epoch_000.png"))
