@@ -298,12 +298,19 @@ def apply_override(raw: dict[str, Any], item: str) -> None:
 
 
 def flatten_params(params: Any, prefix: str = "") -> dict[str, Any]:
-    """Flat ``{"model.latent_bank": True, ...}`` view, as logged to MLflow."""
+    """Flat ``{"model.latent_bank": True, "eval.test_sets.simcol_3.groups": [...], ...}`` view.
+
+    Reaches into nested sections and mappings of sections (such as ``eval.test_sets``); used for MLflow
+    params and for the training fingerprint.
+    """
+    if dataclasses.is_dataclass(params):
+        items = [(f.name, getattr(params, f.name)) for f in dataclasses.fields(params)]
+    else:
+        items = list(params.items())
     flat: dict[str, Any] = {}
-    for f in dataclasses.fields(params):
-        value = getattr(params, f.name)
-        key = f"{prefix}{f.name}"
-        if dataclasses.is_dataclass(value):
+    for name, value in items:
+        key = f"{prefix}{name}"
+        if dataclasses.is_dataclass(value) or isinstance(value, dict):
             flat.update(flatten_params(value, prefix=f"{key}."))
         else:
             flat[key] = value

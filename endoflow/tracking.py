@@ -13,16 +13,15 @@ Browse with ``mlflow ui --backend-store-uri sqlite:///$PWD/mlflow.db`` from the 
 
 from __future__ import annotations
 
-import dataclasses
 import subprocess
 import time
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Optional
+from typing import Any, Mapping, Optional
 
 from mlflow import MlflowClient
 from mlflow.entities import Metric, Param, RunStatus
 
-from endoflow.config import Params
+from endoflow.config import Params, flatten_params
 
 MLFLOW_PARAM_LIMIT = 6000  # characters MLflow accepts in one param value
 FINGERPRINT_TAG = "endoflow.fingerprint"
@@ -57,20 +56,9 @@ def ensure_experiment(params: Params, project_root: str | Path, name: str) -> st
     return mlflow_client.create_experiment(name, artifact_location=artifact_location(params, project_root))
 
 
-def flat_params(params: Any, prefix: str = "") -> dict[str, str]:
-    """``{"model.latent_bank": "True", "eval.test_sets.simcol_3.groups": "[...]", ...}`` for MLflow."""
-    if dataclasses.is_dataclass(params):
-        items: Iterable[tuple[str, Any]] = ((f.name, getattr(params, f.name)) for f in dataclasses.fields(params))
-    else:
-        items = params.items()
-    flat: dict[str, str] = {}
-    for name, value in items:
-        key = f"{prefix}{name}"
-        if dataclasses.is_dataclass(value) or isinstance(value, Mapping):
-            flat.update(flat_params(value, prefix=f"{key}."))
-        else:
-            flat[key] = str(value)[:MLFLOW_PARAM_LIMIT]
-    return flat
+def flat_params(params: Params) -> dict[str, str]:
+    """:func:`~endoflow.config.flatten_params` as MLflow param strings (cut to MLflow's length limit)."""
+    return {key: str(value)[:MLFLOW_PARAM_LIMIT] for key, value in flatten_params(params).items()}
 
 
 def git_commit(project_root: str | Path) -> Optional[str]:

@@ -49,9 +49,9 @@ def minibatch_stddev(x: torch.Tensor, group: int = 4) -> torch.Tensor:
 class Critic(nn.Module):
     """Scores depth maps ``[B, 1, r, r]`` -> ``[B]`` at any growing resolution r of ``spec``."""
 
-    def __init__(self, spec: GeneratorSpec | None = None) -> None:
+    def __init__(self, spec: GeneratorSpec) -> None:
         super().__init__()
-        self.spec = spec or GeneratorSpec()
+        self.spec = spec
         res = self.spec.resolutions
         self.from_depth = nn.ModuleList([nn.Conv2d(1, self.spec.channels(r), 1) for r in res])
         # downs[i] takes resolution res[i] to res[i - 1]; downs[0] is unused and left out.

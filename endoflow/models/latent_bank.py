@@ -36,13 +36,13 @@ from endoflow.data.base import DataFormatError
 class GeneratorSpec:
     """Architecture of a :class:`LatentBankGenerator`; stored beside its weights in ``latent_bank.pt``."""
 
-    resolution: int = 64
-    start_resolution: int = 4
-    latent_dim: int = 128
-    style_dim: int = 128
-    mapping_layers: int = 4
-    channel_base: int = 512
-    channel_max: int = 128
+    resolution: int
+    start_resolution: int
+    latent_dim: int
+    style_dim: int
+    mapping_layers: int
+    channel_base: int
+    channel_max: int
 
     def __post_init__(self) -> None:
         for name in ("resolution", "start_resolution"):
@@ -176,9 +176,9 @@ class SynthesisBlock(nn.Module):
 class LatentBankGenerator(nn.Module):
     """StyleGAN-like depth generator; see the module docstring for its two modes."""
 
-    def __init__(self, spec: GeneratorSpec | None = None) -> None:
+    def __init__(self, spec: GeneratorSpec) -> None:
         super().__init__()
-        self.spec = spec or GeneratorSpec()
+        self.spec = spec
         res = self.spec.resolutions
         self.mapping = MappingNetwork(self.spec.latent_dim, self.spec.style_dim, self.spec.mapping_layers)
         self.const = nn.Parameter(torch.randn(1, self.spec.channels(res[0]), res[0], res[0]))
