@@ -57,6 +57,7 @@ from endoflow.data.layout import (
     natural_key,
     numbered_files,
     ray_length_to_z_factor,
+    sized_loader,
     subfolders,
 )
 from endoflow.geometry.camera import scale_intrinsics
@@ -120,7 +121,7 @@ class EndoSLAMReader(DatasetReader):
             image_size=size,
             frame_ids=frame_ids,
             poses=poses,
-            load_rgb=lambda i: checked_size(frame_paths[i], read_rgb(frame_paths[i]), size),
+            load_rgb=sized_loader(frame_paths, size, read_rgb),
             load_depth=None if depth_paths is None else self._depth_loader(depth_paths, size, K),
             group=organ.name,
             problems=problems,
@@ -189,7 +190,7 @@ class EndoSLAMReader(DatasetReader):
             image_size=size,
             frame_ids=frame_ids,
             poses=poses,
-            load_rgb=lambda i: checked_size(frame_paths[i], read_rgb(frame_paths[i]), size),
+            load_rgb=sized_loader(frame_paths, size, read_rgb),
             load_depth=None,
             group=re.sub(r"-[IVX]+$", "", organ.name),
             problems=problems,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -86,3 +86,14 @@ def ray_length_to_z_factor(K: np.ndarray, height: int, width: int) -> np.ndarray
     v, u = np.mgrid[0:height, 0:width].astype(np.float64)
     rays = np.linalg.inv(K) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
     return (1.0 / np.linalg.norm(rays, axis=0)).reshape(height, width).astype(np.float32)
+
+
+def sized_loader(
+    paths: Sequence[Path], size: tuple[int, int], decode: Callable[[Path], np.ndarray]
+) -> Callable[[int], np.ndarray]:
+    """``i -> decode(paths[i])``, checking that every frame has the sequence's ``(height, width)``."""
+
+    def load(i: int) -> np.ndarray:
+        return checked_size(paths[i], decode(paths[i]), size)
+
+    return load

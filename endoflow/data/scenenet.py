@@ -25,7 +25,7 @@ import numpy as np
 from endoflow.config import SceneNetConfig
 from endoflow.data.base import DataFormatError, DatasetReader, Sequence
 from endoflow.data.imageio import image_size, read_png16, read_rgb
-from endoflow.data.layout import checked_size, natural_key, numbered_files, ray_length_to_z_factor, subfolders
+from endoflow.data.layout import checked_size, natural_key, numbered_files, ray_length_to_z_factor, sized_loader, subfolders
 
 SPLITS = ("train", "val")
 HFOV_DEG = 60.0
@@ -85,7 +85,7 @@ class SceneNetReader(DatasetReader):
             image_size=size,
             frame_ids=frame_ids,
             poses=None,
-            load_rgb=None if photos is None else (lambda i: checked_size(photos[i], read_rgb(photos[i]), size)),
+            load_rgb=None if photos is None else sized_loader(photos, size, read_rgb),
             load_depth=_depth_loader(depth_paths, size, K),
             group=part.name,
         )

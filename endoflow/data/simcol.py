@@ -24,14 +24,12 @@ when a frame is requested.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
-
 import numpy as np
 
 from endoflow.config import SimColConfig
 from endoflow.data.base import DataFormatError, DatasetReader, Sequence
 from endoflow.data.imageio import image_size, read_png16, read_rgb
-from endoflow.data.layout import checked_intrinsics, checked_size, frame_gap_note, natural_key, numbered_files
+from endoflow.data.layout import checked_intrinsics, frame_gap_note, natural_key, numbered_files, sized_loader
 from endoflow.geometry.camera import scale_intrinsics
 from endoflow.geometry.pose import quaternion_xyzw_to_matrix, unity_to_opencv
 
@@ -89,8 +87,8 @@ class SimColReader(DatasetReader):
             image_size=size,
             frame_ids=frame_ids,
             poses=poses,
-            load_rgb=_sized_loader(frame_paths, size, read_rgb),
-            load_depth=_sized_loader(depths, size, decode_depth),
+            load_rgb=sized_loader(frame_paths, size, read_rgb),
+            load_depth=sized_loader(depths, size, decode_depth),
             group=scene.name,
             problems=problems,
         )
@@ -184,12 +182,3 @@ def _matching_depths(folder: Path, frames: dict[int, Path]) -> list[Path]:
             raise DataFormatError(depth, f"missing image: depth map for {frame.name} not found")
         matched.append(depth)
     return matched
-
-
-def _sized_loader(paths: list[Path], size: tuple[int, int], decode: Callable[[Path], np.ndarray]):
-    """``i -> decode(paths[i])``, checking that every frame has the sequence's size."""
-
-    def load(i: int) -> np.ndarray:
-        return checked_size(paths[i], decode(paths[i]), size)
-
-    return load
