@@ -114,10 +114,10 @@ class LatentBankConfig:
     channel_base: int = 512
     channel_max: int = 128
     batch_size: int = 16
-    steps_per_stage: int = 200  # generator steps at each resolution (the stage takes minutes on 2 cores)
-    # The paper trains 100 epochs at a fixed 1e-4; in our few-minute budget (1000 generator steps) 1e-4
-    # leaves the SWD at 0.53-0.75 of the untrained value, 1e-3 (ProGAN's rate, same betas) gets 0.34.
-    lr: float = 1e-3
+    # Generator steps at each resolution: one number for all, or a list from start_resolution up (coarse
+    # stages cost little, and they set the layout of the maps).
+    steps_per_stage: Union[int, list[int]] = 300
+    lr: float = 1e-4  # fixed, as the paper
     betas: list[float] = field(default_factory=lambda: [0.0, 0.99])
     n_critic: int = 1
     gp_gamma: float = 10.0
@@ -154,7 +154,9 @@ class LossConfig:
     automask: bool = True
     smoothness_weight: float = 1e-3
     multiscale: bool = True
-    kl_weight: float = 1e-3  # beta
+    # beta. The paper gives no value; 1e-3 pushed the pose log-variance up until sampling noise (~0.03 rad)
+    # swamped the per-frame rotation of the default data, and pose learned nothing (docs/method.md).
+    kl_weight: float = 1e-5
 
 
 # -------------------------------------------------------------------------------------- training
@@ -169,6 +171,9 @@ class TrainConfig:
     batch_size: int = 12
     lr: float = 1e-4
     weight_decay: float = 1e-3
+    # adamw: decoupled weight decay. adam: decay added to the gradient (L2), which Adam's normalisation
+    # inflates wherever the photometric gradient is small; on the default data it stalls learning.
+    optimizer: Literal["adam", "adamw"] = "adamw"
     log_every: int = 10
     # Learning-rate schedule: constant, or step (x gamma every step_epochs, Monodepth2's), or cosine.
     schedule: Literal["constant", "step", "cosine"] = "step"

@@ -18,9 +18,9 @@ from endoflow.data.check import check_dataset, check_sequence, format_check
 from endoflow.data.registry import open_reader
 from endoflow.geometry.pose import TM
 from endoflow.synth.writers import synthesize_layout
+from tests.samples import SIMCOL_SAMPLE
 
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "samples" / "simcol3d"
-needs_sample = pytest.mark.skipif(not SAMPLE.is_dir(), reason=f"real SimCol3D sample not found at {SAMPLE}")
+needs_sample = pytest.mark.skipif(not SIMCOL_SAMPLE.is_dir(), reason=f"real SimCol3D sample not found at {SIMCOL_SAMPLE}")
 
 
 def sliding_plane_sequence(frames: int = 5, size: int = 24, shift: int = 2) -> Sequence:
@@ -112,14 +112,14 @@ def test_report_lists_skipped_sequences_and_fails_on_any_flag(monkeypatch: pytes
 def real_sequence() -> Sequence:
     """S1 from the real sample, with its frames decoded once for all the variants below (each variant
     checks 3 target frames only, to keep the suite fast)."""
-    (sequence,) = open_reader(SAMPLE, "simcol", Params()).sequences()
+    (sequence,) = open_reader(SIMCOL_SAMPLE, "simcol", Params()).sequences()
     cached = lru_cache(maxsize=None)
     return dataclasses.replace(sequence, load_rgb=cached(sequence.load_rgb), load_depth=cached(sequence.load_depth))
 
 
 @needs_sample
 def test_cli_passes_on_the_real_sample(capsys: pytest.CaptureFixture) -> None:
-    assert main(["data", "check", str(SAMPLE), "--json"]) == 0
+    assert main(["data", "check", str(SIMCOL_SAMPLE), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["ok"] and report["dataset"] == "simcol"
     (s1,) = report["sequences"]

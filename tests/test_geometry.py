@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -25,8 +24,8 @@ from endoflow.geometry.pose import (
     unity_to_opencv,
 )
 from endoflow.geometry.warp import warp_frame
+from tests.samples import SIMCOL_SAMPLE
 
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "samples" / "simcol3d"
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
@@ -132,15 +131,15 @@ def test_unity_conversion_is_an_involution_giving_proper_rotations() -> None:
     assert np.allclose(opencv_to_unity(P), M)
 
 
-@pytest.mark.skipif(not SAMPLE.is_dir(), reason=f"real SimCol3D sample not found at {SAMPLE}")
+@pytest.mark.skipif(not SIMCOL_SAMPLE.is_dir(), reason=f"real SimCol3D sample not found at {SIMCOL_SAMPLE}")
 def test_official_conversion_of_real_simcol_poses() -> None:
-    scene = SAMPLE / "SyntheticColon_I"
+    scene = SIMCOL_SAMPLE / "SyntheticColon_I"
     positions = np.loadtxt(scene / "SavedPosition_S1.txt")
     quaternions = np.loadtxt(scene / "SavedRotationQuaternion_S1.txt")
     M = np.tile(np.eye(4), (len(positions), 1, 1))
     M[:, :3, :3] = quaternion_xyzw_to_matrix(quaternions)
     M[:, :3, 3] = positions
-    expected = np.loadtxt(SAMPLE / "S1_first10_converted_kitti3x4.txt").reshape(-1, 3, 4)
+    expected = np.loadtxt(SIMCOL_SAMPLE / "S1_first10_converted_kitti3x4.txt").reshape(-1, 3, 4)
     assert np.allclose(unity_to_opencv(M)[:, :3], expected, atol=1e-5)
 
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,8 +17,8 @@ from endoflow.data.registry import detect_dataset, open_reader
 from endoflow.data.scenenet import SceneNetReader
 from endoflow.data.simcol import SimColReader
 from tests.fixtures_native import write_endoslam_unitycam, write_scenenet, write_simcol
+from tests.samples import SIMCOL_SAMPLE
 
-SAMPLE_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "samples" / "simcol3d"
 
 
 # ----------------------------------------------------------------------------------- registry
@@ -104,10 +103,10 @@ def test_inspect_reports_an_undecodable_frame_as_a_problem(tmp_path):
 
 
 @pytest.mark.skipif(
-    not (SAMPLE_ROOT / "SyntheticColon_I").is_dir(), reason=f"real SimCol3D sample not found at {SAMPLE_ROOT}"
+    not (SIMCOL_SAMPLE / "SyntheticColon_I").is_dir(), reason=f"real SimCol3D sample not found at {SIMCOL_SAMPLE}"
 )
 def test_cli_inspect_shows_literal_K_and_converted_poses_of_the_real_sample(tmp_path, capsys):
-    assert main(["--params", str(tmp_path / "none.yaml"), "data", "inspect", str(SAMPLE_ROOT)]) == 0
+    assert main(["--params", str(tmp_path / "none.yaml"), "data", "inspect", str(SIMCOL_SAMPLE)]) == 0
     text = capsys.readouterr().out
     assert "S1  [split train, group SyntheticColon_I]  10 frames (0..9), 475x475" in text
     assert "227.604160     0.000000   227.604160" in text and "0.000000   237.500000   237.500000" in text

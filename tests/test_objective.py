@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -20,20 +19,20 @@ from endoflow.geometry.camera import scale_intrinsics
 from endoflow.geometry.pose import pose_vec_to_matrix, relative_pose
 from endoflow.models.endoflow_model import build_model
 from endoflow.training.objective import reprojection, training_step_losses
+from tests.samples import SIMCOL_SAMPLE
 
-SAMPLES = Path("/work/shared/samples/simcol3d")
 SIZE = 64
 STEPS = 60
 TRIPLETS = 4
 
-pytestmark = pytest.mark.skipif(not SAMPLES.is_dir(), reason="real SimCol3D sample folder not present")
+pytestmark = pytest.mark.skipif(not SIMCOL_SAMPLE.is_dir(), reason="real SimCol3D sample folder not present")
 
 
 def simcol_triplets(size: int = SIZE) -> dict[str, torch.Tensor]:
     """All 8 (prev, cur, next) triplets of the sample as a batch in the loader's keys, plus GT depth/poses."""
     from endoflow.data.simcol import SimColReader
 
-    sequence = SimColReader(SAMPLES, Params().data.simcol).sequences()[0]
+    sequence = SimColReader(SIMCOL_SAMPLE, Params().data.simcol).sequences()[0]
     frames = [sequence.frame(i) for i in range(len(sequence))]
     rgb = torch.stack(
         [torch.from_numpy(cv2.resize(f.rgb, (size, size), interpolation=cv2.INTER_AREA)).permute(2, 0, 1) for f in frames]

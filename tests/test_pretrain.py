@@ -15,7 +15,7 @@ from endoflow import tracking
 from endoflow.config import Params
 from endoflow.evaluation.swd import laplacian_pyramid, multiscale_swd
 from endoflow.models.latent_bank import LatentBankGenerator, load_generator
-from endoflow.training.pretrain import normalise_depth, pretrain_latent_bank
+from endoflow.training.pretrain import normalise_depth, pretrain_latent_bank, stage_schedule
 
 DEPTH_UNIT_CM = 0.1
 
@@ -120,3 +120,15 @@ def test_tiny_pretraining_writes_a_loadable_bank_metrics_and_plots(tmp_path):
     assert run.info.status == "FINISHED"
     assert run.data.metrics["swd_final"] == pytest.approx(written["swd_final"])
     assert run.data.params["latent_bank.resolution"] == "16"
+
+
+def test_steps_per_stage_is_one_number_for_all_resolutions_or_one_per_resolution():
+    params = Params()
+    params.latent_bank.resolution, params.latent_bank.start_resolution = 16, 4
+    params.latent_bank.steps_per_stage = 7
+    assert stage_schedule(params) == [(4, 7), (8, 7), (16, 7)]
+    params.latent_bank.steps_per_stage = [30, 20, 10]
+    assert stage_schedule(params) == [(4, 30), (8, 20), (16, 10)]
+    params.latent_bank.steps_per_stage = [30, 20]
+    with pytest.raises(ValueError, match=r"latent_bank.steps_per_stage: expected one number or 3"):
+        stage_schedule(params)

@@ -14,23 +14,23 @@ from endoflow.data.base import DataFormatError
 from endoflow.data.imageio import write_png
 from endoflow.data.simcol import SimColReader
 from tests.fixtures_native import SIMCOL_K_475, scaled_K, write_simcol
+from tests.samples import SIMCOL_SAMPLE
 
-SAMPLE_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "samples" / "simcol3d"
 needs_sample = pytest.mark.skipif(
-    not (SAMPLE_ROOT / "SyntheticColon_I").is_dir(), reason=f"real SimCol3D sample not found at {SAMPLE_ROOT}"
+    not (SIMCOL_SAMPLE / "SyntheticColon_I").is_dir(), reason=f"real SimCol3D sample not found at {SIMCOL_SAMPLE}"
 )
 
 
 @pytest.fixture(scope="module")
 def sample_sequence():
-    (sequence,) = SimColReader(SAMPLE_ROOT, SimColConfig()).sequences()
+    (sequence,) = SimColReader(SIMCOL_SAMPLE, SimColConfig()).sequences()
     return sequence
 
 
 # ------------------------------------------------------------------------------------ real sample
 @needs_sample
 def test_real_sample_poses_equal_the_official_conversion(sample_sequence):
-    official = np.loadtxt(SAMPLE_ROOT / "S1_first10_converted_kitti3x4.txt").reshape(-1, 3, 4)
+    official = np.loadtxt(SIMCOL_SAMPLE / "S1_first10_converted_kitti3x4.txt").reshape(-1, 3, 4)
     assert sample_sequence.poses.shape == (10, 4, 4)
     np.testing.assert_allclose(sample_sequence.poses[:, :3, :], official, atol=1e-6)
     np.testing.assert_array_equal(sample_sequence.poses[:, 3, :], np.tile([0, 0, 0, 1], (10, 1)))
@@ -52,7 +52,7 @@ def test_real_sample_K_is_cam_txt_read_literally(sample_sequence):
 
 @needs_sample
 def test_real_sample_rgb_is_the_8bit_values_in_rgb_order(sample_sequence):
-    raw = cv2.imread(str(SAMPLE_ROOT / "SyntheticColon_I" / "Frames_S1" / "FrameBuffer_0003.png"), cv2.IMREAD_UNCHANGED)
+    raw = cv2.imread(str(SIMCOL_SAMPLE / "SyntheticColon_I" / "Frames_S1" / "FrameBuffer_0003.png"), cv2.IMREAD_UNCHANGED)
     assert raw.dtype == np.uint16 and raw.shape == (475, 475, 4) and not (raw % 256).any()
     rgb = sample_sequence.load_rgb(3)
     assert rgb.dtype == np.uint8 and rgb.shape == (475, 475, 3)

@@ -32,8 +32,8 @@ from endoflow.data.shards import (
     stored_intrinsics,
     write_dataset_shards,
 )
+from tests.samples import SIMCOL_SAMPLE
 
-SAMPLE_ROOT = Path(__file__).resolve().parents[2] / "shared" / "samples" / "simcol3d"
 NATIVE_K = np.array([[40.0, 0.0, 31.0], [0.0, 42.0, 22.5], [0.0, 0.0, 1.0]])
 SPLIT_OF = {"S1": "train", "S2": "train", "S4": "val", "S5": "test"}
 SAMPLE_FILES = {"prev.png", "cur.png", "next.png", "depth.png", "meta.json"}
@@ -305,17 +305,17 @@ def test_depth_only_dataset_stores_every_frame_as_depth_and_meta(tmp_path: Path)
         assert decode_png(files["depth.png"])[16, 16] * meta["depth_unit"] == pytest.approx(centre, abs=0.05)
 
 
-@pytest.mark.skipif(not SAMPLE_ROOT.is_dir(), reason=f"real SimCol3D sample not found at {SAMPLE_ROOT}")
+@pytest.mark.skipif(not SIMCOL_SAMPLE.is_dir(), reason=f"real SimCol3D sample not found at {SIMCOL_SAMPLE}")
 def test_real_simcol_sample_gives_shards_whose_gt_explains_the_motion(tmp_path: Path) -> None:
     torch = pytest.importorskip("torch")
     from endoflow.geometry.pose import relative_pose
     from endoflow.geometry.warp import warp_frame
 
     params = small_params(size=64)
-    params.data.simcol.root = str(SAMPLE_ROOT)
+    params.data.simcol.root = str(SIMCOL_SAMPLE)
     summary = preprocess_dataset("simcol", params, tmp_path / "simcol")
     assert summary["samples"]["train"] == 8 and summary["shards"]["train"] % 2 == 0
-    kitti = np.loadtxt(SAMPLE_ROOT / "S1_first10_converted_kitti3x4.txt").reshape(-1, 3, 4)
+    kitti = np.loadtxt(SIMCOL_SAMPLE / "S1_first10_converted_kitti3x4.txt").reshape(-1, 3, 4)
     errors = []
     for files in all_samples(tmp_path / "simcol").values():
         meta = json.loads(files["meta.json"])

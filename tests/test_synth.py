@@ -34,8 +34,9 @@ from endoflow.synth.writers import (
     tube_sequence,
     unitycam_intrinsics,
 )
+from tests.samples import SIMCOL_SAMPLE
 
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "samples" / "simcol3d" / "SyntheticColon_I"
+SAMPLE = SIMCOL_SAMPLE / "SyntheticColon_I"
 CPU = torch.device("cpu")
 
 

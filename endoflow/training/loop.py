@@ -86,7 +86,7 @@ def train_loop_per_worker(config: dict[str, Any]) -> None:
         model = model.to(memory_format=torch.channels_last)
     module = ray.train.torch.prepare_model(LossModule(model, params), move_to_device=True)
     trainable = [p for p in model.parameters() if p.requires_grad]
-    optimizer = torch.optim.Adam(trainable, lr=params.train.lr, weight_decay=params.train.weight_decay)
+    optimizer = make_optimizer(trainable, params.train)
     scheduler = make_scheduler(optimizer, params.train)
 
     state = {"epoch": -1, "global_step": 0, "best": None, "history": []}
@@ -234,6 +234,12 @@ def report_checkpoint(model: EndoflowModel, optimizer: torch.optim.Optimizer, sc
 
 
 # -------------------------------------------------------------------------------------- helpers
+def make_optimizer(parameters: list[nn.Parameter], cfg: TrainConfig) -> torch.optim.Optimizer:
+    """Adam with ``train.weight_decay`` decoupled (``adamw``) or added to the gradient (``adam``)."""
+    optimizer = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
+    return optimizer(parameters, lr=cfg.lr, weight_decay=cfg.weight_decay)
+
+
 def make_scheduler(optimizer: torch.optim.Optimizer, cfg: TrainConfig) -> torch.optim.lr_scheduler.LRScheduler:
     """Per-epoch learning-rate schedule from ``train.schedule``."""
     if cfg.schedule == "step":

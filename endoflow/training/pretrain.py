@@ -12,8 +12,8 @@ monocular depth network only knows depth up to scale, and indoor scenes (metres)
 (centimetres). Maps are normalised at the stored size, then area-resized to each training resolution.
 
 Training: for each resolution from ``start_resolution`` to ``resolution``, ``steps_per_stage`` generator
-steps, each after ``n_critic`` critic steps; a new resolution fades in over the first ``fade_fraction`` of
-its stage (generator, critic and the real maps alike, as ProGAN). Losses from :mod:`endoflow.losses.gan`
+steps (one number, or one per resolution), each after ``n_critic`` critic steps; a new resolution fades in
+over the first ``fade_fraction`` of its stage (generator, critic and the real maps alike, as ProGAN). Losses from :mod:`endoflow.losses.gan`
 (WGAN-GP, ``gp_gamma``) plus ProGAN's small drift penalty on real scores; Adam ``betas``, fixed ``lr``. The
 saved generator is an exponential moving average of the trained weights (``ema_decay``, warmed up).
 
@@ -120,8 +120,14 @@ class EMA:
 
 def stage_schedule(params: Params) -> list[tuple[int, int]]:
     """(resolution, generator steps) per progressive stage."""
-    spec = generator_spec(params)
-    return [(r, params.latent_bank.steps_per_stage) for r in spec.resolutions]
+    resolutions = generator_spec(params).resolutions
+    steps = params.latent_bank.steps_per_stage
+    if isinstance(steps, int):
+        return [(r, steps) for r in resolutions]
+    if len(steps) != len(resolutions):
+        raise ValueError(f"latent_bank.steps_per_stage: expected one number or {len(resolutions)} (one per "
+                         f"resolution {resolutions}), got {steps}")
+    return list(zip(resolutions, steps))
 
 
 @torch.no_grad()

@@ -1,0 +1,5 @@
+"""Where the real sample files live: ``../shared/samples`` beside the repository (as in CI)."""
+
+from pathlib import Path
+
+SIMCOL_SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "samples" / "simcol3d"

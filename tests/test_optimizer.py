@@ -1,0 +1,40 @@
+"""``train.optimizer``: weight decay decoupled from the gradient (adamw) or added to it (adam)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from endoflow.config import TrainConfig
+from endoflow.training.loop import make_optimizer
+
+
+def weight_after_small_pulls(optimizer_name: str, steps: int = 10) -> float:
+    """A weight of 1 whose loss gradient (-1e-6) pulls it up, after ``steps`` of the optimiser."""
+    weight = torch.nn.Parameter(torch.ones(1))
+    cfg = dataclasses.replace(TrainConfig(), optimizer=optimizer_name, lr=1e-2, weight_decay=1e-3)
+    optimizer = make_optimizer([weight], cfg)
+    for _ in range(steps):
+        optimizer.zero_grad()
+        (-1e-6 * weight).sum().backward()
+        optimizer.step()
+    return float(weight)
+
+
+def test_adamw_follows_a_small_loss_gradient():
+    # Adam normalises the step, so a tiny gradient still moves the weight by about lr per step.
+    assert weight_after_small_pulls("adamw") == pytest.approx(1 + 10 * 1e-2, abs=2e-3)
+
+
+def test_adam_with_l2_decay_lets_the_decay_override_a_small_loss_gradient():
+    # The decay term (1e-3 * w) dwarfs the loss gradient, and Adam normalises the sum: the weight shrinks.
+    assert weight_after_small_pulls("adam") < 1 - 5e-2
+
+
+def test_the_optimizer_is_the_one_named():
+    weight = torch.nn.Parameter(torch.ones(1))
+    assert isinstance(make_optimizer([weight], dataclasses.replace(TrainConfig(), optimizer="adamw")),
+                      torch.optim.AdamW)
+    assert type(make_optimizer([weight], dataclasses.replace(TrainConfig(), optimizer="adam"))) is torch.optim.Adam
