@@ -114,8 +114,7 @@ class LatentBankConfig:
     channel_base: int = 512
     channel_max: int = 128
     batch_size: int = 16
-    # Generator steps at each resolution: one number for all, or a list from start_resolution up (coarse
-    # stages cost little, and they set the layout of the maps).
+    # Generator steps at each resolution: one number for all, or a list from start_resolution up.
     steps_per_stage: Union[int, list[int]] = 300
     lr: float = 1e-4  # fixed, as the paper
     betas: list[float] = field(default_factory=lambda: [0.0, 0.99])

@@ -13,9 +13,10 @@ monocular depth network only knows depth up to scale, and indoor scenes (metres)
 
 Training: for each resolution from ``start_resolution`` to ``resolution``, ``steps_per_stage`` generator
 steps (one number, or one per resolution), each after ``n_critic`` critic steps; a new resolution fades in
-over the first ``fade_fraction`` of its stage (generator, critic and the real maps alike, as ProGAN). Losses from :mod:`endoflow.losses.gan`
-(WGAN-GP, ``gp_gamma``) plus ProGAN's small drift penalty on real scores; Adam ``betas``, fixed ``lr``. The
-saved generator is an exponential moving average of the trained weights (``ema_decay``, warmed up).
+over the first ``fade_fraction`` of its stage (generator, critic and the real maps alike, as ProGAN). Losses
+from :mod:`endoflow.losses.gan` (WGAN-GP, ``gp_gamma``) plus ProGAN's small drift penalty on real scores; Adam
+``betas``, fixed ``lr``. The saved generator is an exponential moving average of the trained weights
+(``ema_decay``, warmed up).
 
 Outputs: ``out_path`` (``{"format", "spec", "state_dict", "normalisation"}``, loadable with
 ``torch.load(weights_only=True)`` and :func:`endoflow.models.latent_bank.load_generator`), ``metrics_path``
