@@ -38,12 +38,20 @@ def write_csv(path: str | Path, table: pd.DataFrame) -> None:
     os.replace(tmp, path)
 
 
-def save_figure(path: str | Path, figure: Figure) -> None:
+def write_bytes(path: str | Path, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temporary(path)
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def save_figure(path: str | Path, figure: Figure, dpi: int = 100) -> None:
     """Save a PNG and close the figure."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _temporary(path)
-    figure.savefig(tmp, format="png", dpi=100)
+    figure.savefig(tmp, format="png", dpi=dpi)
     plt.close(figure)
     os.replace(tmp, path)
 

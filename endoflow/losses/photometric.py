@@ -67,8 +67,21 @@ def _combine_over_sources(errors: list[torch.Tensor], use_minimum: bool) -> torc
     return stacked.min(dim=1, keepdim=True).values if use_minimum else stacked.mean(dim=1, keepdim=True)
 
 
+@torch.no_grad()
+def identity_error(target: torch.Tensor, sources: list[torch.Tensor], cfg: LossConfig) -> torch.Tensor:
+    """Per-pixel error ``[B, 1, H, W]`` of the unwarped sources against the target, combined over sources as
+    :func:`reprojection_loss` combines the warped ones (auto-masking's "no motion" reference)."""
+    return _combine_over_sources(
+        [photometric_error(s, target, cfg.photometric, cfg.ssim_weight) for s in sources], cfg.min_reprojection
+    )
+
+
 def reprojection_loss(
-    warped: list[torch.Tensor], target: torch.Tensor, sources: list[torch.Tensor], cfg: LossConfig
+    warped: list[torch.Tensor],
+    target: torch.Tensor,
+    sources: list[torch.Tensor],
+    cfg: LossConfig,
+    identity: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Photometric reprojection loss of the target reconstructed from several sources.
 
@@ -80,6 +93,8 @@ def reprojection_loss(
             per-pixel minimum over sources (else the mean); ``automask`` also computes the identity error of
             the unwarped sources (combined over sources the same way) and lets it win per pixel where it is
             lower: such pixels (static scenes, objects moving with the camera) give no gradient.
+        identity: :func:`identity_error` of these sources, when the caller already has it (it depends on
+            neither depth nor pose, so a multi-scale loss computes it once).
 
     Returns:
         ``loss`` (scalar, mean of the per-pixel map), the per-pixel map ``[B, 1, H, W]`` that is averaged,
@@ -94,11 +109,9 @@ def reprojection_loss(
     )
     if not cfg.automask:
         return reprojection.mean(), reprojection, torch.ones_like(reprojection, dtype=torch.bool)
-    with torch.no_grad():
-        identity = _combine_over_sources(
-            [photometric_error(s, target, cfg.photometric, cfg.ssim_weight) for s in sources], cfg.min_reprojection
-        )
-        identity = identity + _TIE_BREAK_STD * torch.randn_like(identity)
+    if identity is None:
+        identity = identity_error(target, sources, cfg)
+    identity = identity + _TIE_BREAK_STD * torch.randn_like(identity)
     mask = reprojection < identity
     per_pixel = torch.where(mask, reprojection, identity)
     return per_pixel.mean(), per_pixel, mask

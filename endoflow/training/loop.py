@@ -42,7 +42,12 @@ from torch import nn  # noqa: E402
 
 from endoflow import tracking  # noqa: E402
 from endoflow.config import Params, TrainConfig, params_from_dict  # noqa: E402
-from endoflow.data.loader import rank_batches, shard_sample_counts, triplet_dataset  # noqa: E402
+from endoflow.data.loader import (  # noqa: E402
+    batches_per_epoch,
+    rank_batches,
+    shard_sample_counts,
+    triplet_dataset,
+)
 from endoflow.evaluation import metrics, plots  # noqa: E402
 from endoflow.models.endoflow_model import EndoflowModel, build_model  # noqa: E402
 from endoflow.training.checkpoint import (  # noqa: E402
@@ -188,7 +193,7 @@ def check_finite_weights(model: EndoflowModel, epoch: int, state: dict) -> None:
 
 def steps_in_epoch(urls: list[str], world: int, cfg: TrainConfig, sizes: dict[str, int]) -> int:
     """Batches per rank this epoch: the even share, capped by ``train.steps_per_epoch``."""
-    share = sum(sizes[u] for u in urls) // world // cfg.batch_size
+    share = batches_per_epoch(urls, world, cfg.batch_size, sizes)
     return share if cfg.steps_per_epoch is None else min(share, cfg.steps_per_epoch)
 
 

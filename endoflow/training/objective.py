@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from endoflow.config import LossConfig
 from endoflow.geometry.warp import warp_frame
 from endoflow.losses.kl import kl_standard_normal
-from endoflow.losses.photometric import reprojection_loss
+from endoflow.losses.photometric import identity_error, reprojection_loss
 from endoflow.losses.smoothness import edge_aware_smoothness
 from endoflow.models.endoflow_model import EndoflowModel, PoseEstimate
 
@@ -59,11 +59,13 @@ def reprojection(
     T_source_target: list[torch.Tensor],
     K: torch.Tensor,
     loss_cfg: LossConfig,
+    identity: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Photometric loss of ``target [B, 3, H, W]`` rebuilt from each source with target ``depth [B, 1, H, W]``
-    and ``T_source_target[i] [B, 4, 4]`` (one per source), as ``loss_cfg`` says."""
+    and ``T_source_target[i] [B, 4, 4]`` (one per source), as ``loss_cfg`` says; ``identity`` as
+    :func:`reprojection_loss` takes it."""
     warped = [warp_frame(src, depth, T, K)[0] for src, T in zip(sources, T_source_target)]
-    return reprojection_loss(warped, target, sources, loss_cfg)[0]
+    return reprojection_loss(warped, target, sources, loss_cfg, identity)[0]
 
 
 def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig) -> dict[str, torch.Tensor]:
@@ -83,6 +85,7 @@ def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig
         model.source_pose(cur, batch["next"], source_is_next=True),
     ]
     scales = range(len(disps)) if loss_cfg.multiscale else range(1)
+    identity = identity_error(cur, sources, loss_cfg) if loss_cfg.automask else None
     out: dict[str, torch.Tensor] = {}
     photometric, smoothness = [], []
     for s in scales:
@@ -90,7 +93,7 @@ def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig
         if disp.shape[-2:] != cur.shape[-2:]:
             disp = F.interpolate(disp, size=cur.shape[-2:], mode="bilinear", align_corners=False)
         transforms = [pose.T_source_target for pose in poses]
-        loss = reprojection(cur, sources, model.disp_to_depth(disp), transforms, K, loss_cfg)
+        loss = reprojection(cur, sources, model.disp_to_depth(disp), transforms, K, loss_cfg, identity)
         smooth = edge_aware_smoothness(disps[s], cur) / 2**s
         out[f"photometric/{s}"], out[f"smoothness/{s}"] = loss, smooth
         photometric.append(loss)

@@ -29,10 +29,7 @@ from __future__ import annotations
 
 import copy
 import io
-import json
 import math
-import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -45,6 +42,7 @@ import torch.nn.functional as F
 from endoflow.config import Params
 from endoflow.data.base import DataFormatError
 from endoflow.data.loader import decode_sample, list_shards, raw_samples
+from endoflow.evaluation.outputs import save_figure, write_bytes, write_json
 from endoflow.evaluation.swd import multiscale_swd
 from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
 from endoflow.models.critic import Critic
@@ -205,14 +203,6 @@ def train_gan(
 
 
 # -------------------------------------------------------------------------------------------- outputs
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
-
-
 def save_sample_grid(fake: torch.Tensor, real: torch.Tensor, path: Path, title: str) -> None:
     """PNG: generated maps (left block) beside real held-out maps (right block), same colour scale."""
     import matplotlib
@@ -233,10 +223,7 @@ def save_sample_grid(fake: torch.Tensor, real: torch.Tensor, path: Path, title: 
     axes[0, 0].set_title("generated", loc="left", fontsize=9)
     axes[0, cols].set_title("real (held out)", loc="left", fontsize=9)
     fig.suptitle(title, fontsize=9)
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=80)
-    plt.close(fig)
-    _atomic_write_bytes(path, buffer.getvalue())
+    save_figure(path, fig, dpi=80)
 
 
 def save_loss_curves(history: list[dict[str, float]], path: Path) -> None:
@@ -255,10 +242,7 @@ def save_loss_curves(history: list[dict[str, float]], path: Path) -> None:
     ax.set_xlabel("generator step (grey lines: new resolution)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=80)
-    plt.close(fig)
-    _atomic_write_bytes(path, buffer.getvalue())
+    save_figure(path, fig, dpi=80)
 
 
 # ------------------------------------------------------------------------------------------ entry point
@@ -307,7 +291,7 @@ def pretrain_latent_bank(
         )
         buffer = io.BytesIO()
         torch.save(payload, buffer)
-        _atomic_write_bytes(out_path, buffer.getvalue())
+        write_bytes(out_path, buffer.getvalue())
 
         plots_dir.mkdir(parents=True, exist_ok=True)
         save_sample_grid(fake_final, heldout, plots_dir / "samples_final.png", f"EMA generator, SWD {swd_final['mean']:.1f}")
@@ -328,7 +312,7 @@ def pretrain_latent_bank(
             "heldout_maps": swd_count,
             "seconds": time.time() - started,
         }
-        _atomic_write_bytes(metrics_path, (json.dumps(metrics, indent=2) + "\n").encode())
+        write_json(metrics_path, metrics)
         scalars = {k: v for k, v in metrics.items() if isinstance(v, (int, float))}
         tracking.log_metrics(uri, run_id, scalars, step=len(history))
         tracking.log_artifact(uri, run_id, plots_dir, "plots")
