@@ -118,9 +118,13 @@ class LatentBankConfig:
     steps_per_stage: Union[int, list[int]] = 300
     lr: float = 1e-4  # fixed, as the paper
     betas: list[float] = field(default_factory=lambda: [0.0, 0.99])
-    n_critic: int = 1
+    # Critic steps per generator step: one number for all resolutions, or a list like steps_per_stage.
+    n_critic: Union[int, list[int]] = 1
     gp_gamma: float = 10.0
     ema_decay: float = 0.999
+    # Initial scale of the synthesis convolutions relative to PyTorch's default; they are scale-free (AdaIN
+    # follows), so below 1 they learn faster at the fixed lr (see latent_bank.shrink_scale_free_weights).
+    conv_init_scale: float = 0.25
     swd_samples: int = 256
     drift_weight: float = 0.001  # ProGAN's penalty on squared real scores, keeps critic outputs bounded
     fade_fraction: float = 0.5  # share of each new stage spent fading the new resolution in

@@ -122,13 +122,16 @@ def test_tiny_pretraining_writes_a_loadable_bank_metrics_and_plots(tmp_path):
     assert run.data.params["latent_bank.resolution"] == "16"
 
 
-def test_steps_per_stage_is_one_number_for_all_resolutions_or_one_per_resolution():
+def test_steps_and_critic_steps_are_one_number_for_all_resolutions_or_one_per_resolution():
     params = Params()
     params.latent_bank.resolution, params.latent_bank.start_resolution = 16, 4
-    params.latent_bank.steps_per_stage = 7
-    assert stage_schedule(params) == [(4, 7), (8, 7), (16, 7)]
-    params.latent_bank.steps_per_stage = [30, 20, 10]
-    assert stage_schedule(params) == [(4, 30), (8, 20), (16, 10)]
+    params.latent_bank.steps_per_stage, params.latent_bank.n_critic = 7, 1
+    assert stage_schedule(params) == [(4, 7, 1), (8, 7, 1), (16, 7, 1)]
+    params.latent_bank.steps_per_stage, params.latent_bank.n_critic = [30, 20, 10], [3, 2, 1]
+    assert stage_schedule(params) == [(4, 30, 3), (8, 20, 2), (16, 10, 1)]
     params.latent_bank.steps_per_stage = [30, 20]
     with pytest.raises(ValueError, match=r"latent_bank.steps_per_stage: expected one number or 3"):
+        stage_schedule(params)
+    params.latent_bank.steps_per_stage, params.latent_bank.n_critic = 5, [2, 1]
+    with pytest.raises(ValueError, match=r"latent_bank.n_critic: expected one number or 3"):
         stage_schedule(params)

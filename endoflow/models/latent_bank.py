@@ -256,6 +256,27 @@ class LatentBankGenerator(nn.Module):
         return features
 
 
+def shrink_scale_free_weights(generator: LatentBankGenerator, factor: float) -> None:
+    """Multiply the weights and biases of every synthesis block's transposed and 3x3 convolution by ``factor``.
+
+    Each of these convolutions reaches an instance normalisation (AdaIN) only through scale-free steps (blur,
+    leaky ReLU, noise whose strength starts at 0), so a fresh generator's maps do not change, up to the
+    normalisation's epsilon. Training does: Adam moves every weight by about ``lr`` per step whatever its size,
+    so a scale-free weight turns by about ``lr / |w|`` per step. PyTorch's default initialisation gives the
+    few-channel high-resolution blocks (small fan-in) the largest weights, and at the paper's fixed lr they
+    barely turn in a short run; ``factor`` < 1 makes every such layer turn ``1 / factor`` times faster, the
+    effect StyleGAN gets from its equalised learning rate.
+    """
+    if factor <= 0:
+        raise ValueError(f"latent_bank.conv_init_scale must be positive, got {factor}")
+    with torch.no_grad():
+        for block in generator.blocks:
+            for conv in (block.up, block.conv):
+                if conv is not None:
+                    conv.weight.mul_(factor)
+                    conv.bias.mul_(factor)
+
+
 def generator_payload(generator: LatentBankGenerator, extra: dict | None = None) -> dict:
     """The dict written to ``latent_bank.pt``: tensors and plain values only (``weights_only`` loadable)."""
     return {

@@ -12,11 +12,13 @@ monocular depth network only knows depth up to scale, and indoor scenes (metres)
 (centimetres). Maps are normalised at the stored size, then area-resized to each training resolution.
 
 Training: for each resolution from ``start_resolution`` to ``resolution``, ``steps_per_stage`` generator
-steps (one number, or one per resolution), each after ``n_critic`` critic steps; a new resolution fades in
+steps, each after ``n_critic`` critic steps (each one number, or one per resolution); a new resolution fades in
 over the first ``fade_fraction`` of its stage (generator, critic and the real maps alike, as ProGAN). Losses
 from :mod:`endoflow.losses.gan` (WGAN-GP, ``gp_gamma``) plus ProGAN's small drift penalty on real scores; Adam
-``betas``, fixed ``lr``. The saved generator is an exponential moving average of the trained weights
-(``ema_decay``, warmed up).
+``betas``, fixed ``lr``. The synthesis convolutions start at ``conv_init_scale`` times PyTorch's default
+scale (they are scale-free, so the fresh generator is unchanged but they learn faster at the fixed ``lr``;
+see :func:`endoflow.models.latent_bank.shrink_scale_free_weights`). The saved generator is an exponential
+moving average of the trained weights (``ema_decay``, warmed up).
 
 Outputs: ``out_path`` (``{"format", "spec", "state_dict", "normalisation"}``, loadable with
 ``torch.load(weights_only=True)`` and :func:`endoflow.models.latent_bank.load_generator`), ``metrics_path``
@@ -32,7 +34,7 @@ import io
 import math
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import cv2
 import numpy as np
@@ -47,7 +49,7 @@ from endoflow.evaluation.swd import multiscale_swd
 from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
 from endoflow.models.critic import Critic
 from endoflow.models.endoflow_model import generator_spec
-from endoflow.models.latent_bank import LatentBankGenerator, generator_payload
+from endoflow.models.latent_bank import LatentBankGenerator, generator_payload, shrink_scale_free_weights
 
 SWD_MIN_RESOLUTION = 16
 
@@ -117,16 +119,38 @@ class EMA:
             avg.lerp_(new, 1 - decay)
 
 
-def stage_schedule(params: Params) -> list[tuple[int, int]]:
-    """(resolution, generator steps) per progressive stage."""
+class Stage(NamedTuple):
+    """One progressive stage: its resolution, generator steps and critic steps per generator step."""
+
+    resolution: int
+    steps: int
+    n_critic: int
+
+
+def per_resolution(key: str, value: int | list[int], resolutions: list[int]) -> list[int]:
+    """``value`` for each resolution: one number for all, or a list with one entry per resolution."""
+    if isinstance(value, int):
+        return [value] * len(resolutions)
+    if len(value) != len(resolutions):
+        raise ValueError(f"latent_bank.{key}: expected one number or {len(resolutions)} (one per "
+                         f"resolution {resolutions}), got {value}")
+    return list(value)
+
+
+def stage_schedule(params: Params) -> list[Stage]:
+    """The progressive stages, coarsest first."""
+    cfg = params.latent_bank
     resolutions = generator_spec(params).resolutions
-    steps = params.latent_bank.steps_per_stage
-    if isinstance(steps, int):
-        return [(r, steps) for r in resolutions]
-    if len(steps) != len(resolutions):
-        raise ValueError(f"latent_bank.steps_per_stage: expected one number or {len(resolutions)} (one per "
-                         f"resolution {resolutions}), got {steps}")
-    return list(zip(resolutions, steps))
+    steps = per_resolution("steps_per_stage", cfg.steps_per_stage, resolutions)
+    critic_steps = per_resolution("n_critic", cfg.n_critic, resolutions)
+    return [Stage(*stage) for stage in zip(resolutions, steps, critic_steps)]
+
+
+def fresh_generator(params: Params) -> LatentBankGenerator:
+    """An untrained generator for ``params``, its scale-free convolutions at ``conv_init_scale``."""
+    generator = LatentBankGenerator(generator_spec(params))
+    shrink_scale_free_weights(generator, params.latent_bank.conv_init_scale)
+    return generator
 
 
 @torch.no_grad()
@@ -150,14 +174,14 @@ def train_gan(
     """Progressive WGAN-GP training; returns the generator's moving average and the loss history."""
     cfg = params.latent_bank
     spec = generator_spec(params)
-    generator, critic = LatentBankGenerator(spec), Critic(spec)
+    generator, critic = fresh_generator(params), Critic(spec)
     ema = EMA(generator, cfg.ema_decay)
     opt_g = torch.optim.Adam(generator.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
     opt_c = torch.optim.Adam(critic.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
     rng = torch.Generator().manual_seed(params.seed)
     history: list[dict[str, float]] = []
     step = 0
-    for stage, (resolution, steps) in enumerate(stage_schedule(params)):
+    for stage, (resolution, steps, n_critic) in enumerate(stage_schedule(params)):
         reals = at_resolution(train, resolution, 1.0)
         fade_steps = max(1, int(cfg.fade_fraction * steps)) if stage > 0 else 0
         for i in range(steps):
@@ -166,7 +190,7 @@ def train_gan(
             def score(x: torch.Tensor) -> torch.Tensor:
                 return critic(x, resolution, alpha)
 
-            for _ in range(cfg.n_critic):
+            for _ in range(n_critic):
                 index = torch.randint(len(reals), (cfg.batch_size,), generator=rng)
                 real = at_resolution(reals[index], resolution, alpha)
                 flip = torch.rand(cfg.batch_size, generator=rng) < 0.5
@@ -274,7 +298,7 @@ def pretrain_latent_bank(
     run_id = tracking.start_run(params, project_root, params.tracking.latent_bank_experiment, "pretrain_latent_bank")
     try:
         spec = generator_spec(params)
-        untrained = LatentBankGenerator(spec)
+        untrained = fresh_generator(params)
         fake_untrained = generate(untrained, swd_count, spec.latent_dim, params.seed + 1)
         swd_untrained = swd_against(heldout, fake_untrained, params.seed)
         swd_reference = swd_against(heldout, train[:swd_count], params.seed)
