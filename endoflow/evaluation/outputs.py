@@ -39,6 +39,7 @@ def write_csv(path: str | Path, table: pd.DataFrame) -> None:
 
 
 def write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` under a temporary name beside ``path``, then rename it into place."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _temporary(path)
@@ -47,7 +48,7 @@ def write_bytes(path: str | Path, data: bytes) -> None:
 
 
 def save_figure(path: str | Path, figure: Figure, dpi: int = 100) -> None:
-    """Save a PNG and close the figure."""
+    """Save a PNG at ``dpi`` and close the figure."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _temporary(path)
