@@ -32,7 +32,7 @@ from endoflow.evaluation.evaluate import (
     score_sequences,
     eval_set_shards,
 )
-from endoflow.training.checkpoint import ModelRecord, TrainingBaselines, save_model_file
+from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 
 SIZE = 64  # the smallest size the depth network accepts (its deepest features are 2x2)
 FRAMES = 7

@@ -5,6 +5,7 @@ Training shards here are deliberately uneven: 5 shards of 2 or 3 samples dealt t
 
 from __future__ import annotations
 
+import itertools
 import json
 from dataclasses import replace
 from pathlib import Path
@@ -14,20 +15,22 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
+import webdataset as wds
 
 from endoflow.data.base import DataFormatError
-from endoflow.data.loader import (
-    batches_per_epoch,
+from endoflow.data.loader import batches_per_epoch, list_shards, rank_batches, rank_shards, raw_samples, triplet_dataset
+from endoflow.data.shard_format import (
+    MANIFEST,
+    MANIFEST_SCHEMA,
+    ShardEntry,
     collate_samples,
     decode_sample,
-    list_shards,
-    rank_batches,
-    rank_shards,
-    raw_samples,
-    shard_sample_counts,
-    triplet_dataset,
+    file_sha256,
+    manifest_bytes,
+    shard_entries,
+    shard_name,
 )
-from endoflow.data.shards import MANIFEST, write_dataset_shards
+from endoflow.data.shards import write_dataset_shards
 from tests.test_shards import SyntheticSource, native_pose, small_params
 
 
@@ -51,7 +54,7 @@ def test_shards_are_listed_sorted_by_path_and_by_file_url(shard_dir: Path) -> No
     urls = list_shards(f"file://{shard_dir}", "train")
     assert urls == [f"file://{p}" for p in paths]
     assert [s["__key__"] for s in raw_samples(urls)] == [s["__key__"] for s in raw_samples(paths)]
-    assert shard_sample_counts(urls) == {url: n for url, n in zip(urls, [2, 2, 3, 2, 3])}
+    assert [e.samples for e in shard_entries(urls).values()] == [2, 2, 3, 2, 3]
     with pytest.raises(ValueError, match="split"):
         list_shards(shard_dir, "training")
 
@@ -63,7 +66,7 @@ def test_shards_on_another_fsspec_filesystem_are_listed_counted_and_read(shard_d
     try:
         urls = list_shards("memory://loader-test", "train")
         assert urls == [f"memory:///loader-test/train-{i:06d}.tar" for i in range(5)]
-        assert list(shard_sample_counts(urls).values()) == [2, 2, 3, 2, 3]
+        assert list({url: e.samples for url, e in shard_entries(urls).items()}.values()) == [2, 2, 3, 2, 3]
         batches = list(rank_batches(urls, 1, 2, batch_size=2, epoch=0, seed=0))
         assert len(batches) == 3
     finally:
@@ -128,13 +131,35 @@ def test_ranks_read_disjoint_shards_and_yield_equal_batch_counts_from_uneven_sha
     assert len({tuple(a) for a in assignments}) > 1, "the shard assignment should change between epochs"
 
 
-def test_a_rank_short_of_its_share_cycles_its_own_shards(shard_dir: Path) -> None:
-    urls = list_shards(shard_dir, "train")
-    sizes = {url: 1 for url in urls[:4]} | {urls[4]: 20}  # one large shard: its rank has 20, the other few
-    expected = batches_per_epoch(urls, 2, 3, sizes)
+def write_shard_folder(folder: Path, samples: list[dict], sizes: list[int]) -> list[str]:
+    """Train shards of the given sizes, cycling through ``samples`` under new keys, with a true manifest."""
+    folder.mkdir()
+    pool = itertools.cycle(samples)
+    entries, rows = [], {name: [] for name in MANIFEST_SCHEMA.names}
+    for index, size in enumerate(sizes):
+        name = shard_name("train", index)
+        with wds.TarWriter(str(folder / name), encoder=False, mtime=0) as tar:
+            for i in range(size):
+                sample = {k: v for k, v in next(pool).items() if not k.startswith("__")}
+                key = f"uneven-{index}-{i}"
+                tar.write({"__key__": key, **sample})
+                meta = json.loads(sample["meta.json"])
+                for column, value in (("shard", name), ("key", key), ("dataset", meta["dataset"]),
+                                      ("sequence", meta["sequence"]), ("group", meta["group"]),
+                                      ("frame", meta["frame"]), ("split", "train")):
+                    rows[column].append(value)
+        entries.append(ShardEntry(name, size, file_sha256(str(folder / name))))
+    (folder / MANIFEST).write_bytes(manifest_bytes(rows, entries))
+    return list_shards(folder, "train")
+
+
+def test_a_rank_short_of_its_share_cycles_its_own_shards(shard_dir: Path, tmp_path: Path) -> None:
+    samples = list(raw_samples(list_shards(shard_dir, "train")))
+    urls = write_shard_folder(tmp_path / "uneven", samples, [1, 1, 1, 1, 20])  # the rank given 20 has plenty
+    expected = batches_per_epoch(urls, 2, 3)
     for rank in (0, 1):
         own = rank_shards(urls, rank, 2, epoch=0, seed=0)
-        batches = list(rank_batches(urls, rank, 2, batch_size=3, epoch=0, seed=0, shard_sizes=sizes))
+        batches = list(rank_batches(urls, rank, 2, batch_size=3, epoch=0, seed=0))
         assert len(batches) == expected == (4 + 20) // 2 // 3
         keys = [key for b in batches for key in b["key"]]
         own_keys = {s["__key__"] for s in raw_samples(own)}
@@ -148,6 +173,6 @@ def test_more_ranks_than_shards_or_a_missing_manifest_fail_clearly(shard_dir: Pa
     copy = tmp_path / "train-000000.tar"
     copy.write_bytes(Path(urls[0]).read_bytes())
     with pytest.raises(DataFormatError, match="manifest not found"):
-        shard_sample_counts([str(copy)])
-    meta = json.loads(next(raw_samples([str(copy)]))["meta.json"])
-    assert meta["split"] == "train"
+        shard_entries([str(copy)])
+    with pytest.raises(DataFormatError, match="manifest not found"):
+        next(raw_samples([str(copy)]))

@@ -3,9 +3,11 @@
 Ray costs about 20 s per run on two cores, so each test combines several checks:
 
 - two CPU workers, killed after the first epoch's checkpoint and run again: the rerun continues with the
-  next epoch (the finished epoch is neither lost nor repeated), both ranks hold identical weights after
+  next epoch (the finished epoch is neither lost nor repeated) and ends with weights bit-identical to an
+  uninterrupted run's (every rank's random state is restored), both ranks hold identical weights after
   every epoch and trained on disjoint samples, the storage path may be a ``file://`` URL, and the MLflow run
-  (reopened by the rerun) holds params, losses, validation metrics, depth images and the model;
+  (reopened by the rerun) holds params, losses, validation metrics, depth images and the model; the
+  uninterrupted run keeps only ``train.keep_checkpoints`` checkpoints;
 - a learning rate that turns NaN after the first epoch (shards read through a ``file://`` URL): training
   stops with an error naming the epoch and step, the first epoch's checkpoint stays, no model file is
   written and the MLflow run is marked failed.
@@ -22,12 +24,14 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+import torch
 import yaml
 
 from endoflow import tracking
 from endoflow.config import Params, params_to_dict
 from endoflow.data.shards import write_dataset_shards
-from endoflow.training.checkpoint import latest_checkpoint, load_model_file, read_rank_audits, weights_digest
+from endoflow.models.model_file import load_model_file
+from endoflow.training.checkpoint import latest_checkpoint, load_training_state, read_rank_audits, weights_digest
 from endoflow.training.ray_trainer import TrainingError, train, training_fingerprint
 from tests.test_evaluate import OracleSource, shard_params
 
@@ -110,6 +114,17 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
                  for a in tracking.client(uri).list_artifacts(run.info.run_id, folder)}
     assert {"val_depth/epoch_0000.png", "val_depth/epoch_0001.png", "model/endoflow.pt"} <= artifacts
 
+    # the same training, never interrupted, keeping one checkpoint: the same weights, bit for bit
+    reference = tmp_path / "uninterrupted"
+    reference_params = project(reference, epochs=2, keep_checkpoints=1)
+    reference_params.ray = replace(params.ray, storage_path=str(reference / "checkpoints"))
+    train(reference_params, reference)
+    assert [f.name for f in checkpoint_folders(reference / "checkpoints")] == ["epoch-0001"]
+    resumed = load_training_state(folders[-1])
+    uninterrupted = load_training_state(checkpoint_folders(reference / "checkpoints")[-1])
+    assert resumed.state.history == uninterrupted.state.history
+    assert all(torch.equal(resumed.model[k], v) for k, v in uninterrupted.model.items())
+
 
 @pytest.mark.slow
 def test_a_non_finite_loss_stops_training_naming_the_step_and_keeps_the_last_checkpoint(tmp_path: Path):
@@ -129,8 +144,6 @@ def test_a_non_finite_loss_stops_training_naming_the_step_and_keeps_the_last_che
 
 
 def test_weights_digest_tells_models_apart():
-    import torch
-
     first, second = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
     second.load_state_dict(first.state_dict())
     assert weights_digest(first) == weights_digest(second)
@@ -140,8 +153,6 @@ def test_weights_digest_tells_models_apart():
 
 
 def test_resume_picks_the_newest_complete_checkpoint_also_through_a_url(tmp_path: Path):
-    import torch
-
     run = tmp_path / "endoflow-train-abc"
     for epoch in range(3):
         (run / f"epoch-{epoch:04d}").mkdir(parents=True)

@@ -41,8 +41,10 @@ import torch
 from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig
 from endoflow.evaluation import metrics, plots
-from endoflow.evaluation.outputs import save_figure, staged_directory, write_csv, write_json
-from endoflow.training.checkpoint import TrainingBaselines, load_trained_model
+from endoflow.io import save_figure, staged_directory, write_csv, write_json
+from endoflow.data.shard_format import read_manifest
+from endoflow.locations import absolute_location
+from endoflow.models.model_file import TrainingBaselines, load_trained_model
 
 DEPTH_METHODS = ("model", "constant_depth", "mean_depth_map")
 POSE_METHODS = ("model", "constant_velocity")
@@ -96,16 +98,17 @@ def eval_set(params: Params, name: str) -> EvalSetConfig:
 def eval_set_shards(shards_root: str, test_set: EvalSetConfig) -> list[str]:
     """Shard URLs (in order) that hold samples of ``test_set``, from the dataset's ``manifest.parquet``."""
     base = f"{shards_root.rstrip('/')}/{test_set.dataset}"
-    manifest = pd.read_parquet(f"{base}/manifest.parquet")
-    rows = manifest[manifest["split"] == test_set.split]
+    manifest = read_manifest(base)
+    table = manifest.table.to_pandas()
+    rows = table[table["split"] == test_set.split]
     if test_set.groups:
         rows = rows[rows["group"].isin(test_set.groups)]
     if test_set.sequences:
         rows = rows[rows["sequence"].isin(test_set.sequences)]
     if rows.empty:
         raise ValueError(
-            f"{base}/manifest.parquet: no {test_set.split} samples of groups {test_set.groups or 'any'} and "
-            f"sequences {test_set.sequences or 'any'} (found groups {sorted(manifest['group'].unique())})")
+            f"{manifest.location}: no {test_set.split} samples of groups {test_set.groups or 'any'} and "
+            f"sequences {test_set.sequences or 'any'} (found groups {sorted(table['group'].unique())})")
     return [f"{base}/{name}" for name in sorted(rows["shard"].unique())]
 
 
@@ -423,7 +426,6 @@ def log_evaluation(params: Params, project_root: str | Path, result: dict, plots
 def run_evaluation(params: Params, name: str, project_root: str | Path = ".") -> dict:
     """The ``evaluate`` stage for test set ``name``: read its shards, evaluate, write outputs, log to MLflow."""
     from endoflow.data.loader import triplet_dataset
-    from endoflow.training.ray_trainer import absolute_location
 
     root = Path(project_root).resolve()
     urls = eval_set_shards(absolute_location(params.eval.shards, root), eval_set(params, name))

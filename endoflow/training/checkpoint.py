@@ -1,26 +1,27 @@
-"""What training leaves behind: Ray checkpoints of the full training state, and the final model file.
+"""The training state: what a Ray checkpoint holds, so that an interrupted run resumes exactly.
 
-Ray checkpoint folder (one per finished epoch, persisted by Ray to its storage path)::
+Ray checkpoint folder (one per finished epoch, persisted by Ray to ``ray.storage_path``; Ray keeps the newest
+``train.keep_checkpoints``, and every ``state.pt`` carries the best epoch's weights, so pruning never loses
+the model that ``train.out`` is written from)::
 
-    state.pt        rank 0: model, optimiser, scheduler, epoch, global step, best model so far, history
-    rank-<r>.json   every rank: the sample keys it trained on this epoch and a SHA-256 of its weights
-                    (an audit of data parallelism: weights must agree, keys must be disjoint)
+    state.pt          rank 0: model, optimiser, scheduler, and the :class:`TrainState` (epoch, global step,
+                      best epoch with its weights, history)
+    rng-rank-<r>.pt   every rank: its torch (CPU and CUDA), NumPy and Python random states after the epoch
+    rank-<r>.json     every rank: the sample keys it trained on this epoch and a SHA-256 of its weights
+                      (an audit of data parallelism: weights must agree, keys must be disjoint)
 
-Model file (``train.out``, ``models/endoflow.pt``), a plain ``torch.save`` dict readable with
-``weights_only=True``: ``format``, ``model`` (state dict of the best validation epoch), ``params`` (nested
-dict: the architecture is rebuilt from it), ``epoch``, ``val`` (its validation metrics), ``mlflow_run_id``
-(the training run, where ``evaluate`` logs too) and ``baselines`` (training-set statistics for the trivial
-baselines of the evaluation).
+Every file is tensors and plain data, loaded with ``weights_only=True``
+(:func:`endoflow.models.model_file.load_plain_torch_file`): a planted file that would run code is refused with
+an error naming it. The data order needs no saved state: it is drawn from ``(seed, epoch, rank)``.
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
 import json
-import os
+import random
 import zipfile
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
@@ -28,107 +29,112 @@ import fsspec
 import numpy as np
 import torch
 
-from endoflow.config import Params, params_from_dict, params_to_dict
+from endoflow.io import save_torch, write_text
+from endoflow.models.model_file import ModelFileError, load_plain_torch_file
 
-MODEL_FORMAT = 1
 STATE_FILE = "state.pt"
+TRAINING_STATE = "an endoflow training state (state.pt of a Ray checkpoint)"
 
 
 @dataclass
-class TrainingBaselines:
-    """Training-set statistics behind the evaluation's trivial baselines.
+class BestEpoch:
+    """The epoch with the best validation so far and a CPU copy of its weights."""
 
-    Attributes:
-        mean_depth_cm: mean of all valid GT depth pixels (the constant-depth baseline).
-        mean_depth_map: ``H x W`` per-pixel mean of valid GT depth at the stored size (float32).
-        mean_relative_pose: ``4 x 4`` mean ``inv(P_i) @ P_{i+1}`` (the constant-velocity baseline).
-    """
-
-    mean_depth_cm: float
-    mean_depth_map: np.ndarray
-    mean_relative_pose: np.ndarray
-
-    def to_record(self) -> dict[str, Any]:
-        return {"mean_depth_cm": float(self.mean_depth_cm),
-                "mean_depth_map": torch.from_numpy(np.asarray(self.mean_depth_map, np.float32)),
-                "mean_relative_pose": torch.from_numpy(np.asarray(self.mean_relative_pose, np.float64))}
-
-    @classmethod
-    def from_record(cls, record: dict[str, Any]) -> "TrainingBaselines":
-        return cls(float(record["mean_depth_cm"]), record["mean_depth_map"].numpy(),
-                   record["mean_relative_pose"].numpy())
-
-
-@dataclass
-class ModelRecord:
-    params: Params
-    state: dict[str, torch.Tensor]
     epoch: int
     val: dict[str, float]
-    mlflow_run_id: Optional[str]
-    baselines: TrainingBaselines
+    model: dict[str, torch.Tensor]
 
 
-def save_model_file(path: str | Path, record: ModelRecord) -> None:
-    """Write the model file atomically (temporary name, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    torch.save({
-        "format": MODEL_FORMAT,
-        "model": record.state,
-        "params": params_to_dict(record.params),
-        "epoch": record.epoch,
-        "val": dict(record.val),
-        "mlflow_run_id": record.mlflow_run_id,
-        "baselines": record.baselines.to_record(),
-    }, tmp)
-    os.replace(tmp, path)
+@dataclass
+class TrainState:
+    """Progress of a training run: ``epoch`` is the last finished one (-1 before the first)."""
+
+    epoch: int = -1
+    global_step: int = 0
+    best: Optional[BestEpoch] = None
+    history: list[dict[str, Any]] = field(default_factory=list)
 
 
-def load_model_file(path: str | Path) -> ModelRecord:
-    """Read a model file written by :func:`save_model_file` (tensors only, no pickled code)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: model file not found (run the train stage first)")
-    raw = torch.load(path, map_location="cpu", weights_only=True)
-    if raw.get("format") != MODEL_FORMAT:
-        raise ValueError(f"{path}: model file format {raw.get('format')!r}, expected {MODEL_FORMAT}")
-    return ModelRecord(params=params_from_dict(raw["params"]), state=raw["model"], epoch=int(raw["epoch"]),
-                       val=raw["val"], mlflow_run_id=raw["mlflow_run_id"],
-                       baselines=TrainingBaselines.from_record(raw["baselines"]))
+@dataclass
+class TrainingCheckpoint:
+    """Everything rank 0 saves after an epoch."""
+
+    state: TrainState
+    model: dict[str, torch.Tensor]
+    optimizer: dict[str, Any]
+    scheduler: dict[str, Any]
 
 
-def load_trained_model(path: str | Path, device: torch.device) -> tuple[torch.nn.Module, ModelRecord]:
-    """The trained model in eval mode on ``device``, rebuilt from the params stored with it."""
-    from endoflow.models.endoflow_model import build_model
-
-    record = load_model_file(path)
-    # the bank's weights are part of the state dict: build an empty one, then load everything
-    model = build_model(record.params, latent_bank_path=None)
-    model.load_state_dict(record.state)
-    return model.to(device).eval(), record
-
-
-def weights_digest(model: torch.nn.Module) -> str:
-    """SHA-256 over every parameter and buffer, in name order (equal digests = identical weights)."""
-    digest = hashlib.sha256()
-    for name, tensor in sorted(model.state_dict().items()):
-        digest.update(name.encode())
-        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-    return digest.hexdigest()
+def save_training_state(directory: Path, checkpoint: TrainingCheckpoint) -> None:
+    """Write ``state.pt`` into a checkpoint folder."""
+    save_torch(Path(directory) / STATE_FILE, {
+        "state": {**asdict(checkpoint.state), "best": None},  # asdict would deep-copy the best weights
+        "best": None if checkpoint.state.best is None else vars(checkpoint.state.best),
+        "model": checkpoint.model,
+        "optimizer": checkpoint.optimizer,
+        "scheduler": checkpoint.scheduler,
+    })
 
 
-def save_training_state(directory: Path, state: dict[str, Any]) -> None:
-    torch.save(state, directory / STATE_FILE)
+def load_training_state(checkpoint: str | Path) -> TrainingCheckpoint:
+    """``state.pt`` of a checkpoint folder given as a local path or an fsspec URL.
+
+    Raises:
+        ModelFileError: naming the file, when it is not a training state of this format or would run code.
+    """
+    location = f"{str(checkpoint).rstrip('/')}/{STATE_FILE}"
+    raw = load_plain_torch_file(_read_bytes(location), TRAINING_STATE, name=location)
+    try:
+        state = TrainState(**raw["state"])
+        state.best = None if raw["best"] is None else BestEpoch(**raw["best"])
+        return TrainingCheckpoint(state, raw["model"], raw["optimizer"], raw["scheduler"])
+    except (KeyError, TypeError) as exc:
+        raise ModelFileError(f"{location}: not {TRAINING_STATE} of this endoflow version ({exc})") from None
 
 
-def load_training_state(checkpoint: str | Path) -> dict[str, Any]:
-    """``state.pt`` of a checkpoint folder given as a local path or an fsspec URL."""
-    with fsspec.open(f"{str(checkpoint).rstrip('/')}/{STATE_FILE}", "rb") as f:
-        return torch.load(io.BytesIO(f.read()), map_location="cpu", weights_only=False)
+# ---------------------------------------------------------------------------------------- random state
+def rng_file(rank: int) -> str:
+    return f"rng-rank-{rank}.pt"
 
 
+def random_state() -> dict[str, Any]:
+    """The torch (CPU and every CUDA device), NumPy and Python random states, as tensors and plain data."""
+    kind, keys, position, has_gauss, gauss = np.random.get_state()
+    return {
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+        "numpy": {"kind": kind, "keys": torch.from_numpy(keys.astype(np.int64)), "position": int(position),
+                  "has_gauss": int(has_gauss), "gauss": float(gauss)},
+        "python": random.getstate(),
+    }
+
+
+def restore_random_state(saved: dict[str, Any]) -> None:
+    """Undo :func:`random_state`: every generator continues exactly where it was saved."""
+    torch.set_rng_state(saved["torch"])
+    if saved["cuda"] and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(saved["cuda"])
+    numpy = saved["numpy"]
+    np.random.set_state((numpy["kind"], numpy["keys"].numpy().astype(np.uint32), numpy["position"],
+                         numpy["has_gauss"], numpy["gauss"]))
+    version, internal, gauss = saved["python"]
+    random.setstate((version, tuple(internal), gauss))
+
+
+def save_random_state(directory: Path, rank: int) -> None:
+    save_torch(Path(directory) / rng_file(rank), random_state())
+
+
+def load_random_state(checkpoint: str | Path, rank: int) -> Optional[dict[str, Any]]:
+    """The random state ``rank`` saved in a checkpoint folder, or ``None`` when it has none."""
+    location = f"{str(checkpoint).rstrip('/')}/{rng_file(rank)}"
+    fs, path = fsspec.core.url_to_fs(location)
+    if not fs.exists(path):
+        return None
+    return load_plain_torch_file(_read_bytes(location), "an endoflow random state", name=location)
+
+
+# ------------------------------------------------------------------------------------------ finding
 def latest_checkpoint(run_location: str) -> Optional[str]:
     """The newest ``epoch-NNNN`` checkpoint under a Ray run folder (path or fsspec URL) whose ``state.pt``
     is complete, or ``None``. A run killed while Ray copied a checkpoint leaves a truncated file, which
@@ -145,12 +151,27 @@ def latest_checkpoint(run_location: str) -> Optional[str]:
     return None
 
 
+# --------------------------------------------------------------------------------------------- audit
+def weights_digest(model: torch.nn.Module) -> str:
+    """SHA-256 over every parameter and buffer, in name order (equal digests = identical weights)."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(model.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
 def write_rank_audit(directory: Path, rank: int, epoch: int, keys: list[str], digest: str) -> None:
-    (directory / f"rank-{rank}.json").write_text(
-        json.dumps({"rank": rank, "epoch": epoch, "weights_sha256": digest, "keys": keys}))
+    write_text(Path(directory) / f"rank-{rank}.json",
+               json.dumps({"rank": rank, "epoch": epoch, "weights_sha256": digest, "keys": keys}))
 
 
 def read_rank_audits(directory: Path) -> list[dict[str, Any]]:
     """The ``rank-<r>.json`` audits of one checkpoint folder, by rank."""
     return sorted((json.loads(p.read_text()) for p in Path(directory).glob("rank-*.json")),
                   key=lambda audit: audit["rank"])
+
+
+def _read_bytes(location: str) -> bytes:
+    with fsspec.open(location, "rb") as f:
+        return f.read()

@@ -1,8 +1,9 @@
 """The per-worker training loop that Ray Train runs on every rank (DDP).
 
-It lives in the installed package because Ray workers unpickle it by module path. ``config`` (built by
-:mod:`endoflow.training.ray_trainer`) holds plain data only: the params as a nested dict, absolute paths or
-fsspec URLs of the shards and the latent bank, the MLflow tracking URI and run id, and ``resume_from``.
+It lives in the installed package because Ray workers unpickle it by module path. Its input is a
+:class:`WorkerConfig` (built by :mod:`endoflow.training.ray_trainer`; a frozen dataclass, so a misspelt field
+fails on the driver, not on a remote worker): the typed params, absolute paths or fsspec URLs of the shards
+and the latent bank, the MLflow tracking URI and run id, and ``resume_from``.
 
 Per epoch every rank trains on its own shards (:func:`endoflow.data.loader.rank_batches`: disjoint shards,
 the same number of batches on every rank, so no rank waits forever in an all-reduce). The losses are
@@ -13,7 +14,8 @@ statistics are broadcast, the ranks validate disjoint parts of the val split (me
 RMSE, the paper's protocol) and reduce the sums, and every rank reports a checkpoint through Ray:
 ``state.pt`` from rank 0 and a ``rank-<r>.json`` audit from every rank (see
 :mod:`endoflow.training.checkpoint`). A restarted run continues after the newest complete checkpoint
-(Ray's restored one or the driver's ``resume_from``, whichever is newer).
+(Ray's restored one or the driver's ``resume_from``, whichever is newer), with every rank's random state
+restored, so a resumed run computes the same weights as an uninterrupted one.
 
 Only rank 0 writes to MLflow (SQLite allows one writer): losses every ``train.log_every`` steps, validation
 metrics every epoch, and depth beside GT for fixed val frames every epoch.
@@ -25,10 +27,10 @@ import math
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
-import fsspec
 import matplotlib
 
 matplotlib.use("Agg")
@@ -41,28 +43,51 @@ import torch.distributed as dist  # noqa: E402
 from torch import nn  # noqa: E402
 
 from endoflow import tracking  # noqa: E402
-from endoflow.config import Params, TrainConfig, params_from_dict  # noqa: E402
-from endoflow.data.loader import (  # noqa: E402
-    batches_per_epoch,
-    rank_batches,
-    shard_sample_counts,
-    triplet_dataset,
-)
+from endoflow.config import Params, TrainConfig  # noqa: E402
+from endoflow.data.loader import batches_per_epoch, rank_batches, triplet_dataset  # noqa: E402
+from endoflow.data.shard_format import ShardEntry, shard_entries  # noqa: E402
 from endoflow.evaluation import metrics, plots  # noqa: E402
+from endoflow.locations import local_file  # noqa: E402
 from endoflow.models.endoflow_model import EndoflowModel, build_model  # noqa: E402
 from endoflow.training.checkpoint import (  # noqa: E402
+    BestEpoch,
+    TrainingCheckpoint,
+    TrainState,
+    load_random_state,
     load_training_state,
+    restore_random_state,
+    save_random_state,
     save_training_state,
     weights_digest,
     write_rank_audit,
 )
 from endoflow.training.objective import training_step_losses  # noqa: E402
+from endoflow.training.worker_config import WorkerConfig  # noqa: E402
 
 LOGGED_LOSSES = ("total", "photometric", "smoothness", "kl")
 
 
 class NonFiniteLossError(RuntimeError):
     """The training loss became NaN or infinite; the message names the epoch and step."""
+
+
+@dataclass
+class EpochContext:
+    """What one rank's training needs every epoch."""
+
+    config: WorkerConfig
+    module: nn.Module
+    model: EndoflowModel
+    optimizer: torch.optim.Optimizer
+    entries: dict[str, ShardEntry]
+    rank: int
+    world: int
+    device: torch.device
+    logger: "RankZeroLogger"
+
+    @property
+    def params(self) -> Params:
+        return self.config.params
 
 
 class LossModule(nn.Module):
@@ -77,16 +102,16 @@ class LossModule(nn.Module):
         return training_step_losses(self.model, batch, self.loss_cfg)
 
 
-def train_loop_per_worker(config: dict[str, Any]) -> None:
-    """Ray Train entry point (see module docstring for ``config``)."""
-    params = params_from_dict(config["params"])
+def train_loop_per_worker(config: WorkerConfig) -> None:
+    """Ray Train entry point (see the module docstring)."""
+    params = config.params
     context = ray.train.get_context()
     rank, world = context.get_world_rank(), context.get_world_size()
     device = ray.train.torch.get_device()
     on_gpu = device.type == "cuda"
     torch.manual_seed(params.seed)  # identical initial weights on every rank (DDP also broadcasts them)
 
-    model = build_model(params, local_file(config["latent_bank"]) if config["latent_bank"] else None)
+    model = build_model(params, local_file(config.latent_bank) if config.latent_bank else None)
     if on_gpu and params.train.bf16:
         model = model.to(memory_format=torch.channels_last)
     module = ray.train.torch.prepare_model(LossModule(model, params), move_to_device=True)
@@ -94,58 +119,69 @@ def train_loop_per_worker(config: dict[str, Any]) -> None:
     optimizer = make_optimizer(trainable, params.train)
     scheduler = make_scheduler(optimizer, params.train)
 
-    state = {"epoch": -1, "global_step": 0, "best": None, "history": []}
-    saved = restored_state(config.get("resume_from"))
-    if saved is not None:
-        model.load_state_dict(saved["model"])
-        optimizer.load_state_dict(saved["optimizer"])
-        scheduler.load_state_dict(saved["scheduler"])
-        state = {k: saved[k] for k in state}
+    state = TrainState()
+    restored = restored_checkpoint(config.resume_from, rank)
+    if restored is not None:
+        saved, random_state = restored
+        model.load_state_dict(saved.model)
+        optimizer.load_state_dict(saved.optimizer)
+        scheduler.load_state_dict(saved.scheduler)
+        state = saved.state
+        restore_random_state(random_state)
         if rank == 0:
-            progress(f"[train] resuming after epoch {state['epoch'] + 1} (global step {state['global_step']})")
+            progress(f"[train] resuming after epoch {state.epoch + 1} (global step {state.global_step})")
 
-    logger = RankZeroLogger(config, params, rank)
-    sizes = shard_sample_counts(config["train_shards"] + config["val_shards"])
-    examples = fixed_examples(config["val_shards"], params.train.image_examples) if rank == 0 else []
-    for epoch in range(state["epoch"] + 1, params.train.epochs):
-        seen = train_one_epoch(module, model, optimizer, params, config, sizes, epoch, state, rank, world,
-                               device, logger)
+    entries = shard_entries(config.train_shards + config.val_shards)
+    epoch_context = EpochContext(config, module, model, optimizer, entries, rank, world, device,
+                                 RankZeroLogger(config, rank))
+    examples = fixed_examples(list(config.val_shards), params.train.image_examples) if rank == 0 else []
+    for epoch in range(state.epoch + 1, params.train.epochs):
+        seen = train_one_epoch(epoch_context, epoch, state)
         check_finite_weights(model, epoch, state)
         broadcast_buffers(model, world)
         lr = optimizer.param_groups[0]["lr"]
         scheduler.step()
-        val = validate(model, params, config, sizes, rank, world, device)
+        val = validate(epoch_context)
         record = {"epoch": epoch, "lr": lr, "train_loss": seen["mean_loss"], **val}
-        state["history"].append(record)
-        if improves_on(val, state["best"]):
-            state["best"] = {"epoch": epoch, "val": val, "model": cpu_copy(model.state_dict())}
-        state["epoch"] = epoch
-        logger.epoch_end(record, model, examples, device)
-        report_checkpoint(model, optimizer, scheduler, state, seen["keys"], rank, record)
+        state.history.append(record)
+        if improves_on(val, state.best):
+            state.best = BestEpoch(epoch, val, cpu_copy(model.state_dict()))
+        state.epoch = epoch
+        epoch_context.logger.epoch_end(record, model, examples, device)
+        report_checkpoint(epoch_context, scheduler, state, seen["keys"], record)
 
 
-def restored_state(resume_from: str | None) -> dict | None:
-    """The newest of Ray's restored checkpoint and the driver's pick (the latest complete one in storage):
-    Ray's record of checkpoints can lag behind the files when a run is killed just after a checkpoint."""
+def restored_checkpoint(resume_from: Optional[str], rank: int) -> Optional[tuple[TrainingCheckpoint, dict]]:
+    """The newest of Ray's restored checkpoint and the driver's pick (the latest complete one in storage),
+    with this rank's random state saved beside it. Ray's record of checkpoints can lag behind the files
+    when a run is killed just after a checkpoint."""
     candidates = []
     checkpoint = ray.train.get_checkpoint()
     if checkpoint is not None:
         with checkpoint.as_directory() as folder:
-            candidates.append(load_training_state(folder))
+            candidates.append(resume_point(folder, rank))
     if resume_from:
-        candidates.append(load_training_state(resume_from))
-    return max(candidates, key=lambda state: state["epoch"], default=None)
+        candidates.append(resume_point(resume_from, rank))
+    return max(candidates, key=lambda point: point[0].state.epoch, default=None)
 
 
-def train_one_epoch(module: nn.Module, model: EndoflowModel, optimizer: torch.optim.Optimizer, params: Params,
-                    config: dict, sizes: dict[str, int], epoch: int, state: dict, rank: int, world: int,
-                    device: torch.device, logger: "RankZeroLogger") -> dict[str, Any]:
+def resume_point(location: str, rank: int) -> tuple[TrainingCheckpoint, dict]:
+    """The training state of a checkpoint folder and the random state ``rank`` saved there."""
+    saved = load_training_state(location)
+    random_state = load_random_state(location, rank)
+    if random_state is None:
+        raise FileNotFoundError(f"{location}: no random state of rank {rank} (written by an older endoflow or "
+                                f"with another ray.num_workers); cannot resume exactly, start a fresh run")
+    return saved, random_state
+
+
+def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[str, Any]:
     """One pass over this rank's share; returns the sample keys trained on and the mean loss."""
-    cfg = params.train
-    batches = rank_batches(config["train_shards"], rank, world, cfg.batch_size, epoch, params.seed,
-                           shard_sizes=sizes)
-    total_steps = steps_in_epoch(config["train_shards"], world, cfg, sizes)
-    module.train()
+    cfg = ctx.params.train
+    shards = list(ctx.config.train_shards)
+    batches = rank_batches(shards, ctx.rank, ctx.world, cfg.batch_size, epoch, ctx.params.seed, entries=ctx.entries)
+    total_steps = steps_in_epoch(shards, ctx.world, cfg, ctx.entries)
+    ctx.module.train()
     keys: list[str] = []
     losses: list[float] = []
     started = time.perf_counter()
@@ -153,60 +189,60 @@ def train_one_epoch(module: nn.Module, model: EndoflowModel, optimizer: torch.op
         if step >= total_steps:
             break
         keys.extend(batch["key"])
-        inputs = to_device(batch, device, channels_last=device.type == "cuda" and cfg.bf16)
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda" and cfg.bf16):
-            out = module(inputs)
-        reduced = mean_over_ranks(torch.stack([out[k].detach().float() for k in LOGGED_LOSSES]), world)
+        inputs = to_device(batch, ctx.device, channels_last=ctx.device.type == "cuda" and cfg.bf16)
+        with torch.autocast(ctx.device.type, dtype=torch.bfloat16, enabled=ctx.device.type == "cuda" and cfg.bf16):
+            out = ctx.module(inputs)
+        reduced = mean_over_ranks(torch.stack([out[k].detach().float() for k in LOGGED_LOSSES]), ctx.world)
         if not torch.isfinite(reduced).all():
             raise NonFiniteLossError(
                 f"non-finite training loss {dict(zip(LOGGED_LOSSES, reduced.tolist()))} at epoch {epoch}, "
-                f"step {step} (global step {state['global_step']}); stopped before updating the weights, "
-                f"the last checkpoint (epoch {state['epoch']}) is kept; lower train.lr or check the data")
-        optimizer.zero_grad(set_to_none=True)
+                f"step {step} (global step {state.global_step}); stopped before updating the weights, "
+                f"the last checkpoint (epoch {state.epoch}) is kept; lower train.lr or check the data")
+        ctx.optimizer.zero_grad(set_to_none=True)
         out["total"].backward()
         if cfg.grad_clip is not None:
-            torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], cfg.grad_clip)
-        optimizer.step()
-        state["global_step"] += 1
+            torch.nn.utils.clip_grad_norm_([p for p in ctx.model.parameters() if p.requires_grad], cfg.grad_clip)
+        ctx.optimizer.step()
+        state.global_step += 1
         losses.append(float(reduced[0]))
-        logger.step(state["global_step"], epoch, step, total_steps, dict(zip(LOGGED_LOSSES, reduced.tolist())),
-                    samples=(step + 1) * cfg.batch_size * world, elapsed=time.perf_counter() - started)
+        ctx.logger.step(state.global_step, epoch, step, total_steps, dict(zip(LOGGED_LOSSES, reduced.tolist())),
+                        samples=(step + 1) * cfg.batch_size * ctx.world, elapsed=time.perf_counter() - started)
     return {"keys": keys, "mean_loss": float(np.mean(losses)) if losses else math.nan}
 
 
-def improves_on(val: dict[str, float], best: dict | None) -> bool:
+def improves_on(val: dict[str, float], best: Optional[BestEpoch]) -> bool:
     """Lower (or equal: later) val Abs Rel wins; without validation data the latest epoch is kept."""
     if best is None:
         return True
-    return val.get("val_abs_rel", math.inf) <= best["val"].get("val_abs_rel", math.inf)
+    return val.get("val_abs_rel", math.inf) <= best.val.get("val_abs_rel", math.inf)
 
 
-def check_finite_weights(model: EndoflowModel, epoch: int, state: dict) -> None:
+def check_finite_weights(model: EndoflowModel, epoch: int, state: TrainState) -> None:
     """Refuse to checkpoint non-finite weights (the last step's update can break them after a finite loss)."""
     broken = [name for name, p in model.named_parameters() if p.requires_grad and not torch.isfinite(p).all()]
     if broken:
         raise NonFiniteLossError(
             f"non-finite weights ({broken[0]} and {len(broken) - 1} more) after the last step of epoch {epoch} "
-            f"(global step {state['global_step']}); the last checkpoint (epoch {state['epoch']}) is kept; "
+            f"(global step {state.global_step}); the last checkpoint (epoch {state.epoch}) is kept; "
             f"lower train.lr or check the data")
 
 
-def steps_in_epoch(urls: list[str], world: int, cfg: TrainConfig, sizes: dict[str, int]) -> int:
+def steps_in_epoch(urls: list[str], world: int, cfg: TrainConfig, entries: dict[str, ShardEntry]) -> int:
     """Batches per rank this epoch: the even share, capped by ``train.steps_per_epoch``."""
-    share = batches_per_epoch(urls, world, cfg.batch_size, sizes)
+    share = batches_per_epoch(urls, world, cfg.batch_size, entries)
     return share if cfg.steps_per_epoch is None else min(share, cfg.steps_per_epoch)
 
 
 @torch.no_grad()
-def validate(model: EndoflowModel, params: Params, config: dict, sizes: dict[str, int], rank: int, world: int,
-             device: torch.device) -> dict[str, float]:
+def validate(ctx: EpochContext) -> dict[str, float]:
     """Median-scaled Abs Rel and RMSE (paper protocol) over the val split, shared out over the ranks."""
-    if not config["val_shards"]:
+    if not ctx.config.val_shards:
         return {}
+    model, params, device, world = ctx.model, ctx.params, ctx.device, ctx.world
     model.eval()
     sums = torch.zeros(3, dtype=torch.float64, device=device)  # abs_rel, rmse, images (on the backend's device)
-    batches = rank_batches(config["val_shards"], rank, world, params.train.batch_size, 0, params.seed,
-                           shard_sizes=sizes)
+    batches = rank_batches(list(ctx.config.val_shards), ctx.rank, world, params.train.batch_size, 0, params.seed,
+                           entries=ctx.entries)
     for index, batch in enumerate(batches):
         if params.train.val_batches is not None and index >= params.train.val_batches:
             break
@@ -224,18 +260,18 @@ def validate(model: EndoflowModel, params: Params, config: dict, sizes: dict[str
     return {"val_abs_rel": abs_rel / images, "val_rmse": rmse / images, "val_images": int(images)}
 
 
-def report_checkpoint(model: EndoflowModel, optimizer: torch.optim.Optimizer, scheduler: Any, state: dict,
-                      keys: list[str], rank: int, record: dict[str, Any]) -> None:
-    """Every rank reports (Ray needs that); rank 0 adds the training state, every rank its audit."""
+def report_checkpoint(ctx: EpochContext, scheduler: Any, state: TrainState, keys: list[str],
+                      record: dict[str, Any]) -> None:
+    """Every rank reports (Ray needs that) its random state and audit; rank 0 adds the training state."""
     with tempfile.TemporaryDirectory() as folder:
-        if rank == 0:
-            save_training_state(Path(folder), {**state, "model": model.state_dict(),
-                                               "optimizer": optimizer.state_dict(),
-                                               "scheduler": scheduler.state_dict()})
-        write_rank_audit(Path(folder), rank, state["epoch"], keys, weights_digest(model))
+        if ctx.rank == 0:
+            save_training_state(Path(folder), TrainingCheckpoint(state, ctx.model.state_dict(),
+                                                                 ctx.optimizer.state_dict(), scheduler.state_dict()))
+        save_random_state(Path(folder), ctx.rank)
+        write_rank_audit(Path(folder), ctx.rank, state.epoch, keys, weights_digest(ctx.model))
         ray.train.report({k: v for k, v in record.items() if isinstance(v, (int, float))},
                          checkpoint=ray.train.Checkpoint.from_directory(folder),
-                         checkpoint_dir_name=f"epoch-{state['epoch']:04d}")
+                         checkpoint_dir_name=f"epoch-{state.epoch:04d}")
 
 
 # -------------------------------------------------------------------------------------- helpers
@@ -288,17 +324,6 @@ def cpu_copy(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {k: v.detach().cpu().clone() for k, v in state_dict.items()}
 
 
-def local_file(location: str) -> str:
-    """A local path for ``location`` (fsspec URLs are copied into a temporary file once per process)."""
-    if "://" not in location or location.startswith("file://"):
-        return fsspec.core.url_to_fs(location)[1] if location.startswith("file://") else location
-    with fsspec.open(location, "rb") as remote:
-        data = remote.read()
-    local = Path(tempfile.mkdtemp(prefix="endoflow-")) / Path(location).name
-    local.write_bytes(data)
-    return str(local)
-
-
 def fixed_examples(val_urls: list[str], count: int) -> list[dict]:
     """The first sample of each of the first ``count`` val shards: the same frames every epoch."""
     examples = []
@@ -312,12 +337,12 @@ def fixed_examples(val_urls: list[str], count: int) -> list[dict]:
 class RankZeroLogger:
     """Progress lines and MLflow logging; a no-op on ranks other than 0."""
 
-    def __init__(self, config: dict, params: Params, rank: int) -> None:
+    def __init__(self, config: WorkerConfig, rank: int) -> None:
         self.active = rank == 0
-        self.uri = config["tracking_uri"]
-        self.run_id = config["run_id"]
-        self.log_every = max(params.train.log_every, 1)
-        self.epochs = params.train.epochs
+        self.uri = config.tracking_uri
+        self.run_id = config.run_id
+        self.log_every = max(config.params.train.log_every, 1)
+        self.epochs = config.params.train.epochs
 
     def step(self, global_step: int, epoch: int, step: int, total_steps: int, losses: dict[str, float],
              samples: int, elapsed: float) -> None:

@@ -20,46 +20,38 @@ import hashlib
 import json
 import logging
 import os
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Optional
 
-import cv2
 import fsspec
 import numpy as np
 import pandas as pd
 import torch
 
 from endoflow import tracking
-from endoflow.config import Params, RayConfig, flatten_params, params_to_dict
+from endoflow.config import Params, RayConfig, flatten_params
 from endoflow.data.loader import list_shards, raw_samples
+from endoflow.data.shard_format import decode_depth, manifest_location, shard_entries
 from endoflow.evaluation import plots
-from endoflow.evaluation.outputs import save_figure, staged_directory, write_csv, write_json
 from endoflow.geometry.pose import matrix_to_pose_vec, pose_vec_to_matrix
-from endoflow.training.checkpoint import (
-    ModelRecord,
-    TrainingBaselines,
-    latest_checkpoint,
-    load_training_state,
-    save_model_file,
-)
+from endoflow.io import save_figure, staged_directory, write_csv, write_json
+from endoflow.locations import absolute_location, local_file
+from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
+from endoflow.models.latent_bank import check_latent_bank_file
+from endoflow.training.checkpoint import TrainingCheckpoint, TrainState, latest_checkpoint, load_training_state
+from endoflow.training.worker_config import WorkerConfig
 
 # Params that do not change what training computes: excluded from the fingerprint.
-NOT_FINGERPRINTED = ("train.epochs", "train.log_every", "train.image_examples", "train.out", "train.metrics",
-                     "train.plots", "train.shards", "train.latent_bank", "tracking.", "eval.", "synth.",
+NOT_FINGERPRINTED = ("train.epochs", "train.log_every", "train.image_examples", "train.keep_checkpoints",
+                     "train.out", "train.metrics", "train.plots", "train.shards", "train.latent_bank", "tracking.",
+                     "eval.", "synth.",
                      "ray.address", "ray.storage_path", "ray.num_cpus", "ray.object_store_mb", "ray.run_name",
                      "ray.use_gpu", "ray.cpus_per_worker")
 
 
 class TrainingError(RuntimeError):
     """Training failed on the workers; the message carries the workers' own error."""
-
-
-def absolute_location(location: str, project_root: Path) -> str:
-    """fsspec URLs unchanged; local paths made absolute against the project root."""
-    if "://" in location:
-        return location
-    path = Path(location)
-    return str(path if path.is_absolute() else (project_root / path).resolve())
 
 
 def connect_ray(cfg: RayConfig) -> bool:
@@ -89,7 +81,7 @@ def training_fingerprint(params: Params, train_shards: str, latent_bank: Optiona
     digest = hashlib.sha256()
     flat = {k: v for k, v in flatten_params(params).items() if not k.startswith(NOT_FINGERPRINTED)}
     digest.update(json.dumps(flat, sort_keys=True, default=str).encode())
-    for location in [f"{train_shards.rstrip('/')}/manifest.parquet", *([latent_bank] if latent_bank else [])]:
+    for location in [manifest_location(train_shards), *([latent_bank] if latent_bank else [])]:
         with fsspec.open(location, "rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 digest.update(block)
@@ -103,8 +95,7 @@ def training_baselines(train_urls: list[str]) -> TrainingBaselines:
     pose_vectors = []
     for sample in raw_samples(train_urls):
         meta = json.loads(sample["meta.json"])
-        counts = cv2.imdecode(np.frombuffer(sample["depth.png"], np.uint8), cv2.IMREAD_UNCHANGED)
-        depth = counts.astype(np.float64) * meta["depth_unit"]
+        depth = decode_depth(sample["depth.png"], meta["depth_unit"], sample["__url__"]).astype(np.float64)
         if depth_sum is None:
             depth_sum, depth_count = np.zeros_like(depth), np.zeros_like(depth)
         if depth.shape == depth_sum.shape:
@@ -124,58 +115,79 @@ def training_baselines(train_urls: list[str]) -> TrainingBaselines:
 
 
 def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
-    """Run the ``train`` stage: Ray training, then the model file, metrics and plots. Returns the metrics."""
+    """Run the ``train`` stage: Ray training, then the model file, metrics and plots. Returns the metrics.
+
+    Inputs are checked before Ray starts (shards listed in their manifests, the latent bank readable); any
+    failure after the MLflow run is opened marks it FAILED (a rerun with the same inputs reopens it).
+    """
     root = Path(project_root).resolve()
     shards = absolute_location(params.train.shards, root)
     train_urls, val_urls = list_shards(shards, "train"), list_shards(shards, "val")
     if not train_urls:
         raise FileNotFoundError(f"{shards}: no train-*.tar shards (run the preprocess stage first)")
+    shard_entries(train_urls + val_urls)
     latent_bank = absolute_location(params.train.latent_bank, root) if params.model.latent_bank else None
+    if latent_bank:
+        check_latent_bank_file(local_file(latent_bank))
     fingerprint = training_fingerprint(params, shards, latent_bank)
     uri = tracking.tracking_uri(params, root)
     run_id = tracking.start_run(params, root, params.tracking.experiment, "train", fingerprint)
-    baselines = training_baselines(train_urls)
-    storage = absolute_location(params.ray.storage_path, root)
-    run_name = f"{params.ray.run_name}-{fingerprint}"
-    resume_from = latest_checkpoint(f"{storage.rstrip('/')}/{run_name}")
-    state = load_training_state(resume_from) if resume_from else None
-    if state is not None:
-        print(f"[train] resuming after epoch {state['epoch'] + 1} from {resume_from}", flush=True)
-    if state is None or state["epoch"] + 1 < params.train.epochs:
-        config = {"params": params_to_dict(params), "train_shards": train_urls, "val_shards": val_urls,
-                  "latent_bank": latent_bank, "tracking_uri": uri, "run_id": run_id, "resume_from": resume_from}
-        try:
-            state = fit_on_ray(params, config, storage, run_name)
-        except Exception as exc:
-            tracking.end_run(uri, run_id, failed=True)
-            raise TrainingError(f"training failed (rerun the stage to resume from the last checkpoint): "
-                                f"{worker_error(exc)}") from exc
-    summary = write_training_outputs(params, root, state, run_id, baselines, fingerprint)
-    tracking.log_metrics(uri, run_id, {f"best/{k}": v for k, v in summary.items()
-                                       if isinstance(v, (int, float)) and not isinstance(v, bool)})
-    tracking.log_artifact(uri, run_id, root / params.train.out, "model")
-    tracking.log_artifact(uri, run_id, root / params.train.plots, "plots/train")
+    try:
+        summary = train_in_run(params, root, WorkerConfig(params, tuple(train_urls), tuple(val_urls), latent_bank,
+                                                          uri, run_id, resume_from=None), fingerprint)
+    except BaseException:
+        tracking.end_run(uri, run_id, failed=True)
+        raise
     tracking.end_run(uri, run_id)
     return summary
 
 
-def fit_on_ray(params: Params, config: dict[str, Any], storage: str, run_name: str) -> dict[str, Any]:
-    """Train with Ray Train's ``TorchTrainer`` (DDP); returns the final training state."""
+def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: str) -> dict[str, Any]:
+    """Train (or resume) on Ray and write the outputs, inside the open MLflow run of ``config``."""
+    baselines = training_baselines(list(config.train_shards))
+    storage = absolute_location(params.ray.storage_path, root)
+    run_name = f"{params.ray.run_name}-{fingerprint}"
+    resume_from = latest_checkpoint(f"{storage.rstrip('/')}/{run_name}")
+    saved = load_training_state(resume_from) if resume_from else None
+    if saved is not None:
+        print(f"[train] resuming after epoch {saved.state.epoch + 1} from {resume_from}", flush=True)
+    if saved is None or saved.state.epoch + 1 < params.train.epochs:
+        try:
+            saved = fit_on_ray(params, replace(config, resume_from=resume_from), storage, run_name)
+        except Exception as exc:
+            raise TrainingError(f"training failed (rerun the stage to resume from the last checkpoint): "
+                                f"{worker_error(exc)}") from exc
+    summary = write_training_outputs(params, root, saved.state, config.run_id, baselines, fingerprint)
+    uri, run_id = config.tracking_uri, config.run_id
+    tracking.log_metrics(uri, run_id, {f"best/{k}": v for k, v in summary.items()
+                                       if isinstance(v, (int, float)) and not isinstance(v, bool)})
+    tracking.log_artifact(uri, run_id, root / params.train.out, "model")
+    tracking.log_artifact(uri, run_id, root / params.train.plots, "plots/train")
+    return summary
+
+
+def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str) -> TrainingCheckpoint:
+    """Train with Ray Train's ``TorchTrainer`` (DDP); returns the final training state.
+
+    Ray keeps the newest ``train.keep_checkpoints`` checkpoints (each carries the best epoch's weights).
+    """
     from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig
     from ray.train.torch import TorchTrainer
 
+    from endoflow.training.cluster import check_worker_resources
     from endoflow.training.loop import train_loop_per_worker
 
     started_ray = connect_ray(params.ray)
-    trainer = TorchTrainer(
-        train_loop_per_worker,
-        train_loop_config=config,
-        scaling_config=ScalingConfig(num_workers=params.ray.num_workers, use_gpu=params.ray.use_gpu,
-                                     resources_per_worker={"CPU": params.ray.cpus_per_worker}),
-        run_config=RunConfig(name=run_name, storage_path=storage, failure_config=FailureConfig(max_failures=0),
-                             checkpoint_config=CheckpointConfig(num_to_keep=None)),
-    )
     try:
+        check_worker_resources(params.ray)
+        trainer = TorchTrainer(
+            train_loop_per_worker,
+            train_loop_config=config,
+            scaling_config=ScalingConfig(num_workers=params.ray.num_workers, use_gpu=params.ray.use_gpu,
+                                         resources_per_worker={"CPU": params.ray.cpus_per_worker}),
+            run_config=RunConfig(name=run_name, storage_path=storage, failure_config=FailureConfig(max_failures=0),
+                                 checkpoint_config=CheckpointConfig(num_to_keep=params.train.keep_checkpoints)),
+        )
         result = trainer.fit()
     finally:
         if started_ray:
@@ -198,24 +210,23 @@ def worker_error(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}"
 
 
-def write_training_outputs(params: Params, root: Path, state: dict, run_id: str, baselines: TrainingBaselines,
-                           fingerprint: str) -> dict[str, Any]:
+def write_training_outputs(params: Params, root: Path, state: TrainState, run_id: str,
+                           baselines: TrainingBaselines, fingerprint: str) -> dict[str, Any]:
     """``train.out`` (best epoch's weights), ``train.metrics`` and ``train.plots`` from the final state."""
-    best = state["best"]
-    save_model_file(root / params.train.out, ModelRecord(params=params, state=best["model"], epoch=best["epoch"],
-                                                         val=best["val"], mlflow_run_id=run_id,
-                                                         baselines=baselines))
-    history = pd.DataFrame(state["history"])
+    best = state.best
+    save_model_file(root / params.train.out, ModelRecord(params=params, state=best.model, epoch=best.epoch,
+                                                         val=best.val, mlflow_run_id=run_id, baselines=baselines))
+    history = pd.DataFrame(state.history)
     with staged_directory(root / params.train.plots) as folder:
         write_csv(folder / "history.csv", history)
         keys = [k for k in ("train_loss", "val_abs_rel", "val_rmse", "lr") if k in history]
-        save_figure(folder / "curves.png", plots.training_curves_figure(state["history"], keys))
+        save_figure(folder / "curves.png", plots.training_curves_figure(state.history, keys))
     summary = {
-        "epochs": int(state["epoch"]) + 1,
-        "global_steps": int(state["global_step"]),
-        "best_epoch": int(best["epoch"]),
-        **{k: float(v) for k, v in best["val"].items()},
-        "final_train_loss": float(state["history"][-1]["train_loss"]),
+        "epochs": int(state.epoch) + 1,
+        "global_steps": int(state.global_step),
+        "best_epoch": int(best.epoch),
+        **{k: float(v) for k, v in best.val.items()},
+        "final_train_loss": float(state.history[-1]["train_loss"]),
         "mlflow_run_id": run_id,
         "fingerprint": fingerprint,
     }

@@ -1,0 +1,313 @@
+"""The shard format: the one definition that the writer and every reader of shards import.
+
+A dataset's shard folder (written by :mod:`endoflow.data.shards`)::
+
+    <folder>/train-000000.tar ... val-000000.tar ... test-000000.tar     manifest.parquet
+
+Each tar holds samples as WebDataset members ``<key>.<member>``, members of a sample adjacent and in sorted
+order. A complete sample is exactly :data:`TRIPLET_MEMBERS` (a target frame with its neighbours) or exactly
+:data:`DEPTH_ONLY_MEMBERS` (depth-only datasets such as SceneNet):
+
+- ``prev.png``, ``cur.png``, ``next.png``: RGB ``uint8`` at the stored square size.
+- ``depth.png``: ``uint16`` z-depth of ``cur``, ``depth_cm = count * meta["depth_unit"]``, 0 = unknown.
+- ``meta.json``: ``dataset``, ``sequence``, ``group``, ``split``, ``frame``, ``frame_ids``
+  (``prev``/``cur``/``next``), ``K`` (3x3 at the stored size, pixel centres at integers), ``T_world_cam``
+  (``prev``/``cur``/``next``: 4x4 camera-to-world in cm, or null), ``depth_unit`` (cm per count),
+  ``native_size`` ``[H, W]``.
+
+``manifest.parquet`` has one row per sample (:data:`MANIFEST_SCHEMA`, in shard order) and, in its schema
+metadata under :data:`SHARD_TABLE_KEY`, every shard (empty ones too) with its sample count and the SHA-256 of
+its bytes, recorded when it was written. Every read of a shard (:func:`read_shard`) is checked against that
+entry: a shard whose bytes or sample count differ, or that holds an incomplete sample, is a
+:class:`~endoflow.data.base.DataFormatError` naming the shard file and what was expected. The check of bytes
+and count completes when the shard's last sample has been read, before the next shard is opened.
+
+Locations may be local paths or fsspec URLs (``s3://...``, ``file:///...``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import posixpath
+import tarfile
+from dataclasses import dataclass
+from typing import IO, Iterable, Iterator, Mapping
+
+import cv2
+import fsspec
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import torch
+from webdataset.tariterators import group_by_keys, tar_file_iterator
+
+from endoflow.data.base import DataFormatError
+
+SPLITS = ("train", "val", "test")
+MANIFEST = "manifest.parquet"
+# Parquet schema metadata key: JSON {shard name: {"samples": n, "sha256": hex}}, empty shards included.
+SHARD_TABLE_KEY = b"endoflow.shards"
+# Bumped whenever the bytes written for the same input change.
+FORMAT_VERSION = 2
+
+IMAGE_NAMES = ("prev", "cur", "next")
+DEPTH_MEMBER = "depth.png"
+META_MEMBER = "meta.json"
+TRIPLET_MEMBERS = frozenset({*(f"{name}.png" for name in IMAGE_NAMES), DEPTH_MEMBER, META_MEMBER})
+DEPTH_ONLY_MEMBERS = frozenset({DEPTH_MEMBER, META_MEMBER})
+TENSOR_KEYS = ("prev", "cur", "next", "depth", "K", "T_prev", "T_cur", "T_next")
+
+MANIFEST_SCHEMA = pa.schema(
+    [
+        ("shard", pa.string()),
+        ("key", pa.string()),
+        ("dataset", pa.string()),
+        ("sequence", pa.string()),
+        ("group", pa.string()),
+        ("frame", pa.int64()),
+        ("split", pa.string()),
+    ]
+)
+_HASH_BLOCK = 1 << 20
+
+
+@dataclass(frozen=True)
+class ShardEntry:
+    """A shard as the manifest records it."""
+
+    name: str
+    samples: int
+    sha256: str
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """A shard folder's ``manifest.parquet``: the sample rows and every shard's entry."""
+
+    location: str
+    table: pa.Table
+    shards: dict[str, ShardEntry]
+
+    def entry(self, shard_url: str) -> ShardEntry:
+        """The entry of a shard of this folder, by URL or path; an unlisted shard is an error."""
+        name = posixpath.basename(shard_url)
+        if name not in self.shards:
+            raise DataFormatError(self.location, f"shard {name} is not listed")
+        return self.shards[name]
+
+
+# ------------------------------------------------------------------------------------------ names
+def shard_name(split: str, index: int) -> str:
+    """``<split>-NNNNNN.tar``."""
+    return f"{split}-{index:06d}.tar"
+
+
+def shard_glob(split: str) -> str:
+    """Glob pattern matching the shard names of ``split``."""
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    return f"{split}-*.tar"
+
+
+def manifest_location(folder: str) -> str:
+    """``<folder>/manifest.parquet`` for a path or an fsspec URL."""
+    return posixpath.join(str(folder).rstrip("/"), MANIFEST)
+
+
+# --------------------------------------------------------------------------------------- manifest
+def manifest_bytes(rows: Mapping[str, list], shards: Iterable[ShardEntry]) -> bytes:
+    """The bytes of ``manifest.parquet`` for sample ``rows`` (column -> values) and the ``shards``' entries."""
+    table = pa.table({field.name: pa.array(rows[field.name], field.type) for field in MANIFEST_SCHEMA})
+    entries = {entry.name: {"samples": entry.samples, "sha256": entry.sha256} for entry in shards}
+    table = table.replace_schema_metadata({SHARD_TABLE_KEY: json.dumps(entries, sort_keys=True).encode()})
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink)
+    return sink.getvalue().to_pybytes()
+
+
+def read_manifest(folder: str) -> Manifest:
+    """The manifest of a shard folder (a path or an fsspec URL), checked against :data:`MANIFEST_SCHEMA`."""
+    location = manifest_location(folder)
+    try:
+        with fsspec.open(location, "rb") as f:
+            table = pq.read_table(f)
+    except FileNotFoundError:
+        raise DataFormatError(location, "manifest not found beside the shards (run the preprocess stage)") from None
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise DataFormatError(location, f"not a readable Parquet file: {exc}") from None
+    missing = [name for name in MANIFEST_SCHEMA.names if name not in table.column_names]
+    if missing:
+        raise DataFormatError(location, f"columns {missing} missing; expected {MANIFEST_SCHEMA.names}")
+    metadata = table.schema.metadata or {}
+    if SHARD_TABLE_KEY not in metadata:
+        raise DataFormatError(
+            location,
+            f"schema metadata {SHARD_TABLE_KEY.decode()} (shard sizes and checksums) missing: written by an older "
+            f"endoflow (format {FORMAT_VERSION} expected); rerun the preprocess stage",
+        )
+    entries = json.loads(metadata[SHARD_TABLE_KEY])
+    shards = {name: ShardEntry(name, int(e["samples"]), str(e["sha256"])) for name, e in entries.items()}
+    return Manifest(location, table.select(MANIFEST_SCHEMA.names), shards)
+
+
+def shard_entries(urls: Iterable[str]) -> dict[str, ShardEntry]:
+    """URL -> manifest entry for shards in any number of folders (each folder's manifest read once)."""
+    by_folder: dict[str, list[str]] = {}
+    for url in urls:
+        by_folder.setdefault(posixpath.dirname(url), []).append(url)
+    entries: dict[str, ShardEntry] = {}
+    for folder, folder_urls in by_folder.items():
+        manifest = read_manifest(folder)
+        entries.update({url: manifest.entry(url) for url in folder_urls})
+    return entries
+
+
+def file_sha256(location: str) -> str:
+    """SHA-256 (hex) of a file's bytes, at a path or an fsspec URL."""
+    digest = hashlib.sha256()
+    with fsspec.open(location, "rb") as f:
+        for block in iter(lambda: f.read(_HASH_BLOCK), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+# --------------------------------------------------------------------------------------- reading
+class _HashingReader:
+    """A read-only stream that hashes every byte read through it."""
+
+    def __init__(self, stream: IO[bytes]) -> None:
+        self.stream = stream
+        self.digest = hashlib.sha256()
+
+    def read(self, size: int = -1) -> bytes:
+        data = self.stream.read(size)
+        self.digest.update(data)
+        return data
+
+    def drain(self) -> str:
+        """Read what the tar parser left (end-of-archive padding, or bytes after damage); the hex digest."""
+        while self.read(_HASH_BLOCK):
+            pass
+        return self.digest.hexdigest()
+
+
+def read_shard(url: str, entry: ShardEntry) -> Iterator[dict]:
+    """The raw samples of one shard (member -> bytes, plus ``__key__`` and ``__url__``), in stored order.
+
+    Raises:
+        DataFormatError: naming ``url``: an incomplete sample (as soon as it is read), or, after the last
+            sample, a sample count or SHA-256 that differs from the manifest's ``entry``.
+    """
+    count = 0
+    with fsspec.open(url, "rb") as stream:
+        reader = _HashingReader(stream)
+        try:
+            members = ({**member, "__url__": url} for member in tar_file_iterator(reader))
+            for sample in group_by_keys(members):
+                check_complete(sample, url)
+                count += 1
+                yield sample
+        except (OSError, ValueError, EOFError, tarfile.TarError) as exc:
+            if isinstance(exc, DataFormatError):
+                raise
+            raise DataFormatError(url, f"not a readable tar shard ({exc}); expected {entry.samples} samples") from None
+        digest = reader.drain()
+    if count != entry.samples:
+        raise DataFormatError(url, f"{count} samples read, the manifest records {entry.samples} (damaged shard)")
+    if digest != entry.sha256:
+        raise DataFormatError(url, f"SHA-256 {digest[:16]}... differs from the manifest's {entry.sha256[:16]}... "
+                                   f"(damaged or replaced shard)")
+
+
+def read_shards(urls: Iterable[str], entries: Mapping[str, ShardEntry]) -> Iterator[dict]:
+    """:func:`read_shard` of each URL in turn."""
+    for url in urls:
+        yield from read_shard(url, entries[url])
+
+
+def check_complete(sample: Mapping[str, object], url: str) -> None:
+    """A sample must hold exactly the members of a triplet or of a depth-only sample."""
+    members = frozenset(name for name in sample if not name.startswith("__"))
+    if members not in (TRIPLET_MEMBERS, DEPTH_ONLY_MEMBERS):
+        raise DataFormatError(
+            url,
+            f"sample {sample.get('__key__', '?')} has members {sorted(members)}; expected "
+            f"{sorted(TRIPLET_MEMBERS)} or {sorted(DEPTH_ONLY_MEMBERS)}",
+        )
+
+
+# -------------------------------------------------------------------------------------- decoding
+def decode_sample(sample: Mapping[str, object]) -> dict:
+    """A raw sample to tensors (shapes per sample; a batch adds a leading ``B``):
+
+    - ``prev``, ``cur``, ``next``: ``[3, H, W]`` float32 RGB in [0, 1] (absent for depth-only samples);
+    - ``depth``: ``[1, H, W]`` float32 z-depth of ``cur`` in cm, 0 where unknown;
+    - ``K``: ``[3, 3]`` float32 pixel intrinsics of the stored size;
+    - ``T_prev``, ``T_cur``, ``T_next``: ``[4, 4]`` float32 camera-to-world ``T_world_cam`` in cm, all NaN
+      where unknown;
+    - ``meta``: the sample's ``meta.json`` as a dict; ``key``: its key.
+
+    Errors name the shard file (``__url__``) and the sample key.
+    """
+    source = _source(sample)
+    check_complete(sample, source)
+    meta = decode_meta(sample[META_MEMBER], source)
+    out: dict = {"key": str(sample.get("__key__", "?")), "meta": meta}
+    for name in IMAGE_NAMES:
+        if f"{name}.png" in sample:
+            out[name] = decode_rgb(sample[f"{name}.png"], f"{source}: {name}.png")
+    out["depth"] = torch.from_numpy(decode_depth(sample[DEPTH_MEMBER], meta["depth_unit"], source))[None]
+    out["K"] = torch.tensor(meta["K"], dtype=torch.float32)
+    for name in IMAGE_NAMES:
+        pose = meta["T_world_cam"][name]
+        out[f"T_{name}"] = (torch.full((4, 4), float("nan")) if pose is None
+                            else torch.tensor(pose, dtype=torch.float32))
+    return out
+
+
+def decode_meta(data: bytes, source: str) -> dict:
+    """``meta.json`` of a sample, with the keys decoding relies on."""
+    try:
+        meta = json.loads(data)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise DataFormatError(source, f"meta.json is not valid JSON: {exc}") from None
+    missing = [k for k in ("depth_unit", "K", "T_world_cam", "sequence", "frame") if k not in meta]
+    if missing:
+        raise DataFormatError(source, f"meta.json lacks {missing}")
+    return meta
+
+
+def decode_rgb(data: bytes, source: str) -> torch.Tensor:
+    """``[3, H, W]`` float32 RGB in [0, 1] from an 8-bit RGB PNG."""
+    image = _decode_png(data, source)
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise DataFormatError(source, f"expected 8-bit RGB, found {image.dtype} {image.shape}")
+    return torch.from_numpy(np.ascontiguousarray(image[..., ::-1].transpose(2, 0, 1))).float() / 255.0
+
+
+def decode_depth(data: bytes, depth_unit: float, source: str) -> np.ndarray:
+    """``H x W`` float32 z-depth in cm (0 = unknown) from a 16-bit ``depth.png`` of ``depth_unit`` cm counts."""
+    counts = _decode_png(data, f"{source}: depth.png")
+    if counts.ndim != 2 or counts.dtype != np.uint16:
+        raise DataFormatError(source, f"depth.png: expected 16-bit grey, found {counts.dtype} {counts.shape}")
+    return counts.astype(np.float32) * np.float32(depth_unit)
+
+
+def collate_samples(samples: list[dict]) -> dict:
+    """Stack decoded samples: tensors gain a batch dimension; ``meta`` and ``key`` become lists."""
+    batch: dict = {name: torch.stack([s[name] for s in samples]) for name in TENSOR_KEYS if name in samples[0]}
+    batch["meta"] = [s["meta"] for s in samples]
+    batch["key"] = [s["key"] for s in samples]
+    return batch
+
+
+def _decode_png(data: bytes, source: str) -> np.ndarray:
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DataFormatError(source, "PNG cannot be decoded")
+    return image
+
+
+def _source(sample: Mapping[str, object]) -> str:
+    return f"{sample.get('__url__', '?')} (sample {sample.get('__key__', '?')})"

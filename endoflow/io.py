@@ -1,0 +1,146 @@
+"""Atomic file output, the one implementation: a file or folder appears complete or not at all.
+
+Every writer in endoflow goes through this module (``docs/architecture.md``, "Atomic writes"):
+
+- :func:`atomic_path` yields a unique temporary name in the target's folder (so two processes writing the
+  same target never share a temporary); on success the file is flushed to disk and renamed over the
+  target, on failure the temporary is removed and the old target, if any, is left untouched.
+- :func:`write_bytes`, :func:`write_text`, :func:`write_json`, :func:`write_csv`, :func:`save_figure` and
+  :func:`save_torch` are built on it.
+- :func:`staged_directory` fills a unique temporary sibling folder and swaps it in whole
+  (:func:`replace_directory`), so a reader never sees a half-filled folder.
+
+``durable=True`` (the default) fsyncs the file before the rename and the folder after it, so a power loss
+cannot leave a renamed but empty file; bulk writers of many small files inside a staged folder (rendered
+frames) pass ``durable=False``, as the folder swap is what makes them visible.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+TEMPORARY_MARK = ".tmp-"
+
+
+def temporary_sibling(path: Path, suffix: str = "") -> Path:
+    """A new, unique, empty file beside ``path`` (``.<name>.tmp-XXXX``), created so no other process gets it."""
+    descriptor, name = tempfile.mkstemp(prefix=f".{path.name}{TEMPORARY_MARK}", suffix=suffix, dir=path.parent)
+    os.close(descriptor)
+    return Path(name)
+
+
+@contextmanager
+def atomic_path(path: str | Path, durable: bool = True) -> Iterator[Path]:
+    """Yield a temporary path to write ``path``'s content to; it replaces ``path`` only if the block succeeds.
+
+    The temporary keeps ``path``'s suffix, for writers that choose a format by file name.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = temporary_sibling(path, suffix=path.suffix)
+    try:
+        yield temporary
+        if durable:
+            _fsync_file(temporary)
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    if durable:
+        _fsync_folder(path.parent)
+
+
+def write_bytes(path: str | Path, data: bytes, durable: bool = True) -> None:
+    """Write ``data`` to ``path`` atomically."""
+    with atomic_path(path, durable) as temporary:
+        temporary.write_bytes(data)
+
+
+def write_text(path: str | Path, text: str, durable: bool = True) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically."""
+    write_bytes(path, text.encode("utf-8"), durable)
+
+
+def write_json(path: str | Path, data: Any) -> None:
+    """JSON with 2-space indentation and a final newline (numpy scalars and arrays become plain numbers)."""
+    write_text(path, json.dumps(data, indent=2, default=_plain) + "\n")
+
+
+def write_csv(path: str | Path, table: Any) -> None:
+    """A pandas ``DataFrame`` as CSV without its index, floats to 6 significant digits."""
+    with atomic_path(path) as temporary:
+        table.to_csv(temporary, index=False, float_format="%.6g")
+
+
+def save_figure(path: str | Path, figure: Any, dpi: int = 100) -> None:
+    """Save a matplotlib figure as PNG at ``dpi`` and close it."""
+    import matplotlib.pyplot as plt
+
+    try:
+        with atomic_path(path) as temporary:
+            figure.savefig(temporary, format="png", dpi=dpi)
+    finally:
+        plt.close(figure)
+
+
+def save_torch(path: str | Path, payload: Any) -> None:
+    """``torch.save`` of tensors and plain data, atomically (load it back with ``weights_only=True``)."""
+    import torch
+
+    with atomic_path(path) as temporary:
+        torch.save(payload, temporary)
+
+
+@contextmanager
+def staged_directory(path: str | Path) -> Iterator[Path]:
+    """Fill a unique temporary sibling folder, then swap it in for ``path`` only if the block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-", dir=path.parent))
+    try:
+        yield staging
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    replace_directory(staging, path)
+
+
+def replace_directory(staging: str | Path, path: str | Path) -> None:
+    """Put the complete folder ``staging`` in place of ``path`` (the old one is moved aside, then removed)."""
+    staging, path = Path(staging), Path(path)
+    old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
+    if path.exists():
+        os.replace(path, old)  # renaming onto an empty folder replaces it
+    os.replace(staging, path)
+    shutil.rmtree(old, ignore_errors=True)
+    _fsync_folder(path.parent)
+
+
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb+") as handle:
+        os.fsync(handle.fileno())
+
+
+def _fsync_folder(folder: Path) -> None:
+    try:
+        descriptor = os.open(folder, os.O_RDONLY)
+    except OSError:  # platforms where a folder cannot be opened: the rename is all we can do
+        return
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
+def _plain(value: Any) -> Any:
+    if hasattr(value, "item") and getattr(value, "ndim", 0) == 0:
+        return value.item()
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"cannot write {type(value).__name__} to JSON")

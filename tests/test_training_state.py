@@ -1,0 +1,134 @@
+"""The model file and the training state load as tensors and plain data only, and say which file is wrong.
+
+The audit's case: a ``state.pt`` planted in the Ray storage path ran code when ``train`` resumed
+(``torch.load(weights_only=False)``). Now every file endoflow loads is read with ``weights_only=True``.
+"""
+
+from __future__ import annotations
+
+import random
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from endoflow import tracking
+from endoflow.config import Params
+from endoflow.models.model_file import (
+    ModelFileError,
+    ModelRecord,
+    TrainingBaselines,
+    load_model_file,
+    save_model_file,
+)
+from endoflow.training.checkpoint import (
+    BestEpoch,
+    TrainingCheckpoint,
+    TrainState,
+    load_random_state,
+    load_training_state,
+    random_state,
+    restore_random_state,
+    save_random_state,
+    save_training_state,
+)
+from endoflow.training.ray_trainer import train, training_fingerprint
+
+
+class Payload:
+    """Unpickling this creates ``target``: proof that loading ran code."""
+
+    def __init__(self, target: Path) -> None:
+        self.target = target
+
+    def __reduce__(self):
+        return (Path.touch, (self.target,))
+
+
+def plant(path: Path, target: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"state": Payload(target), "model": {}}, path)
+
+
+def small_checkpoint() -> TrainingCheckpoint:
+    layer = torch.nn.Linear(3, 2)
+    optimizer = torch.optim.AdamW(layer.parameters(), lr=1e-3)
+    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=4)
+    layer(torch.ones(1, 3)).sum().backward()
+    optimizer.step()
+    scheduler.step()
+    state = TrainState(epoch=1, global_step=7, best=BestEpoch(0, {"val_abs_rel": 0.25}, layer.state_dict()),
+                       history=[{"epoch": 0, "lr": 1e-3, "train_loss": 0.5, "val_abs_rel": 0.25}])
+    return TrainingCheckpoint(state, layer.state_dict(), optimizer.state_dict(), scheduler.state_dict())
+
+
+def test_training_state_round_trips_through_a_weights_only_load(tmp_path: Path) -> None:
+    saved = small_checkpoint()
+    save_training_state(tmp_path, saved)
+    loaded = load_training_state(tmp_path)
+    assert loaded.state.epoch == 1 and loaded.state.global_step == 7 and loaded.state.history == saved.state.history
+    assert loaded.state.best.epoch == 0 and loaded.state.best.val == {"val_abs_rel": 0.25}
+    assert all(torch.equal(loaded.model[k], v) for k, v in saved.model.items())
+    assert loaded.scheduler == saved.scheduler
+    assert torch.equal(loaded.optimizer["state"][0]["exp_avg"], saved.optimizer["state"][0]["exp_avg"])
+
+
+def test_a_planted_state_file_that_would_run_code_is_refused_naming_it(tmp_path: Path) -> None:
+    plant(tmp_path / "state.pt", tmp_path / "payload-ran")
+    with pytest.raises(ModelFileError, match="could run code") as caught:
+        load_training_state(tmp_path)
+    assert str(tmp_path / "state.pt") in str(caught.value)
+    assert not (tmp_path / "payload-ran").exists()
+
+
+def test_a_model_file_that_would_run_code_or_is_damaged_is_refused_naming_it(tmp_path: Path) -> None:
+    plant(tmp_path / "evil.pt", tmp_path / "payload-ran")
+    with pytest.raises(ModelFileError, match="could run code") as caught:
+        load_model_file(tmp_path / "evil.pt")
+    assert str(tmp_path / "evil.pt") in str(caught.value) and not (tmp_path / "payload-ran").exists()
+
+    record = ModelRecord(Params(), {"w": torch.ones(2)}, 3, {"val_abs_rel": 0.1}, None,
+                         TrainingBaselines(5.0, np.ones((4, 4), np.float32), np.eye(4)))
+    save_model_file(tmp_path / "model.pt", record)
+    assert load_model_file(tmp_path / "model.pt").epoch == 3
+    data = (tmp_path / "model.pt").read_bytes()
+    (tmp_path / "truncated.pt").write_bytes(data[: len(data) // 2])
+    torch.save({"format": 99}, tmp_path / "other.pt")
+    for name, problem in (("truncated.pt", "not a readable torch file"), ("other.pt", "format 99")):
+        with pytest.raises(ModelFileError, match=problem) as caught:
+            load_model_file(tmp_path / name)
+        assert str(tmp_path / name) in str(caught.value)
+
+
+def test_every_random_generator_continues_where_it_was_saved(tmp_path: Path) -> None:
+    torch.manual_seed(1), np.random.seed(2), random.seed(3)
+    save_random_state(tmp_path, rank=1)
+    expected = (torch.rand(3), np.random.rand(3), random.random())
+    torch.manual_seed(9), np.random.seed(9), random.seed(9)
+    restore_random_state(load_random_state(tmp_path, rank=1))
+    again = (torch.rand(3), np.random.rand(3), random.random())
+    assert torch.equal(expected[0], again[0]) and np.array_equal(expected[1], again[1]) and expected[2] == again[2]
+    assert load_random_state(tmp_path, rank=0) is None
+    assert set(random_state()) == {"torch", "cuda", "numpy", "python"}
+
+
+def test_train_refuses_a_planted_checkpoint_before_ray_starts_and_marks_the_run_failed(tmp_path: Path) -> None:
+    from tests.test_ray import project
+
+    params = project(tmp_path)
+    storage = tmp_path / "checkpoints"
+    params.ray = replace(params.ray, storage_path=str(storage))
+    shards = str(tmp_path / params.train.shards)
+    run = storage / f"{params.ray.run_name}-{training_fingerprint(params, shards, None)}"
+    plant(run / "epoch-0000" / "state.pt", tmp_path / "payload-ran")
+
+    with pytest.raises(ModelFileError, match="could run code") as caught:
+        train(params, tmp_path)
+
+    assert str(run / "epoch-0000" / "state.pt") in str(caught.value)
+    assert not (tmp_path / "payload-ran").exists()
+    uri = tracking.tracking_uri(params, tmp_path)
+    runs = tracking.client(uri).search_runs([tracking.ensure_experiment(params, tmp_path, "endoflow")])
+    assert [r.info.status for r in runs] == ["FAILED"]
