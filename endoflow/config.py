@@ -1,8 +1,10 @@
 """Typed configuration: ``params.yaml`` validated once into dataclasses.
 
-Every stage and command reads its settings through :func:`load_params`. Unknown keys and values of the
-wrong type fail with :class:`ConfigError` naming the dotted key (``model.latent_bank``), so a typo in
-``params.yaml`` or ``dvc exp run -S`` never passes silently. Keys left out take the defaults below.
+Every stage and command reads its settings through :func:`load_params`. Unknown keys, values of the wrong
+type, values out of range (``train.lr: -0.1``) and settings that contradict each other (``ray.num_workers``
+CPUs beyond ``ray.num_cpus``) fail with :class:`ConfigError` naming the dotted key (``model.latent_bank``),
+so a mistake in ``params.yaml`` or ``dvc exp run -S`` fails at load, never minutes into a stage. Keys left
+out take the defaults below.
 """
 
 from __future__ import annotations
@@ -12,7 +14,8 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Optional, Sequence, Union
+from functools import reduce
+from typing import Any, Callable, Literal, Optional, Sequence, Union
 
 import yaml
 
@@ -105,6 +108,8 @@ class LatentBankConfig:
 
     shards: str = "data/shards/scenenet"
     out: str = "models/latent_bank.pt"
+    metrics: str = "metrics/latent_bank.json"  # SWD before and after training, steps, seconds
+    plots: str = "plots/latent_bank"  # sample grids and loss curves
     resolution: int = 64  # final generator resolution (power of two)
     # First generator block; with resolution 64 the bank has 5 blocks, one per DepthNet encoder level.
     start_resolution: int = 4
@@ -123,7 +128,7 @@ class LatentBankConfig:
     gp_gamma: float = 10.0
     ema_decay: float = 0.999
     # Initial scale of the synthesis convolutions relative to PyTorch's default; they are scale-free (AdaIN
-    # follows), so below 1 they learn faster at the fixed lr (see latent_bank.shrink_scale_free_weights).
+    # follows), so below 1 they learn faster at the fixed lr (see endoflow.models.latent_bank.InitScaled).
     conv_init_scale: float = 0.25
     swd_samples: int = 256
     drift_weight: float = 0.001  # ProGAN's penalty on squared real scores, keeps critic outputs bounded
@@ -187,6 +192,8 @@ class TrainConfig:
     val_batches: Optional[int] = None  # cap on validation batches per epoch; null: the whole val split
     bf16: bool = True  # bf16 autocast and channels-last on GPU (ignored on CPU)
     image_examples: int = 3  # fixed val frames whose depth is logged beside GT each epoch
+    # Ray checkpoints kept (the newest; each holds the best epoch's weights too, so the model is never lost)
+    keep_checkpoints: int = 2
 
 
 @dataclass
@@ -211,7 +218,7 @@ class EvalSetConfig:
     dataset: str
     groups: list[str] = field(default_factory=list)  # empty: any group
     sequences: list[str] = field(default_factory=list)  # empty: any sequence
-    split: str = "test"
+    split: Literal["train", "val", "test"] = "test"
 
 
 def _default_test_sets() -> dict[str, EvalSetConfig]:
@@ -286,8 +293,12 @@ def load_params(path: str | Path = "params.yaml", overrides: Sequence[str] = ())
 
 
 def params_from_dict(raw: dict[str, Any]) -> Params:
-    """Validate a plain mapping (as parsed from YAML) into :class:`Params`."""
-    return _build(Params, raw, prefix="")
+    """Validate a plain mapping (as parsed from YAML) into :class:`Params`: types, ranges, cross-field rules."""
+    params = _build(Params, raw, prefix="")
+    _check_ranges(params)
+    for check in _CROSS_FIELD_CHECKS:
+        check(params)
+    return params
 
 
 def apply_override(raw: dict[str, Any], item: str) -> None:
@@ -405,3 +416,293 @@ def _float_or_none(text: str) -> Optional[float]:
         return float(text)
     except ValueError:
         return None
+
+
+# -------------------------------------------------------------------------------------- validation
+@dataclass(frozen=True)
+class _Check:
+    """A condition on one value, and the words an error uses for it (``train.lr must be > 0, got -0.1``)."""
+
+    holds: Callable[[Any], bool]
+    expected: str
+
+
+@dataclass(frozen=True)
+class _Each:
+    """``check`` on every entry of a list, or on the value itself when it is one number."""
+
+    check: _Check
+
+
+def _at_least(bound: float) -> _Check:
+    return _Check(lambda v: v >= bound, f">= {bound}")
+
+
+def _above(bound: float) -> _Check:
+    return _Check(lambda v: v > bound, f"> {bound}")
+
+
+def _within(low: float, high: float, include_low: bool = True, include_high: bool = True) -> _Check:
+    """``low <= v <= high``, either end excluded on request; stated as ``in [low, high)`` and the like."""
+    return _Check(
+        lambda v: (low <= v if include_low else low < v) and (v <= high if include_high else v < high),
+        f"in {'[' if include_low else '('}{low}, {high}{']' if include_high else ')'}",
+    )
+
+
+def _optional(check: _Check) -> _Check:
+    return _Check(lambda v: v is None or check.holds(v), f"null or {check.expected}")
+
+
+def _is_power_of_two(value: int) -> bool:
+    return value >= 1 and value & (value - 1) == 0
+
+
+def _is_test_set_name(name: str) -> bool:
+    return bool(name) and all(c.isascii() and (c.isalnum() or c in "_-") for c in name)
+
+
+_COUNT = _at_least(1)
+_POSITIVE = _above(0)
+_NON_NEGATIVE = _at_least(0)
+_FRACTION = _within(0, 1)
+_PROPER_FRACTION = _within(0, 1, include_high=False)
+# The ResNet encoder downsamples by 32, and DepthNet needs whole feature maps at every level.
+ENCODER_STRIDE = 32
+# pretrain.py measures the bank with a sliced Wasserstein distance on pyramids down to 16 px.
+SWD_MIN_RESOLUTION = 16
+# Ray refuses smaller object stores (ray._private.ray_constants.OBJECT_STORE_MINIMUM_MEMORY_BYTES, 75 MiB).
+_RAY_MIN_OBJECT_STORE_MB = 75
+# The synthetic UnityCam layout renders one sequence per organ (synth/writers.py UNITYCAM_ORGANS).
+_UNITYCAM_ORGANS = 3
+# Layouts whose shards hold prev/cur/next triplets (scenenet shards are depth-only: every frame is a sample).
+_TRIPLET_LAYOUTS = ("simcol", "endoslam")
+
+_TOP_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    # numpy seeds (the loader's shard order, the synthetic scenes) must be non-negative.
+    ("seed", _NON_NEGATIVE),
+)
+
+_DATA_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    ("data.size", _Check(lambda v: v >= ENCODER_STRIDE and v % ENCODER_STRIDE == 0,
+                         f"a positive multiple of {ENCODER_STRIDE} (the ResNet encoder downsamples by that)")),
+    ("data.simcol.reference_size", _COUNT),
+    ("data.endoslam.unitycam_translation_to_cm", _POSITIVE),
+    ("data.endoslam.camera_translation_to_cm", _POSITIVE),
+    ("data.endoslam.depth_full_scale_cm", _POSITIVE),
+    ("data.endoslam.fps", _POSITIVE),
+    ("data.scenenet.max_frames_per_trajectory", _optional(_COUNT)),
+)
+
+_SYNTH_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    ("synth.size", _Check(lambda v: v >= 8, ">= 8 (the smallest frame the synthetic writers render)")),
+    ("synth.seed", _NON_NEGATIVE),
+    ("synth.workers", _COUNT),
+    ("synth.simcol.sequences", _COUNT),
+    ("synth.endoslam.sequences", _Check(lambda v: 1 <= v <= _UNITYCAM_ORGANS,
+                                       f"in 1..{_UNITYCAM_ORGANS} (one sequence per UnityCam organ)")),
+    ("synth.scenenet.sequences", _COUNT),
+    # Two frames make the shortest trajectory the writers render; triplets need more (a cross-field rule).
+    ("synth.simcol.frames", _at_least(2)),
+    ("synth.endoslam.frames", _at_least(2)),
+    ("synth.scenenet.frames", _at_least(2)),
+)
+
+_PREPROCESS_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    ("preprocess.workers", _COUNT),
+    ("preprocess.samples_per_shard", _COUNT),
+    ("preprocess.shard_multiple", _COUNT),
+    ("preprocess.neighbour_offset", _COUNT),
+)
+
+_LATENT_BANK_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    ("latent_bank.resolution", _Check(lambda v: _is_power_of_two(v) and v >= SWD_MIN_RESOLUTION,
+                                     f"a power of two >= {SWD_MIN_RESOLUTION} (pretraining's SWD needs "
+                                     f"{SWD_MIN_RESOLUTION} px)")),
+    ("latent_bank.start_resolution", _Check(lambda v: _is_power_of_two(v) and v >= 4, "a power of two >= 4")),
+    ("latent_bank.latent_dim", _COUNT),
+    ("latent_bank.style_dim", _COUNT),
+    ("latent_bank.mapping_layers", _COUNT),
+    ("latent_bank.channel_base", _COUNT),
+    ("latent_bank.channel_max", _COUNT),
+    ("latent_bank.batch_size", _COUNT),
+    ("latent_bank.steps_per_stage", _Each(_COUNT)),
+    ("latent_bank.lr", _POSITIVE),
+    ("latent_bank.betas", _Check(lambda v: len(v) == 2, "two numbers [beta1, beta2]")),
+    ("latent_bank.betas", _Each(_PROPER_FRACTION)),
+    ("latent_bank.n_critic", _Each(_COUNT)),
+    ("latent_bank.gp_gamma", _NON_NEGATIVE),
+    ("latent_bank.ema_decay", _PROPER_FRACTION),
+    ("latent_bank.conv_init_scale", _POSITIVE),
+    ("latent_bank.swd_samples", _COUNT),
+    ("latent_bank.drift_weight", _NON_NEGATIVE),
+    ("latent_bank.fade_fraction", _FRACTION),
+    ("latent_bank.depth_log_range", _POSITIVE),
+    ("latent_bank.holdout_fraction", _PROPER_FRACTION),
+)
+
+_MODEL_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    ("model.min_depth", _POSITIVE),
+    # DepthNet's decoder has five levels; disparities come from the four finest (Monodepth2's scales).
+    ("model.scales", _within(1, 4)),
+)
+
+_LOSS_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    ("loss.ssim_weight", _FRACTION),
+    ("loss.smoothness_weight", _NON_NEGATIVE),
+    ("loss.kl_weight", _NON_NEGATIVE),
+)
+
+_TRAIN_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    ("train.epochs", _COUNT),
+    ("train.batch_size", _COUNT),
+    ("train.lr", _POSITIVE),
+    ("train.weight_decay", _NON_NEGATIVE),
+    ("train.log_every", _COUNT),
+    ("train.step_epochs", _COUNT),
+    ("train.gamma", _within(0, 1, include_low=False)),
+    ("train.grad_clip", _optional(_POSITIVE)),
+    ("train.steps_per_epoch", _optional(_COUNT)),
+    ("train.val_batches", _optional(_COUNT)),
+    ("train.image_examples", _NON_NEGATIVE),
+    ("train.keep_checkpoints", _COUNT),  # Ray's CheckpointConfig refuses to keep none
+)
+
+_RAY_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    ("ray.num_workers", _COUNT),
+    ("ray.cpus_per_worker", _POSITIVE),
+    ("ray.num_cpus", _optional(_COUNT)),
+    ("ray.object_store_mb", _at_least(_RAY_MIN_OBJECT_STORE_MB)),
+)
+
+_EVAL_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    ("eval.batch_size", _COUNT),
+    ("eval.depth_examples", _NON_NEGATIVE),
+    ("eval.max_frames_per_sequence", _optional(_COUNT)),
+)
+
+_RANGE_RULES = (_TOP_RULES + _DATA_RULES + _SYNTH_RULES + _PREPROCESS_RULES + _LATENT_BANK_RULES + _MODEL_RULES
+                + _LOSS_RULES + _TRAIN_RULES + _RAY_RULES + _EVAL_RULES)
+
+
+def _check_ranges(params: Params) -> None:
+    for key, rule in _RANGE_RULES:
+        value = reduce(getattr, key.split("."), params)
+        if isinstance(rule, _Each):
+            for item_key, item in _entries(key, value):
+                _require(item_key, item, rule.check)
+        else:
+            _require(key, value, rule)
+
+
+def _entries(key: str, value: Any) -> list[tuple[str, Any]]:
+    if isinstance(value, list):
+        return [(f"{key}[{i}]", item) for i, item in enumerate(value)]
+    return [(key, value)]
+
+
+def _require(key: str, value: Any, check: _Check) -> None:
+    if not check.holds(value):
+        raise ConfigError(f"{key} must be {check.expected}, got {value!r}")
+
+
+# --------------------------------------------------------------------------------- cross-field rules
+def _check_depth_range(params: Params) -> None:
+    model = params.model
+    if model.min_depth >= model.max_depth:
+        raise ConfigError(f"model.min_depth ({model.min_depth}) must be below model.max_depth ({model.max_depth})")
+
+
+def _check_encoder_batch_norm(params: Params) -> None:
+    # At the smallest size the encoder's last features are 1x1, and BatchNorm in training mode needs more
+    # than one value per channel: a batch of one fails at the first step.
+    if params.data.size == ENCODER_STRIDE and params.train.batch_size < 2:
+        raise ConfigError(
+            f"train.batch_size must be >= 2 when data.size is {ENCODER_STRIDE} (the encoder's 1x1 features give "
+            f"BatchNorm one value per channel), got {params.train.batch_size}"
+        )
+
+
+def _bank_resolutions(cfg: LatentBankConfig) -> list[int]:
+    """The generator's block resolutions, ``start_resolution`` doubling up to ``resolution``."""
+    resolutions = [cfg.start_resolution]
+    while resolutions[-1] < cfg.resolution:
+        resolutions.append(resolutions[-1] * 2)
+    return resolutions
+
+
+def _check_bank_growth(params: Params) -> None:
+    cfg = params.latent_bank
+    if cfg.start_resolution > cfg.resolution:
+        raise ConfigError(
+            f"latent_bank.start_resolution ({cfg.start_resolution}) must not exceed latent_bank.resolution "
+            f"({cfg.resolution})"
+        )
+    resolutions = _bank_resolutions(cfg)
+    for name in ("steps_per_stage", "n_critic"):
+        value = getattr(cfg, name)
+        if isinstance(value, list) and len(value) != len(resolutions):
+            raise ConfigError(
+                f"latent_bank.{name} must be one number or a list of {len(resolutions)} (one per resolution "
+                f"{resolutions}), got {value}"
+            )
+
+
+def _check_synth_triplets(params: Params) -> None:
+    offset = params.preprocess.neighbour_offset
+    for layout in _TRIPLET_LAYOUTS:
+        frames = getattr(params.synth, layout).frames
+        if frames <= 2 * offset:
+            raise ConfigError(
+                f"synth.{layout}.frames must exceed 2 x preprocess.neighbour_offset = {2 * offset} (a sample needs "
+                f"frames cur - {offset} and cur + {offset}), got {frames}"
+            )
+
+
+def _check_ray_fits_local_cpus(params: Params) -> None:
+    ray = params.ray
+    if ray.address or ray.num_cpus is None:  # connect_ray starts a local Ray for an empty address too
+        return
+    need = ray.num_workers * ray.cpus_per_worker
+    if need > ray.num_cpus:
+        raise ConfigError(
+            f"ray.num_workers x ray.cpus_per_worker = {ray.num_workers} x {ray.cpus_per_worker:g} = {need:g} CPUs "
+            f"exceed ray.num_cpus = {ray.num_cpus} of the local Ray (ray.address null); Ray would wait forever"
+        )
+
+
+def _check_workers_have_shards(params: Params) -> None:
+    # Otherwise a worker finds no shard of its own (loader.rank_shards) once training or validation starts.
+    ray, preprocess = params.ray, params.preprocess
+    if ray.num_workers > preprocess.shard_multiple:
+        raise ConfigError(
+            f"ray.num_workers ({ray.num_workers}) must not exceed preprocess.shard_multiple "
+            f"({preprocess.shard_multiple}): a split has a multiple of {preprocess.shard_multiple} shards, maybe "
+            f"just {preprocess.shard_multiple}, and every worker needs a shard of its own"
+        )
+
+
+def _dataset_names() -> list[str]:
+    """The datasets ``params.data`` has a section for (``preprocess`` writes shards for each)."""
+    return [name for name, tp in typing.get_type_hints(DataConfig).items() if dataclasses.is_dataclass(tp)]
+
+
+def _check_test_sets(params: Params) -> None:
+    known = _dataset_names()
+    for name, test_set in params.eval.test_sets.items():
+        if not _is_test_set_name(name):
+            raise ConfigError(f"eval.test_sets: name {name!r} must be letters, digits, _ and - only (it names a "
+                              f"DVC stage, folders and dotted keys)")
+        if test_set.dataset not in known:
+            raise ConfigError(f"eval.test_sets.{name}.dataset must be one of {known}, got {test_set.dataset!r}")
+
+
+_CROSS_FIELD_CHECKS: tuple[Callable[[Params], None], ...] = (
+    _check_depth_range,
+    _check_encoder_batch_norm,
+    _check_bank_growth,
+    _check_synth_triplets,
+    _check_ray_fits_local_cpus,
+    _check_workers_have_shards,
+    _check_test_sets,
+)

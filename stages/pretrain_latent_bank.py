@@ -1,7 +1,7 @@
 """DVC stage `pretrain_latent_bank`: SceneNet depth shards -> the pretrained generative latent bank.
 
 Usage: ``python stages/pretrain_latent_bank.py [--params params.yaml]``; reads ``latent_bank.shards`` and writes
-``latent_bank.out``, ``metrics/latent_bank.json`` and ``plots/latent_bank/``, and logs an MLflow run in
+``latent_bank.out``, ``latent_bank.metrics`` and ``latent_bank.plots``, and logs an MLflow run in
 ``tracking.latent_bank_experiment``.
 """
 
@@ -23,8 +23,8 @@ def main() -> None:
         params,
         shards_dir=params.latent_bank.shards,
         out_path=params.latent_bank.out,
-        metrics_path="metrics/latent_bank.json",
-        plots_dir="plots/latent_bank",
+        metrics_path=params.latent_bank.metrics,
+        plots_dir=params.latent_bank.plots,
     )
     print(json.dumps(metrics, indent=2))
 

@@ -1,5 +1,6 @@
 """params.yaml is validated once, and every mistake names its key."""
 
+import re
 from pathlib import Path
 
 import pytest
@@ -111,3 +112,164 @@ def test_exponent_without_dot_is_a_number():
     assert params_from_dict(yaml.safe_load("train: {lr: 1e-4}")).train.lr == pytest.approx(1e-4)
     with pytest.raises(ConfigError, match=r"train\.lr must be a number, got 'fast'"):
         params_from_dict({"train": {"lr": "fast"}})
+
+
+# ------------------------------------------------------------------------------------------- ranges
+def defaults_with(settings: dict) -> dict:
+    """The defaults as a plain mapping, with ``{"train.lr": 1, ...}`` set in it."""
+    raw = params_to_dict(Params())
+    for key, value in settings.items():
+        *sections, name = key.split(".")
+        node = raw
+        for section in sections:
+            node = node[section]
+        node[name] = value
+    return raw
+
+
+# (the key the error must name, a bad value); each case is one rule.
+OUT_OF_RANGE = [
+    ("seed", -1),
+    ("data.size", 50),  # not a multiple of the encoder's stride 32
+    ("data.size", 0),
+    ("data.simcol.reference_size", 0),
+    ("data.endoslam.unitycam_translation_to_cm", 0.0),
+    ("data.endoslam.camera_translation_to_cm", -100.0),
+    ("data.endoslam.depth_full_scale_cm", 0.0),
+    ("data.endoslam.fps", 0.0),
+    ("data.scenenet.max_frames_per_trajectory", 0),
+    ("synth.size", 4),
+    ("synth.seed", -1),
+    ("synth.workers", 0),
+    ("synth.simcol.sequences", 0),
+    ("synth.endoslam.sequences", 4),  # three UnityCam organs
+    ("synth.scenenet.sequences", 0),
+    ("synth.scenenet.frames", 1),
+    ("preprocess.workers", 0),
+    ("preprocess.samples_per_shard", 0),
+    ("preprocess.shard_multiple", 0),
+    ("preprocess.neighbour_offset", 0),
+    ("latent_bank.resolution", 48),
+    ("latent_bank.resolution", 8),  # below the SWD's 16 px
+    ("latent_bank.start_resolution", 2),
+    ("latent_bank.start_resolution", 12),
+    ("latent_bank.latent_dim", 0),
+    ("latent_bank.style_dim", 0),
+    ("latent_bank.mapping_layers", 0),
+    ("latent_bank.channel_base", 0),
+    ("latent_bank.channel_max", 0),
+    ("latent_bank.batch_size", 0),
+    ("latent_bank.steps_per_stage", 0),
+    ("latent_bank.lr", 0.0),
+    ("latent_bank.betas", [0.0]),
+    ("latent_bank.n_critic", 0),
+    ("latent_bank.gp_gamma", -1.0),
+    ("latent_bank.ema_decay", 1.0),
+    ("latent_bank.conv_init_scale", 0.0),
+    ("latent_bank.swd_samples", 0),
+    ("latent_bank.drift_weight", -0.001),
+    ("latent_bank.fade_fraction", 1.5),
+    ("latent_bank.depth_log_range", 0.0),
+    ("latent_bank.holdout_fraction", 1.0),
+    ("model.min_depth", 0.0),
+    ("model.scales", 0),
+    ("model.scales", 5),
+    ("loss.ssim_weight", 1.1),
+    ("loss.smoothness_weight", -1e-3),
+    ("loss.kl_weight", -1e-5),
+    ("train.epochs", 0),
+    ("train.batch_size", 0),
+    ("train.lr", -0.1),
+    ("train.weight_decay", -1e-3),
+    ("train.log_every", 0),
+    ("train.step_epochs", 0),
+    ("train.gamma", 0.0),
+    ("train.gamma", 1.5),
+    ("train.grad_clip", 0.0),
+    ("train.steps_per_epoch", 0),
+    ("train.val_batches", 0),
+    ("train.image_examples", -1),
+    ("train.keep_checkpoints", 0),
+    ("ray.num_workers", 0),
+    ("ray.cpus_per_worker", 0.0),
+    ("ray.num_cpus", 0),
+    ("ray.object_store_mb", 74),  # Ray's minimum is 75 MiB
+    ("eval.batch_size", 0),
+    ("eval.depth_examples", -1),
+    ("eval.max_frames_per_sequence", 0),
+]
+
+
+@pytest.mark.parametrize(("key", "value"), OUT_OF_RANGE, ids=lambda x: str(x))
+def test_out_of_range_value_names_key_value_and_expectation(key, value):
+    with pytest.raises(ConfigError, match=rf"^{re.escape(key)} must be .+, got {re.escape(repr(value))}$"):
+        params_from_dict(defaults_with({key: value}))
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "named"),
+    [
+        ("latent_bank.steps_per_stage", [300, 300, 0, 300, 300], "latent_bank.steps_per_stage[2]"),
+        ("latent_bank.n_critic", [1, 1, 1, 1, -1], "latent_bank.n_critic[4]"),
+        ("latent_bank.betas", [0.0, 1.0], "latent_bank.betas[1]"),
+    ],
+)
+def test_bad_list_entry_is_named_by_index(key, value, named):
+    with pytest.raises(ConfigError, match=rf"^{re.escape(named)} must be"):
+        params_from_dict(defaults_with({key: value}))
+
+
+def test_load_names_file_key_and_value(tmp_path):
+    path = write_params(tmp_path, {})
+    with pytest.raises(ConfigError, match=r"params\.yaml: train\.lr must be > 0, got -0\.1$"):
+        load_params(path, overrides=["train.lr=-0.1"])
+
+
+def test_boundary_values_are_accepted():
+    params = params_from_dict(defaults_with({
+        "data.size": 96, "latent_bank.ema_decay": 0.0, "latent_bank.fade_fraction": 1.0, "train.gamma": 1.0,
+        "loss.ssim_weight": 0.0, "train.weight_decay": 0.0, "ray.object_store_mb": 75, "eval.depth_examples": 0,
+        "latent_bank.steps_per_stage": [1, 2, 3, 4, 5], "latent_bank.n_critic": [5, 4, 3, 2, 1],
+    }))
+    assert params.latent_bank.steps_per_stage == [1, 2, 3, 4, 5]
+
+
+def test_defaults_pass_every_rule():
+    assert params_from_dict({}) == Params()
+
+
+# -------------------------------------------------------------------------------------- cross-field
+# (settings that contradict each other, the keys the error must name); each case is one rule.
+CONTRADICTIONS = [
+    ({"model.min_depth": 20.0, "model.max_depth": 20.0}, ["model.min_depth", "model.max_depth"]),
+    ({"data.size": 32, "train.batch_size": 1}, ["train.batch_size", "data.size"]),
+    ({"latent_bank.start_resolution": 64, "latent_bank.resolution": 32},
+     ["latent_bank.start_resolution", "latent_bank.resolution"]),
+    ({"latent_bank.steps_per_stage": [300, 300]}, ["latent_bank.steps_per_stage", "[4, 8, 16, 32, 64]"]),
+    ({"latent_bank.n_critic": [1, 1, 1, 1, 1, 1]}, ["latent_bank.n_critic", "list of 5"]),
+    ({"synth.simcol.frames": 2}, ["synth.simcol.frames", "preprocess.neighbour_offset"]),
+    ({"synth.endoslam.frames": 4, "preprocess.neighbour_offset": 2},
+     ["synth.endoslam.frames", "preprocess.neighbour_offset = 4"]),
+    ({"ray.num_workers": 3, "ray.cpus_per_worker": 1.0, "ray.num_cpus": 2},
+     ["ray.num_workers x ray.cpus_per_worker = 3 x 1 = 3 CPUs", "ray.num_cpus = 2"]),
+    ({"ray.num_workers": 64}, ["ray.num_workers (64)", "preprocess.shard_multiple (4)"]),
+    ({"eval.test_sets": {"kitti_test": {"dataset": "kitti"}}}, ["eval.test_sets.kitti_test.dataset", "'kitti'"]),
+    ({"eval.test_sets": {"simcol.test": {"dataset": "simcol"}}}, ["eval.test_sets", "'simcol.test'"]),
+    ({"eval.test_sets": {"simcol": {"dataset": "simcol", "split": "testing"}}}, ["eval.test_sets.simcol.split"]),
+]
+
+
+@pytest.mark.parametrize(("settings", "named"), CONTRADICTIONS, ids=lambda x: str(x))
+def test_contradicting_settings_name_every_key(settings, named):
+    with pytest.raises(ConfigError) as caught:
+        params_from_dict(defaults_with(settings))
+    for text in named:
+        assert text in str(caught.value)
+
+
+def test_local_cpu_budget_applies_only_to_a_local_ray():
+    # On a cluster (ray.address set) ray.num_cpus is unused; the cluster's size is checked once connected.
+    cluster = {"ray.address": "auto", "ray.num_workers": 4, "ray.cpus_per_worker": 8.0, "ray.num_cpus": 2}
+    assert params_from_dict(defaults_with(cluster)).ray.num_workers == 4
+    fits = {"ray.num_workers": 2, "ray.cpus_per_worker": 1.5, "ray.num_cpus": 3}
+    assert params_from_dict(defaults_with(fits)).ray.num_workers == 2

@@ -67,9 +67,9 @@ def test_every_stage_output_exists(smoke_repro):
         shards = smoke_repro / params.preprocess.out / dataset
         assert (shards / "manifest.parquet").is_file()
         assert list(shards.glob("*.tar"))
-    for path in (params.latent_bank.out, params.train.out, "metrics/latent_bank.json", params.train.metrics):
+    for path in (params.latent_bank.out, params.train.out, params.latent_bank.metrics, params.train.metrics):
         assert (smoke_repro / path).is_file(), path
-    assert list((smoke_repro / "plots" / "latent_bank").glob("*.png"))
+    assert list((smoke_repro / params.latent_bank.plots).glob("*.png"))
     for test_set in params.eval.test_sets:
         assert (smoke_repro / "metrics" / "eval" / f"{test_set}.json").is_file()
         assert any((smoke_repro / "predictions" / test_set).rglob("*.npy"))
@@ -79,8 +79,9 @@ def test_dvc_metrics_show_lists_training_and_evaluation(smoke_repro):
     env = {**os.environ, "PATH": f"{VENV_BIN}{os.pathsep}{os.environ['PATH']}", "DVC_NO_ANALYTICS": "1"}
     shown = json.loads(run(["dvc", "metrics", "show", "--json"], smoke_repro, env).stdout)
     files = {name for workspace in shown.values() for name in workspace.get("data", {})}
-    assert "metrics/train.json" in files
-    assert "metrics/latent_bank.json" in files
+    params = load_params(smoke_repro / "params.yaml")
+    assert params.train.metrics in files
+    assert params.latent_bank.metrics in files
     assert any(name.startswith("metrics/eval/") for name in files)
 
 
