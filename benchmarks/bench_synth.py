@@ -21,8 +21,8 @@ from endoflow.config import Params
 from endoflow.data.scenenet import scenenet_intrinsics
 from endoflow.synth.render import render_tube_frame
 from endoflow.synth.rooms import render_room
+from endoflow.data.base import DATASETS
 from endoflow.synth.writers import (
-    LAYOUTS,
     plan_jobs,
     room_sequence,
     scenenet_shape,
@@ -61,7 +61,7 @@ def main() -> None:
     parser.add_argument("--skip-default", action="store_true", help="only measure frames per second")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    for layout in LAYOUTS:
+    for layout in DATASETS:
         fps = frames_per_second(layout, args.frames, args.size, args.device)
         print(f"{layout:9s} {args.size}px  {fps:6.1f} frames/s (one thread, {args.device})", flush=True)
     if args.skip_default:
@@ -69,7 +69,7 @@ def main() -> None:
     params = Params()
     started, cpu_started = time.perf_counter(), _cpu_seconds()
     with tempfile.TemporaryDirectory() as folder:
-        for layout in LAYOUTS:
+        for layout in DATASETS:
             print(synthesize_layout(layout, Path(folder) / layout, params=params, device=args.device), flush=True)
     cpu = _cpu_seconds() - cpu_started
     print(

@@ -9,9 +9,7 @@ from pathlib import Path
 from typing import Any, Optional, Sequence
 
 from endoflow.config import ConfigError, load_params
-from endoflow.data.base import DataFormatError
-
-DATASETS = ("simcol", "endoslam", "scenenet")
+from endoflow.data.base import DATASETS, DataFormatError
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

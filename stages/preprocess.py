@@ -11,7 +11,8 @@ import json
 from pathlib import Path
 
 from endoflow.config import load_params
-from endoflow.data.shards import DATASETS, preprocess_dataset
+from endoflow.data.base import DATASETS
+from endoflow.data.shards import preprocess_dataset
 
 
 def main() -> None:

@@ -17,7 +17,8 @@ Expected values are computed here from first principles (explicit formulas), not
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Optional
 
@@ -25,6 +26,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from endoflow.config import Params
 from endoflow.data.imageio import write_png
 
 SIMCOL_CAM_TXT = "227.60416 0 227.60416 0 237.5 237.5 0 0 1"
@@ -329,3 +331,39 @@ def write_scenenet(
         depth_cm=depths,
         T_world_cam=None,
     )
+
+
+# ------------------------------------------------------------------------------- damaging a copy
+def replace_line(path: Path, index: int, text: str) -> None:
+    """Line ``index`` (0-based) of a text file replaced by ``text``, as a damaged export would have it."""
+    lines = path.read_text().splitlines()
+    lines[index] = text
+    path.write_text("\n".join(lines) + "\n")
+
+
+def remove_simcol_frame(scene_dir: Path, name: str, number: int) -> None:
+    """Delete frame ``number`` (FrameBuffer and Depth) of sequence ``name``, leaving the pose files whole."""
+    folder = scene_dir / f"Frames_{name}"
+    (folder / f"FrameBuffer_{number:04d}.png").unlink()
+    (folder / f"Depth_{number:04d}.png").unlink()
+
+
+def repaint_simcol_frame(scene_dir: Path, name: str, number: int, seed: int = 99) -> None:
+    """New random pixels for FrameBuffer ``number`` of ``name``, with an mtime one second later than before."""
+    path = scene_dir / f"Frames_{name}" / f"FrameBuffer_{number:04d}.png"
+    before = path.stat()
+    height, width = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).shape[:2]
+    rgb = _random_rgb(np.random.default_rng(seed), height, width)
+    rgba16 = np.concatenate([rgb, np.full((height, width, 1), 255, np.uint8)], axis=-1).astype(np.uint16) * 256
+    write_png(path, rgba16)
+    os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns + 1_000_000_000))
+
+
+# ------------------------------------------------------------------------------ preprocessing
+def preprocess_params(dataset: str, root: Path, size: int = 16, samples_per_shard: int = 2) -> Params:
+    """Params reading ``dataset`` from ``root`` into small shards: one process, no shard multiple."""
+    params = Params()
+    getattr(params.data, dataset).root = str(root)
+    params.data.size = size
+    params.preprocess = replace(params.preprocess, workers=1, samples_per_shard=samples_per_shard, shard_multiple=1)
+    return params

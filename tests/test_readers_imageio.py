@@ -84,7 +84,7 @@ def test_interrupted_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path, 
     def fail(*_):
         raise OSError("disk full")
 
-    monkeypatch.setattr("endoflow.data.imageio.os.replace", fail)
+    monkeypatch.setattr("endoflow.io.os.replace", fail)
     with pytest.raises(OSError, match="disk full"):
         write_png(target, np.zeros_like(RGB))
     monkeypatch.undo()

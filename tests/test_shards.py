@@ -25,13 +25,12 @@ from endoflow.config import Params
 from endoflow.data.base import DataFormatError, Sequence
 from endoflow.data.shards import (
     DEPTH_UNIT_CM,
-    MANIFEST,
-    SHARD_COUNTS_KEY,
     pool_context,
     preprocess_dataset,
     stored_intrinsics,
     write_dataset_shards,
 )
+from endoflow.data.shard_format import MANIFEST, SHARD_TABLE_KEY, file_sha256
 from tests.samples import SIMCOL_SAMPLE
 
 NATIVE_K = np.array([[40.0, 0.0, 31.0], [0.0, 42.0, 22.5], [0.0, 0.0, 1.0]])
@@ -202,7 +201,9 @@ def test_manifest_lists_exactly_the_tar_contents_in_even_sequence_contiguous_sha
     table = pq.read_table(out_dir / MANIFEST)
     manifest = table.to_pandas()
     assert list(manifest.columns) == ["shard", "key", "dataset", "sequence", "group", "frame", "split"]
-    counts = json.loads(table.schema.metadata[SHARD_COUNTS_KEY])
+    entries = json.loads(table.schema.metadata[SHARD_TABLE_KEY])
+    counts = {name: entry["samples"] for name, entry in entries.items()}
+    assert all(entry["sha256"] == file_sha256(str(out_dir / name)) for name, entry in entries.items())
     tars = sorted(p.name for p in out_dir.glob("*.tar"))
     assert sorted(counts) == tars and sorted(p.name for p in out_dir.iterdir()) == sorted(tars + [MANIFEST])
     for name in tars:

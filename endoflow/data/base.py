@@ -6,8 +6,12 @@ Conventions (the same everywhere downstream, so nothing needs to know where data
 - Depth: ``H x W`` ``float32`` z-depth in centimetres (distance along the optical axis, not ray length);
   ``0`` where there is no reading.
 - Pose: ``4 x 4`` ``float64`` camera-to-world ``T_world_cam`` in the OpenCV camera convention (x right,
-  y down, z forward), right-handed, translation in centimetres. ``None`` where the dataset has no pose.
+  y down, z forward), right-handed, translation in centimetres. ``None`` where the dataset has no pose,
+  and where its pose file holds a non-finite value (NaN, inf) for the frame: the reader reports those
+  frames, with the file, in ``Sequence.problems`` and warns.
 - K: ``3 x 3`` pixel intrinsics for the stored image size, pixel centres at integer coordinates.
+- Frame numbers: the dataset's own, sorted. A difference larger than the sequence's regular step
+  (:func:`frame_step`) is a gap, reported like a bad pose; temporal neighbours never span one.
 
 Readers convert at this boundary (SimCol's left-handed Unity poses, SceneNet's ray-length depth in mm,
 EndoSLAM's units) and raise :class:`DataFormatError` naming the file and what was expected when input
@@ -16,12 +20,16 @@ does not match the documented layout.
 
 from __future__ import annotations
 
+import re
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
+
+# The datasets endoflow reads, by reader name: the one list every command, stage and writer takes.
+DATASETS = ("simcol", "endoslam", "scenenet")
 
 
 class DataFormatError(ValueError):
@@ -53,7 +61,7 @@ class Sequence:
     """A contiguous recording: lazily loaded frames sharing one camera.
 
     Attributes:
-        dataset: reader name (``simcol``, ``endoslam``, ``scenenet``).
+        dataset: reader name, one of :data:`DATASETS`.
         name: sequence name, unique within the dataset (``S5``, ``UnityCam/Colon``, ``train/0/223``).
         split: ``train``, ``val`` or ``test``.
         K: 3x3 pixel intrinsics for ``image_size``.
@@ -65,6 +73,9 @@ class Sequence:
         load_depth: ``i -> H x W float32`` z-depth in cm, or ``None`` when the dataset has no depth.
         group: coarser grouping for test sets (``SyntheticColon_III``, ``Colon``...).
         problems: non-fatal issues found while reading (shown by ``endoflow data inspect``).
+        source_files: per position, the files that frame is decoded from (RGB, depth); what a derived
+            product built from the frame must be rebuilt after (see :meth:`frame_files`). Empty for
+            sources that do not read files (frames made in memory).
     """
 
     dataset: str
@@ -78,9 +89,26 @@ class Sequence:
     load_depth: Optional[Callable[[int], np.ndarray]]
     group: str = ""
     problems: list[str] = field(default_factory=list)
+    source_files: list[tuple[Path, ...]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.source_files and len(self.source_files) != len(self.frame_ids):
+            raise ValueError(
+                f"sequence {self.name}: source_files lists {len(self.source_files)} frames, "
+                f"frame_ids {len(self.frame_ids)}"
+            )
 
     def __len__(self) -> int:
         return len(self.frame_ids)
+
+    @property
+    def frame_step(self) -> int:
+        """The regular difference between consecutive frame numbers (see :func:`frame_step`)."""
+        return frame_step(self.frame_ids)
+
+    def frame_files(self, i: int) -> list[Path]:
+        """The files the i-th frame is decoded from; empty when the sequence is not read from files."""
+        return list(self.source_files[i]) if self.source_files else []
 
     def pose(self, i: int) -> Optional[np.ndarray]:
         """``T_world_cam`` of the i-th frame, or ``None`` where unknown."""
@@ -93,6 +121,33 @@ class Sequence:
         rgb = self.load_rgb(i) if self.load_rgb is not None else None
         depth = self.load_depth(i) if self.load_depth is not None else None
         return Frame(rgb=rgb, depth_cm=depth, T_world_cam=self.pose(i), K=self.K)
+
+
+def frame_step(frame_ids: list[int]) -> int:
+    """The smallest difference between consecutive sorted frame numbers (1 for fewer than two frames).
+
+    Datasets number frames 0, 1, 2, ... (SimCol3D, EndoSLAM) or 0, 25, 50, ... (SceneNet); a larger
+    difference somewhere is a gap: frames are missing there.
+    """
+    differences = [b - a for a, b in zip(frame_ids, frame_ids[1:])]
+    return min(differences) if differences else 1
+
+
+def missing_frame_ids(frame_ids: list[int]) -> list[int]:
+    """Frame numbers absent from the regular run ``first, first + step, ..., last`` (:func:`frame_step`)."""
+    if not frame_ids:
+        return []
+    step = frame_step(frame_ids)
+    return sorted(set(range(frame_ids[0], frame_ids[-1] + 1, step)) - set(frame_ids))
+
+
+def slug(text: str) -> str:
+    """``text`` with anything but ASCII letters, digits, ``_`` and ``-`` made ``_``.
+
+    Safe as one file name and inside a WebDataset key (which is split at its first dot, and where ``/``
+    would make a folder); used wherever a sequence name becomes part of a name.
+    """
+    return re.sub(r"[^A-Za-z0-9_-]", "_", text)
 
 
 class DatasetReader(ABC):

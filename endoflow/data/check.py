@@ -19,6 +19,9 @@ depth taken as mm 0.93 (0.94).
 Tunables are keyword arguments of :func:`check_dataset` (the CLI uses the defaults):
 ``max_ratio`` (0.7): a sequence is flagged when its (gain-compensated) ratio exceeds it;
 ``max_frames`` (10): target frames sampled per sequence, evenly spaced, to bound the run time.
+
+Frames without a valid pose (none in the data, or NaN / inf in the pose file, which the reader reports) are
+neither targets nor neighbours; their count is part of each sequence's result and of the printed table.
 """
 
 from __future__ import annotations
@@ -93,8 +96,8 @@ def check_sequence(
     Returns ``name``, ``split``, ``pairs`` (target-neighbour pairs measured), ``gt_error`` and
     ``identity_error`` (gain-compensated, means over pairs), ``ratio`` (their quotient, what is judged),
     ``plain_gt_error``, ``plain_identity_error``, ``plain_ratio`` (the same without gain compensation),
-    ``valid_fraction`` (share of target pixels with depth that land inside the neighbour), ``flagged`` and
-    ``reason``.
+    ``valid_fraction`` (share of target pixels with depth that land inside the neighbour),
+    ``frames_without_pose`` (skipped frames: no pose, or a non-finite one), ``flagged`` and ``reason``.
     """
     frames = _FrameCache(sequence)
     measured = [
@@ -117,6 +120,7 @@ def check_sequence(
         "plain_identity_error": plain_identity,
         "plain_ratio": plain_gt / plain_identity if with_pixels and plain_identity > 0 else None,
         "valid_fraction": float(np.mean([pair.valid_fraction for pair in measured])) if measured else 0.0,
+        "frames_without_pose": sum(sequence.pose(i) is None for i in range(len(sequence))),
     }
     return {**result, **_verdict(result, max_ratio)}
 
@@ -227,6 +231,8 @@ def format_check(report: dict[str, Any]) -> str:
             f"{_number(entry['identity_error'], 4):>8} {_number(entry['ratio'], 2):>6} "
             f"{_number(entry['plain_ratio'], 2):>6} {entry['valid_fraction']:>6.0%}  {verdict}"
         )
+        if entry["frames_without_pose"]:
+            lines.append(f"  {'':<24} {entry['frames_without_pose']} frame(s) without a valid pose skipped")
     for entry in report["skipped"]:
         lines.append(f"  {entry['name']:<24} skipped: {entry['reason']}")
     flagged = sum(entry["flagged"] for entry in report["sequences"])

@@ -15,12 +15,12 @@ UnityCam (VR-Caps simulator, 320x320, 30 fps)::
   (:data:`UNITYCAM_K`, for 320x320) scaled to the stored size.
 
 **Pose-to-frame alignment rule.** The simulator logs a pose per physics step, so the CSV need not have one
-row per frame. Rows with a missing or non-numeric value are dropped first. If the remaining rows are as many
-as the frames, row ``i`` is frame ``i``. Otherwise frames are aligned by time: the frame with number ``n`` was
-taken at ``t0 + (n - n0) / fps`` (``t0`` = first logged time, ``n0`` = first frame number), and its pose is
-interpolated between the two logged poses around that time (translation linearly, rotation by slerp along the
-shorter arc); frames after the last logged time get a NaN pose. Either adjustment emits a warning and is
-recorded in ``Sequence.problems``.
+row per frame. Rows with a missing, non-numeric or non-finite value (NaN, inf) are dropped first. If the
+remaining rows are as many as the frames, row ``i`` is frame ``i``. Otherwise frames are aligned by time: the
+frame with number ``n`` was taken at ``t0 + (n - n0) / fps`` (``t0`` = first logged time, ``n0`` = first frame
+number), and its pose is interpolated between the two logged poses around that time (translation linearly,
+rotation by slerp along the shorter arc); frames after the last logged time get a NaN pose. Each adjustment
+emits a warning and is recorded in ``Sequence.problems``.
 
 Real cameras (HighCam, LowCam, ...)::
 
@@ -28,7 +28,8 @@ Real cameras (HighCam, LowCam, ...)::
                                                Poses/<one>.xlsx   columns ImageFrame, Pose_Index, trans_x,
                                                                   trans_y, trans_z, quot_x, quot_y, quot_z, quot_w
 
-- A pose row belongs to the frame whose file number equals ``ImageFrame``; frames without a row get NaN.
+- A pose row belongs to the frame whose file number equals ``ImageFrame``; rows with a missing or non-finite
+  value are dropped (reported), and frames without a row get NaN.
 - Translation times ``camera_translation_to_cm``; rotations are taken as right-handed OpenCV camera-to-world
   unless ``camera_poses_left_handed`` (then converted like UnityCam's).
 - K only from ``data.endoslam.intrinsics`` (the calibration ships as MATLAB sessions); no depth.
@@ -41,7 +42,6 @@ are skipped.
 from __future__ import annotations
 
 import re
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -53,20 +53,24 @@ from endoflow.data.imageio import image_size, read_png8_gray, read_rgb
 from endoflow.data.layout import (
     checked_intrinsics,
     checked_size,
-    frame_gap_note,
     natural_key,
     numbered_files,
+    pose_matrices,
     ray_length_to_z_factor,
+    report,
+    report_frame_gaps,
+    shown_numbers,
     sized_loader,
     subfolders,
 )
 from endoflow.geometry.camera import scale_intrinsics
-from endoflow.geometry.pose import quaternion_xyzw_to_matrix, unity_to_opencv
+from endoflow.geometry.pose import unity_to_opencv
 
 # Third-party UnityCam intrinsics (unconfirmed by the dataset authors) for 320x320 frames.
 UNITYCAM_K = np.array([[156.0418, 0.0, 178.5604], [0.0, 155.7529, 181.8043], [0.0, 0.0, 1.0]])
 UNITYCAM_SIZE = (320, 320)
 UNITYCAM_COLUMNS = ("tX", "tY", "tZ", "rX", "rY", "rZ", "rW", "time(s)")
+UNITYCAM_POSE_SUFFIX = "_position_rotation.csv"  # after the organ's file stem: colon, intestine, stomach
 CAMERA_COLUMNS = ("ImageFrame", "Pose_Index", "trans_x", "trans_y", "trans_z", "quot_x", "quot_y", "quot_z", "quot_w")
 SKIPPED_FOLDERS = ("Calibration",)
 
@@ -107,15 +111,17 @@ class EndoSLAMReader(DatasetReader):
         frame_ids = list(frames)
         size = image_size(frames[frame_ids[0]])
         K = self._unitycam_intrinsics(size)
-        problems = [note] if (note := frame_gap_note(frame_ids)) else []
+        name = f"UnityCam/{organ.name}"
+        problems: list[str] = []
+        report_frame_gaps(problems, organ / "Frames", name, frame_ids)
         depth_paths = _unitycam_depths(organ, frames)
         if depth_paths is None:
             problems.append("no 'Pixelwise Depths' folder: sequence has no depth")
-        poses = self._unitycam_poses(_single_file(organ / "Poses", "*_position_rotation.csv"), frame_ids, problems)
+        poses = self._unitycam_poses(_single_file(organ / "Poses", f"*{UNITYCAM_POSE_SUFFIX}"), frame_ids, problems)
         frame_paths = list(frames.values())
         return Sequence(
             dataset=self.name,
-            name=f"UnityCam/{organ.name}",
+            name=name,
             split=self.cfg.split,
             K=K,
             image_size=size,
@@ -125,6 +131,7 @@ class EndoSLAMReader(DatasetReader):
             load_depth=None if depth_paths is None else self._depth_loader(depth_paths, size, K),
             group=organ.name,
             problems=problems,
+            source_files=list(zip(frame_paths, depth_paths)) if depth_paths else [(path,) for path in frame_paths],
         )
 
     def _unitycam_intrinsics(self, size: tuple[int, int]) -> np.ndarray:
@@ -147,7 +154,9 @@ class EndoSLAMReader(DatasetReader):
         rows = read_unitycam_csv(csv)
         valid = np.isfinite(rows).all(axis=1)
         if not valid.all():
-            _report(problems, csv, f"dropped {int((~valid).sum())} row(s) with missing values")
+            dropped = _data_rows(~valid)
+            report(problems, csv, f"dropped {len(dropped)} row(s) with missing values "
+                                  f"(empty, not a number, NaN or inf; data row(s) {shown_numbers(dropped)})")
         rows = rows[valid]
         if len(rows) == 0:
             raise DataFormatError(csv, "no pose row with all of " + ",".join(UNITYCAM_COLUMNS))
@@ -156,7 +165,7 @@ class EndoSLAMReader(DatasetReader):
         if len(rows) != len(frame_ids):
             translations, quaternions = align_by_time(rows[:, 7], translations, quaternions, frame_ids, self.cfg.fps)
             unposed = int(np.isnan(translations[:, 0]).sum())
-            _report(
+            report(
                 problems,
                 csv,
                 f"{len(rows)} pose rows for {len(frame_ids)} frames; aligned by time (frame n at "
@@ -179,12 +188,14 @@ class EndoSLAMReader(DatasetReader):
             )
         K = checked_intrinsics(self.cfg.intrinsics, "data.endoslam.intrinsics")
         size = image_size(frames[frame_ids[0]])
-        problems = [note] if (note := frame_gap_note(frame_ids)) else []
+        name = f"{camera.name}/{organ.name}/{trajectory.name}"
+        problems: list[str] = []
+        report_frame_gaps(problems, trajectory / "Frames", name, frame_ids)
         poses = self._camera_poses(_single_file(trajectory / "Poses", "*.xlsx"), frame_ids, problems)
         frame_paths = list(frames.values())
         return Sequence(
             dataset=self.name,
-            name=f"{camera.name}/{organ.name}/{trajectory.name}",
+            name=name,
             split=self.cfg.split,
             K=K,
             image_size=size,
@@ -194,23 +205,26 @@ class EndoSLAMReader(DatasetReader):
             load_depth=None,
             group=re.sub(r"-[IVX]+$", "", organ.name),
             problems=problems,
+            source_files=[(path,) for path in frame_paths],
         )
 
     def _camera_poses(self, sheet: Path, frame_ids: list[int], problems: list[str]) -> np.ndarray:
         table = read_camera_sheet(sheet)
-        complete = table.notna().all(axis=1)
+        complete = np.isfinite(table.to_numpy(np.float64)).all(axis=1)
         if not complete.all():
-            _report(problems, sheet, f"dropped {int((~complete).sum())} row(s) with missing values")
+            dropped = _data_rows(~complete)
+            report(problems, sheet, f"dropped {len(dropped)} row(s) with missing values "
+                                    f"(empty, not a number, NaN or inf; data row(s) {shown_numbers(dropped)})")
         table = table[complete]
         duplicated = table["ImageFrame"].duplicated()
         if duplicated.any():
-            _report(problems, sheet, f"{int(duplicated.sum())} repeated ImageFrame row(s); first kept")
+            report(problems, sheet, f"{int(duplicated.sum())} repeated ImageFrame row(s); first kept")
         kept = table[~duplicated]
         rows = kept.set_index(kept["ImageFrame"].astype(np.int64)).reindex(frame_ids)
         _check_quaternions(sheet, rows[["quot_x", "quot_y", "quot_z", "quot_w"]].dropna().to_numpy())
         unposed = int(rows["trans_x"].isna().sum())
         if unposed:
-            _report(problems, sheet, f"{unposed} of {len(frame_ids)} frames have no pose row")
+            report(problems, sheet, f"{unposed} of {len(frame_ids)} frames have no pose row")
         translations = rows[["trans_x", "trans_y", "trans_z"]].to_numpy(np.float64) * self.cfg.camera_translation_to_cm
         poses = pose_matrices(translations, rows[["quot_x", "quot_y", "quot_z", "quot_w"]].to_numpy(np.float64))
         return unity_to_opencv(poses) if self.cfg.camera_poses_left_handed else poses
@@ -250,19 +264,6 @@ def _with_columns(path: Path, table: pd.DataFrame, columns: tuple[str, ...]) -> 
 
 
 # ------------------------------------------------------------------------------------- pose math
-def pose_matrices(translations: np.ndarray, quaternions: np.ndarray) -> np.ndarray:
-    """``N x 4 x 4`` ``[[R(q), t], [0, 1]]`` from ``N x 3`` translations and ``N x 4`` xyzw quaternions.
-
-    Rows with NaN give all-NaN matrices (frames without a pose).
-    """
-    poses = np.tile(np.eye(4), (len(translations), 1, 1))
-    known = np.isfinite(translations).all(axis=1) & np.isfinite(quaternions).all(axis=1)
-    poses[~known] = np.nan
-    poses[known, :3, :3] = quaternion_xyzw_to_matrix(quaternions[known])
-    poses[known, :3, 3] = translations[known]
-    return poses
-
-
 def align_by_time(
     times: np.ndarray, translations: np.ndarray, quaternions: np.ndarray, frame_ids: list[int], fps: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -348,6 +349,6 @@ def _single_file(folder: Path, pattern: str) -> Path:
     return matches[0]
 
 
-def _report(problems: list[str], path: Path, note: str) -> None:
-    warnings.warn(f"{path}: {note}", stacklevel=3)
-    problems.append(f"{path.name}: {note}")
+def _data_rows(mask: np.ndarray) -> list[int]:
+    """1-based data-row numbers (the header not counted) where ``mask`` is true."""
+    return [int(i) + 1 for i in np.flatnonzero(mask)]

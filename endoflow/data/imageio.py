@@ -8,15 +8,14 @@ module). Every problem raises :class:`~endoflow.data.base.DataFormatError` namin
 
 from __future__ import annotations
 
-import os
 import struct
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from endoflow.data.base import DataFormatError
+from endoflow.io import write_bytes
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -110,7 +109,7 @@ def image_size(path: str | Path) -> tuple[int, int]:
 
 
 def write_png(path: str | Path, array: np.ndarray) -> None:
-    """Write ``array`` as PNG atomically (temporary file in the same folder, then ``os.replace``).
+    """Write ``array`` as PNG atomically (through :mod:`endoflow.io`).
 
     ``array``: ``H x W`` grey or ``H x W x 3`` RGB or ``H x W x 4`` RGBA, ``uint8`` or ``uint16``.
     A reader never sees a half-written file, and a failed write leaves the old file (if any) untouched.
@@ -129,15 +128,5 @@ def write_png(path: str | Path, array: np.ndarray) -> None:
     ok, encoded = cv2.imencode(".png", array)
     if not ok:
         raise ValueError(f"write_png {path}: OpenCV could not encode {_describe(array)}")
-    _write_bytes_atomic(path, encoded.tobytes())
+    write_bytes(path, encoded.tobytes(), durable=False)
 
-
-def _write_bytes_atomic(path: Path, data: bytes) -> None:
-    descriptor, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(descriptor, "wb") as handle:
-            handle.write(data)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise

@@ -14,6 +14,7 @@ import numpy as np
 
 from endoflow.config import Params
 from endoflow.data.base import DataFormatError, Sequence
+from endoflow.data.layout import shown_numbers
 from endoflow.data.registry import open_reader
 
 DEFAULT_SAMPLED_FRAMES = 3
@@ -27,9 +28,10 @@ def inspect_dataset(
     Returns a JSON-ready dict: ``dataset``, ``root``, ``frames_per_split`` and ``sequences``, each with
     ``name``, ``split``, ``group``, ``frames``, ``frame_ids`` (first, last), ``image_size`` [H, W], ``K``
     (3x3), ``rgb`` (whether frames have colour), ``depth_cm`` (``min`` over readings > 0, ``max``,
-    ``no_reading_fraction``, ``sampled_frames``; None without depth), ``poses`` (``known`` count, ``first``
-    and ``last`` known ``{frame, T_world_cam}``, converted to our convention; None without poses) and
-    ``problems``.
+    ``no_reading_fraction``, ``sampled_frames``; None without depth), ``poses`` (``known`` count, ``unknown``
+    frame numbers, ``first`` and ``last`` known ``{frame, T_world_cam}``, converted to our convention; None
+    without poses) and ``problems`` (the reader's: frame gaps, NaN or inf in pose files with the frames,
+    pose alignment; and frames that fail to decode).
     """
     reader = open_reader(root, dataset, params)
     # Readers warn about pose alignment; the same notes are in each sequence's problems, shown below.
@@ -90,12 +92,14 @@ def _pose_summary(sequence: Sequence) -> Optional[dict[str, Any]]:
     if sequence.poses is None:
         return None
     known = [i for i in range(len(sequence)) if sequence.pose(i) is not None]
+    unknown = sorted(set(range(len(sequence))) - set(known))
 
     def entry(i: int) -> dict[str, Any]:
         return {"frame": sequence.frame_ids[i], "T_world_cam": sequence.poses[i].tolist()}
 
     return {
         "known": len(known),
+        "unknown": [sequence.frame_ids[i] for i in unknown],
         "first": entry(known[0]) if known else None,
         "last": entry(known[-1]) if known else None,
     }
@@ -135,7 +139,10 @@ def _format_sequence(entry: dict[str, Any]) -> list[str]:
     if poses is None:
         lines.append("  poses: none")
     else:
-        lines.append(f"  poses: {poses['known']} of {entry['frames']} frames known (T_world_cam: OpenCV, cm)")
+        unknown = f"; unknown: frames {shown_numbers(poses['unknown'])}" if poses["unknown"] else ""
+        lines.append(
+            f"  poses: {poses['known']} of {entry['frames']} frames known{unknown} (T_world_cam: OpenCV, cm)"
+        )
         for label in ("first", "last"):
             if poses[label] is not None:
                 lines.append(f"    {label} known, frame {poses[label]['frame']} (top 3 rows):")

@@ -1,14 +1,19 @@
-"""Small pieces shared by the native-layout readers: numbered file listings, intrinsics validation."""
+"""Small pieces shared by the native-layout readers: numbered file listings, intrinsics validation,
+reporting of non-fatal problems (frame gaps, non-finite pose values)."""
 
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
-from typing import Callable, Optional, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
-from endoflow.data.base import DataFormatError
+from endoflow.data.base import DataFormatError, missing_frame_ids
+from endoflow.geometry.pose import quaternion_xyzw_to_matrix
+
+SHOWN_NUMBERS = 5
 
 
 def natural_key(text: str) -> tuple:
@@ -64,14 +69,53 @@ def checked_intrinsics(values: Sequence[Sequence[float]] | np.ndarray, source: s
     return K
 
 
-def frame_gap_note(numbers: Sequence[int]) -> Optional[str]:
-    """A short note on gaps in sorted frame numbers (``None`` when contiguous)."""
-    expected = set(range(numbers[0], numbers[-1] + 1))
-    missing = sorted(expected - set(numbers))
-    if not missing:
-        return None
-    shown = ", ".join(map(str, missing[:5])) + (" ..." if len(missing) > 5 else "")
-    return f"frame numbers not contiguous: {len(missing)} missing ({shown})"
+def report(problems: list[str], path: Path, note: str) -> None:
+    """Warn ``<path>: <note>`` and keep ``<file name>: <note>`` in a sequence's ``problems``."""
+    warnings.warn(f"{path}: {note}", stacklevel=3)
+    problems.append(f"{path.name}: {note}")
+
+
+def report_frame_gaps(problems: list[str], folder: Path, sequence: str, frame_ids: list[int]) -> None:
+    """Report frame numbers missing inside a sequence, once: neighbours (prev/next) never span them."""
+    missing = missing_frame_ids(frame_ids)
+    if missing:
+        report(
+            problems,
+            folder,
+            f"sequence {sequence}: frame numbers not contiguous, {len(missing)} missing "
+            f"({shown_numbers(missing)}); no sample spans the gap",
+        )
+
+
+def report_non_finite_rows(problems: list[str], path: Path, rows: np.ndarray, frame_ids: list[int]) -> None:
+    """Report the frames whose pose values read from ``path`` (one row per frame) are NaN or infinite.
+
+    :func:`pose_matrices` gives those frames no pose.
+    """
+    bad = ~np.isfinite(rows).all(axis=1)
+    if bad.any():
+        frames = [frame_ids[i] for i in np.flatnonzero(bad)]
+        report(problems, path, f"non-finite pose values (NaN or inf) for {len(frames)} frame(s) "
+                               f"({shown_numbers(frames)}); those frames have no pose")
+
+
+def pose_matrices(translations: np.ndarray, quaternions: np.ndarray) -> np.ndarray:
+    """``N x 4 x 4`` ``[[R(q), t], [0, 1]]`` from ``N x 3`` translations and ``N x 4`` xyzw quaternions.
+
+    Rows with a NaN or infinite value give all-NaN matrices (frames without a pose).
+    """
+    poses = np.tile(np.eye(4), (len(translations), 1, 1))
+    known = np.isfinite(translations).all(axis=1) & np.isfinite(quaternions).all(axis=1)
+    poses[~known] = np.nan
+    poses[known, :3, :3] = quaternion_xyzw_to_matrix(quaternions[known])
+    poses[known, :3, 3] = translations[known]
+    return poses
+
+
+def shown_numbers(numbers: Sequence[int]) -> str:
+    """The first few of ``numbers``, comma-separated, with `` ...`` when there are more."""
+    shown = ", ".join(map(str, numbers[:SHOWN_NUMBERS]))
+    return shown + (" ..." if len(numbers) > SHOWN_NUMBERS else "")
 
 
 def checked_size(path: Path, array: np.ndarray, size: tuple[int, int]) -> np.ndarray:

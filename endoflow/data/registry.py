@@ -6,14 +6,12 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from endoflow.config import Params
-from endoflow.data.base import DataFormatError, DatasetReader
+from endoflow.data.base import DATASETS, DataFormatError, DatasetReader
 from endoflow.data.endoslam import EndoSLAMReader
 from endoflow.data.scenenet import SPLITS as SCENENET_SPLITS
 from endoflow.data.scenenet import SceneNetReader
 from endoflow.data.simcol import SCENES as SIMCOL_SCENES
 from endoflow.data.simcol import SimColReader
-
-DATASETS = ("simcol", "endoslam", "scenenet")
 
 
 def _looks_like_simcol(root: Path) -> bool:

@@ -11,7 +11,8 @@ Layout (``docs/datasets.md``)::
   puts pixel centres at ``+0.5`` while we put them at integers (320x240: 277.128, 289.706, 159.5, 119.5).
 - No poses (they live in protobuf files the latent bank does not need). RGB is served when ``photo/`` exists.
 - Frames sorted by number, optionally the first ``data.scenenet.max_frames_per_trajectory``; split from the
-  top folder; group = part folder; sequence name ``<split>/<part>/<trajectory>``.
+  top folder; group = part folder; sequence name ``<split>/<part>/<trajectory>``. Missing frame numbers are
+  not reported: the latent bank uses single depth maps, never temporal neighbours.
 """
 
 from __future__ import annotations
@@ -88,6 +89,7 @@ class SceneNetReader(DatasetReader):
             load_rgb=None if photos is None else sized_loader(photos, size, read_rgb),
             load_depth=_depth_loader(depth_paths, size, K),
             group=part.name,
+            source_files=[(path,) for path in depth_paths] if photos is None else list(zip(depth_paths, photos)),
         )
 
 

@@ -1,49 +1,42 @@
 """Preprocessing: dataset sequences -> WebDataset shards of target frames with their neighbours.
 
-Output of :func:`preprocess_dataset` (schema in ``docs/design.md``)::
+Output of :func:`preprocess_dataset`: a shard folder in the format that :mod:`endoflow.data.shard_format`
+defines (member names, depth encoding, the manifest with every shard's sample count and SHA-256). Each sample
+is one target frame ``cur`` with its neighbours ``prev`` / ``next`` at ``-/+ preprocess.neighbour_offset``:
+RGB centre-cropped to a square and resized to ``data.size`` with ``cv2.INTER_AREA``; depth resized by nearest
+neighbour with pixel centres aligned (``cv2.INTER_NEAREST_EXACT``), so no depth value is invented across an
+edge, in counts of ``DEPTH_UNIT_CM[dataset]`` (0 where unknown, where the dataset has no depth, or beyond the
+encodable range ``65535 * depth_unit``). Depth-only datasets (SceneNet, for the latent bank) store every frame
+as a sample with only ``depth.png`` and ``meta.json`` (``prev``/``next`` poses and frame ids null).
 
-    <out_dir>/train-000000.tar ... val-000000.tar ... test-000000.tar     manifest.parquet
-
-Each sample (tar members ``<key>.<ext>``, WebDataset's naming) is one target frame ``cur`` with its
-neighbours ``prev`` / ``next`` at ``-/+ preprocess.neighbour_offset``:
-
-- ``prev.png``, ``cur.png``, ``next.png``: RGB ``uint8``, centre-cropped to a square and resized to
-  ``data.size`` with ``cv2.INTER_AREA``.
-- ``depth.png``: ``uint16`` z-depth of ``cur`` with ``depth_cm = value * meta.depth_unit``; 0 = unknown
-  (also where the dataset has no depth, or the depth exceeds the encodable range ``65535 * depth_unit``).
-  Resized by nearest neighbour with pixel centres aligned (``cv2.INTER_NEAREST_EXACT``), so no depth value
-  is invented across an edge.
-- ``meta.json``: ``dataset``, ``sequence``, ``group``, ``split``, ``frame`` (the dataset's frame number of
-  ``cur``), ``frame_ids`` (``prev``/``cur``/``next``), ``K`` (3x3 at the stored size, pixel centres at
-  integers), ``T_world_cam`` (``prev``/``cur``/``next``: 4x4 camera-to-world, cm, or null), ``depth_unit``
-  (cm per count), ``native_size`` ``[H, W]``.
-
-Depth-only datasets (SceneNet, for the latent bank) store every frame as a sample with only ``depth.png``
-and ``meta.json`` (``prev``/``next`` poses and frame ids null).
+Wrong but decodable input: a target is taken only when its neighbours are the frames exactly
+``neighbour_offset`` regular frame steps away, so no sample spans a missing frame (the reader warns about
+gaps). A frame without a pose (none in the data, or NaN / inf in the pose file: the reader warns, naming the
+file and frames) keeps its sample, whose images are sound, with that pose null in ``meta.json``; the summary
+counts such samples (``samples_without_pose``). A non-finite value is never written as a pose.
 
 Shards: each split's samples, in sequence order, are spread evenly (sizes differ by at most one) over a
 shard count that is a multiple of ``preprocess.shard_multiple``, so whole shards divide evenly over that
 many training workers. Keys (``<dataset>-<sequence>-<frame>``) depend only on the data, never on the run.
 
 Runs are atomic and resumable: everything is written into ``.<out_dir name>.partial/`` beside ``out_dir``
-together with a plan fingerprint; each shard is written under a temporary name and renamed when complete.
-A rerun with the same plan keeps the finished shards and writes the rest; only a complete result replaces
-``out_dir``, so an interrupted run never leaves half shards there. Shards are written by a pool of
-``preprocess.workers`` processes; each decodes and resizes a frame once even though three samples use it.
+together with a plan file holding each shard's key (:func:`shard_keys`: its samples, settings, poses, K and
+the size and mtime of every source file it reads); each shard is written under a temporary name and renamed
+when complete. A rerun keeps a finished shard only if its key is unchanged (``shards_reused`` in the
+summary) and writes the rest, so a shard is never reused after an input it was built from changed; only a
+complete result replaces ``out_dir``, so an interrupted run never leaves half shards there. Shards are
+written by a pool of ``preprocess.workers`` processes; each decodes and resizes a frame once even though three
+samples use it.
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import math
 import multiprocessing
-import os
-import re
 import shutil
 import sys
-import tarfile
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -54,27 +47,32 @@ from typing import Callable, Iterable, Iterator, Optional
 
 import cv2
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
+import webdataset as wds
 
 from endoflow.config import Params
-from endoflow.data.base import DataFormatError, Sequence
+from endoflow.data.base import DATASETS, DataFormatError, Sequence, slug
 from endoflow.data.registry import open_reader
+from endoflow.data.shard_format import (
+    DEPTH_MEMBER,
+    FORMAT_VERSION,
+    MANIFEST,
+    META_MEMBER,
+    SPLITS,
+    ShardEntry,
+    file_sha256,
+    manifest_bytes,
+    shard_name,
+)
 from endoflow.geometry.camera import scale_intrinsics
+from endoflow.io import atomic_path, replace_directory, write_bytes
 
-SPLITS = ("train", "val", "test")
-DATASETS = ("simcol", "endoslam", "scenenet")
 DEPTH_ONLY_DATASETS = frozenset({"scenenet"})
 # cm per stored depth count: colon data up to 65.535 cm at 10 um steps (finer than SimCol3D's own 0.078 cm);
 # indoor scenes up to 65.5 m at 1 mm.
 DEPTH_UNIT_CM = {"simcol": 0.001, "endoslam": 0.001, "scenenet": 0.1}
-MANIFEST = "manifest.parquet"
-# Parquet schema metadata key holding {shard name: sample count}, empty shards included.
-SHARD_COUNTS_KEY = b"endoflow.shard_samples"
 PLAN_FILE = "plan.json"
-# Bumped whenever the bytes written for the same input change, so stale partial runs are not reused.
-FORMAT_VERSION = 1
-_TMP_MARK = ".tmp-"
+# TarWriter streams 10 KiB tar records; a large file buffer makes them few large writes (bench_tar_writer.py).
+WRITE_BUFFER = 8 << 20
 
 
 @dataclass(frozen=True)
@@ -134,8 +132,9 @@ def preprocess_dataset(dataset: str, params: Params, out_dir: Path) -> dict:
     Reads ``params.data.<dataset>.root`` through :func:`endoflow.data.registry.open_reader`.
 
     Returns:
-        Summary: samples and shards per split, shards reused from an interrupted run, frames decoded,
-        depth pixels beyond the encodable range, seconds and frames per second.
+        Summary: samples and shards per split, shards reused from an interrupted run, samples written with
+        a null pose because a frame they read has none (``samples_without_pose``), frames decoded, depth
+        pixels beyond the encodable range, seconds and frames per second.
     """
     if dataset not in DATASETS:
         raise ValueError(f"unknown dataset {dataset!r}; expected one of {', '.join(DATASETS)}")
@@ -158,10 +157,10 @@ def write_dataset_shards(
     shards = plan_shards(sequences, settings, params.preprocess.samples_per_shard, params.preprocess.shard_multiple)
     out_dir = Path(out_dir)
     staging = out_dir.parent / f".{out_dir.name}.partial"
-    reused = prepare_staging(staging, plan_fingerprint(shards, settings, sequences), shards)
+    reused = prepare_staging(staging, shard_keys(shards, settings, sequences))
     todo = [shard for shard in shards if shard.name not in reused]
     results = run_shard_writers(todo, staging, settings, sequences, load_sequences, params.preprocess.workers)
-    write_manifest(staging / MANIFEST, shards, dataset)
+    write_manifest(staging, shards, dataset)
     (staging / PLAN_FILE).unlink()
     replace_directory(staging, out_dir)
     seconds = time.perf_counter() - started
@@ -172,6 +171,7 @@ def write_dataset_shards(
         "samples": {split: sum(len(s.samples) for s in shards if s.split == split) for split in SPLITS},
         "shards": {split: sum(1 for s in shards if s.split == split) for split in SPLITS},
         "shards_reused": len(reused),
+        "samples_without_pose": samples_without_pose(shards, sequences, settings),
         "frames_decoded": frames,
         "depth_out_of_range_pixels": sum(r.depth_out_of_range for r in results),
         "seconds": round(seconds, 3),
@@ -209,13 +209,20 @@ def plan_shards(
         count = shard_count(len(samples), samples_per_shard, shard_multiple)
         for index in range(count):
             part = samples[len(samples) * index // count : len(samples) * (index + 1) // count]
-            shards.append(ShardSpec(name=f"{split}-{index:06d}.tar", split=split, samples=tuple(part)))
+            shards.append(ShardSpec(name=shard_name(split, index), split=split, samples=tuple(part)))
     return shards
 
 
 def sequence_samples(sequence: Sequence, settings: EncodeSettings) -> list[SampleSpec]:
-    """Target frames of a sequence: all of them when depth-only, else those with both neighbours."""
-    margin = 0 if settings.depth_only else settings.neighbour_offset
+    """Target frames of a sequence: all of them when depth-only, else those with both neighbours.
+
+    A neighbour is the frame exactly ``neighbour_offset`` regular steps (:attr:`Sequence.frame_step`)
+    before or after the target, so no sample spans a gap in the frame numbers (the reader reports gaps).
+    """
+    if settings.depth_only:
+        targets = range(len(sequence))
+    else:
+        targets = targets_with_neighbours(sequence.frame_ids, settings.neighbour_offset, sequence.frame_step)
     return [
         SampleSpec(
             key=sample_key(settings.dataset, sequence.name, sequence.frame_ids[i]),
@@ -225,7 +232,17 @@ def sequence_samples(sequence: Sequence, settings: EncodeSettings) -> list[Sampl
             split=sequence.split,
             group=sequence.group,
         )
-        for i in range(margin, len(sequence) - margin)
+        for i in targets
+    ]
+
+
+def targets_with_neighbours(frame_ids: list[int], offset: int, step: int) -> list[int]:
+    """Positions ``i`` whose frames at positions ``i -/+ offset`` are numbered ``frame -/+ offset * step``."""
+    span = offset * step
+    return [
+        i
+        for i in range(offset, len(frame_ids) - offset)
+        if frame_ids[i - offset] == frame_ids[i] - span and frame_ids[i + offset] == frame_ids[i] + span
     ]
 
 
@@ -234,8 +251,7 @@ def sample_key(dataset: str, sequence: str, frame: int) -> str:
 
     WebDataset splits a member name at its first dot (and treats ``/`` as a folder), so neither may appear.
     """
-    slug = re.sub(r"[^A-Za-z0-9_-]", "_", sequence)
-    return f"{dataset}-{slug}-{frame:06d}"
+    return f"{dataset}-{slug(sequence)}-{frame:06d}"
 
 
 def check_unique_keys(samples: Iterable[SampleSpec]) -> None:
@@ -255,79 +271,142 @@ def shard_count(samples: int, samples_per_shard: int, multiple: int) -> int:
     return math.ceil(math.ceil(samples / samples_per_shard) / multiple) * multiple
 
 
-def plan_fingerprint(shards: list[ShardSpec], settings: EncodeSettings, sequences: list[Sequence]) -> str:
-    """Hash of everything that determines the shards' bytes except the image files' contents."""
-    digest = hashlib.sha256()
-    digest.update(json.dumps({"version": FORMAT_VERSION, "settings": asdict(settings)}, sort_keys=True).encode())
-    for sequence in sequences:
-        digest.update(json.dumps([sequence.name, list(sequence.image_size)]).encode())
-        digest.update(np.ascontiguousarray(sequence.K, dtype=np.float64).tobytes())
-        if sequence.poses is not None:
-            digest.update(np.ascontiguousarray(sequence.poses, dtype=np.float64).tobytes())
+def sample_positions(spec: SampleSpec, settings: EncodeSettings) -> list[int]:
+    """Positions of the frames a sample is built from: ``cur``, and ``prev`` / ``next`` unless depth-only."""
+    i, offset = spec.position, settings.neighbour_offset
+    return [i] if settings.depth_only else [i - offset, i, i + offset]
+
+
+def samples_without_pose(shards: list[ShardSpec], sequences: list[Sequence], settings: EncodeSettings) -> int:
+    """Samples of sequences that have poses where a frame read (prev, cur or next) has none.
+
+    They are written with that pose null in ``meta.json`` (the reader reported why: no pose row, or NaN /
+    inf in the pose file); the preprocess summary counts them so that none passes unnoticed.
+    """
+    by_name = {sequence.name: sequence for sequence in sequences}
+    return sum(
+        by_name[spec.sequence].poses is not None
+        and any(by_name[spec.sequence].pose(p) is None for p in sample_positions(spec, settings))
+        for shard in shards
+        for spec in shard.samples
+    )
+
+
+def shard_keys(shards: list[ShardSpec], settings: EncodeSettings, sequences: list[Sequence]) -> dict[str, str]:
+    """Per shard name, a hash of everything the shard is built from.
+
+    That is the format version and encode settings, the shard's samples, and for every frame a sample
+    reads: its number and pose, the sequence's K and image size, and the path, size and ``mtime_ns`` of
+    each file it is decoded from (:meth:`Sequence.frame_files`). A shard left by an interrupted run is
+    reused only while its key is unchanged, so an input changed in between (new pixels, a corrected pose)
+    rebuilds exactly the shards built from it. Sizes and times, not content hashes: hashing every image
+    would cost a read of the whole dataset on each run.
+    """
+    by_name = {sequence.name: sequence for sequence in sequences}
+    records = FrameRecords()
+    common = json.dumps({"version": FORMAT_VERSION, "settings": asdict(settings)}, sort_keys=True)
+    keys = {}
     for shard in shards:
-        digest.update(json.dumps([shard.name, [asdict(s) for s in shard.samples]]).encode())
-    return digest.hexdigest()
+        digest = hashlib.sha256(common.encode())
+        digest.update(shard.name.encode())
+        for spec in shard.samples:
+            sequence = by_name[spec.sequence]
+            frames = [records.frame(sequence, position) for position in sample_positions(spec, settings)]
+            digest.update(json.dumps([asdict(spec), records.camera(sequence), frames]).encode())
+        keys[shard.name] = digest.hexdigest()
+    return keys
+
+
+class FrameRecords:
+    """JSON-ready descriptions of frames and cameras for :func:`shard_keys`, each made once.
+
+    A frame is read by up to three samples and a camera by every sample of its sequence.
+    """
+
+    def __init__(self) -> None:
+        self.frames: dict[tuple[str, int], list] = {}
+        self.cameras: dict[str, list] = {}
+
+    def frame(self, sequence: Sequence, position: int) -> list:
+        key = (sequence.name, position)
+        if key not in self.frames:
+            pose = sequence.pose(position)
+            self.frames[key] = [
+                int(sequence.frame_ids[position]),
+                None if pose is None else np.asarray(pose, dtype=np.float64).tolist(),
+                [file_state(path) for path in sequence.frame_files(position)],
+            ]
+        return self.frames[key]
+
+    def camera(self, sequence: Sequence) -> list:
+        if sequence.name not in self.cameras:
+            K = np.asarray(sequence.K, dtype=np.float64).tolist()
+            self.cameras[sequence.name] = [sequence.name, list(sequence.image_size), K]
+        return self.cameras[sequence.name]
+
+
+def file_state(path: Path) -> list:
+    """``[path, size, mtime_ns]`` of a source file: what tells a changed file from the one a shard read."""
+    try:
+        status = Path(path).stat()
+    except OSError as exc:
+        raise DataFormatError(path, f"source file listed by the reader cannot be read ({exc.strerror})") from None
+    return [str(path), status.st_size, status.st_mtime_ns]
 
 
 # ------------------------------------------------------------------------------------ staging and output
-def prepare_staging(staging: Path, fingerprint: str, shards: list[ShardSpec]) -> set[str]:
-    """Make ``staging`` ready for this plan; returns the names of shards already complete there.
+def prepare_staging(staging: Path, keys: dict[str, str]) -> set[str]:
+    """Make ``staging`` ready for a plan whose shards have ``keys``; returns the names of shards kept.
 
-    A staging folder from the same plan keeps its finished shards (temporary files are dropped); any other
-    content is discarded.
+    A finished shard is kept only when the key recorded for it in the staging folder's plan file equals
+    its key now. Everything else (stale shards, temporaries, leftovers of another plan) is removed before
+    the new keys are recorded, so a recorded key always describes the shard file of that name, or one not
+    written yet.
     """
-    plan_path = staging / PLAN_FILE
-    if plan_path.is_file() and json.loads(plan_path.read_text()).get("fingerprint") == fingerprint:
-        for leftover in staging.glob(f"*{_TMP_MARK}*"):
-            leftover.unlink()
-        return {shard.name for shard in shards if (staging / shard.name).is_file()}
-    if staging.exists():
-        shutil.rmtree(staging)
-    staging.mkdir(parents=True)
-    write_bytes_atomic(plan_path, json.dumps({"fingerprint": fingerprint}).encode())
-    return set()
+    staging.mkdir(parents=True, exist_ok=True)
+    recorded = recorded_keys(staging / PLAN_FILE)
+    kept = {name for name, key in keys.items() if recorded.get(name) == key and (staging / name).is_file()}
+    for path in staging.iterdir():
+        if path.name in kept or path.name == PLAN_FILE:
+            continue
+        if path.is_dir():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+    write_bytes(staging / PLAN_FILE, json.dumps({"shard_keys": keys}, indent=1, sort_keys=True).encode())
+    return kept
 
 
-def replace_directory(staging: Path, out_dir: Path) -> None:
-    """Put the complete ``staging`` folder in place of ``out_dir``.
+def recorded_keys(plan_path: Path) -> dict[str, str]:
+    """The shard keys in a staging folder's plan file; none when it is absent or from an older format.
 
-    The old output is moved aside (not deleted) until the new one is in place.
+    An unreadable plan file also gives none: then every shard is rebuilt, which is always correct.
     """
-    old = out_dir.parent / f".{out_dir.name}.old"
-    if old.exists():
-        shutil.rmtree(old)
-    if out_dir.exists():
-        os.replace(out_dir, old)
-    os.replace(staging, out_dir)
-    if old.exists():
-        shutil.rmtree(old)
+    try:
+        plan = json.loads(plan_path.read_text())
+    except (OSError, ValueError):
+        return {}
+    keys = plan.get("shard_keys") if isinstance(plan, dict) else None
+    return keys if isinstance(keys, dict) else {}
 
 
-def write_manifest(path: Path, shards: list[ShardSpec], dataset: str) -> None:
-    """``manifest.parquet``: one row per sample; per-shard counts (empty shards too) in the schema metadata."""
+def write_manifest(staging: Path, shards: list[ShardSpec], dataset: str) -> None:
+    """The manifest of the shards in ``staging``: one row per sample, and each shard's count and SHA-256.
+
+    Checksums are taken from the finished files, so shards reused from an interrupted run are covered too.
+    """
     rows = [(shard.name, sample) for shard in shards for sample in shard.samples]
-    table = pa.table(
-        {
-            "shard": pa.array([name for name, _ in rows], pa.string()),
-            "key": pa.array([s.key for _, s in rows], pa.string()),
-            "dataset": pa.array([dataset] * len(rows), pa.string()),
-            "sequence": pa.array([s.sequence for _, s in rows], pa.string()),
-            "group": pa.array([s.group for _, s in rows], pa.string()),
-            "frame": pa.array([s.frame for _, s in rows], pa.int64()),
-            "split": pa.array([s.split for _, s in rows], pa.string()),
-        }
-    )
-    counts = json.dumps({shard.name: len(shard.samples) for shard in shards})
-    table = table.replace_schema_metadata({SHARD_COUNTS_KEY: counts.encode()})
-    sink = pa.BufferOutputStream()
-    pq.write_table(table, sink)
-    write_bytes_atomic(path, sink.getvalue().to_pybytes())
-
-
-def write_bytes_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f"{path.name}{_TMP_MARK}{os.getpid()}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    columns = {
+        "shard": [name for name, _ in rows],
+        "key": [s.key for _, s in rows],
+        "dataset": [dataset] * len(rows),
+        "sequence": [s.sequence for _, s in rows],
+        "group": [s.group for _, s in rows],
+        "frame": [s.frame for _, s in rows],
+        "split": [s.split for _, s in rows],
+    }
+    entries = [ShardEntry(s.name, len(s.samples), file_sha256(str(staging / s.name))) for s in shards]
+    write_bytes(staging / MANIFEST, manifest_bytes(columns, entries))
 
 
 # ------------------------------------------------------------------------------------------- shard writing
@@ -404,29 +483,20 @@ def single_threaded_opencv() -> Iterator[None]:
 def write_shard(
     shard: ShardSpec, staging: Path, settings: EncodeSettings, sequences: dict[str, Sequence]
 ) -> ShardResult:
-    """Encode the samples of ``shard`` and write them as one tar, renamed into place when complete."""
-    final = staging / shard.name
-    tmp = staging / f"{shard.name}{_TMP_MARK}{os.getpid()}"
+    """Encode the samples of ``shard`` and write them as one tar, atomically.
+
+    Members have fixed metadata (mtime 0, sorted member order), so the same samples give identical bytes.
+    """
     cache = FrameCache(settings)
     out_of_range = 0
-    with tarfile.open(tmp, "w", format=tarfile.PAX_FORMAT) as tar:
-        for spec in shard.samples:
-            files, bad_depth = encode_sample(spec, sequences[spec.sequence], settings, cache)
-            out_of_range += bad_depth
-            for extension in sorted(files):
-                add_member(tar, f"{spec.key}.{extension}", files[extension])
-    os.replace(tmp, final)
+    with atomic_path(staging / shard.name) as temporary, open(temporary, "wb", buffering=WRITE_BUFFER) as stream:
+        with wds.TarWriter(stream, encoder=False, mtime=0, user="", group="") as tar:
+            for spec in shard.samples:
+                files, bad_depth = encode_sample(spec, sequences[spec.sequence], settings, cache)
+                out_of_range += bad_depth
+                tar.write({"__key__": spec.key, **files})
     frames = len(shard.samples) if settings.depth_only else cache.decoded
     return ShardResult(shard.name, len(shard.samples), frames, out_of_range)
-
-
-def add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
-    """Add a file with fixed metadata, so the same samples give byte-identical tars."""
-    info = tarfile.TarInfo(name)
-    info.size = len(data)
-    info.mode = 0o444
-    info.mtime = 0
-    tar.addfile(info, io.BytesIO(data))
 
 
 class FrameCache:
@@ -463,16 +533,17 @@ def encode_sample(
     spec: SampleSpec, sequence: Sequence, settings: EncodeSettings, cache: FrameCache
 ) -> tuple[dict[str, bytes], int]:
     """The files of one sample (extension -> bytes) and its count of depth pixels beyond range."""
-    i, offset = spec.position, settings.neighbour_offset
-    positions = {"cur": i} if settings.depth_only else {"prev": i - offset, "cur": i, "next": i + offset}
+    i = spec.position
+    frames = sample_positions(spec, settings)
+    positions = dict(zip(("cur",) if settings.depth_only else ("prev", "cur", "next"), frames))
     files: dict[str, bytes] = {}
     if not settings.depth_only:
-        cache.evict_before(i - offset)
+        cache.evict_before(frames[0])
         for name, position in positions.items():
             files[f"{name}.png"] = cache.rgb_png(sequence, position)
     depth_counts, out_of_range = depth_to_counts(stored_depth(sequence, i, settings.size), settings.depth_unit)
-    files["depth.png"] = encode_png(depth_counts)
-    files["meta.json"] = json.dumps(sample_meta(spec, sequence, positions, settings), sort_keys=True).encode()
+    files[DEPTH_MEMBER] = encode_png(depth_counts)
+    files[META_MEMBER] = json.dumps(sample_meta(spec, sequence, positions, settings), sort_keys=True).encode()
     return files, out_of_range
 
 

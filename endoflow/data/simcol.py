@@ -14,7 +14,7 @@ Layout (``docs/datasets.md``)::
 - Poses: line ``n`` of ``SavedPosition_<seq>.txt`` (``tx ty tz``, cm) and ``SavedRotationQuaternion_<seq>.txt``
   (``qx qy qz qw``) belong to frame ``n``; they are Unity's left-handed camera-to-world and are converted with
   the official ``P = TM @ [[R(q), t], [0, 1]] @ TM``, ``TM = diag(1, -1, 1, 1)`` (quaternion sign flips do
-  not change ``R(q)``).
+  not change ``R(q)``). A frame whose line holds NaN or inf has no pose (reported, not fatal).
 - Split by sequence name (``data.simcol.test``, then ``data.simcol.val``, else train); group = scene folder.
 
 Poses are parsed when the sequence is listed (so a short pose file fails early); images are decoded only
@@ -29,12 +29,21 @@ import numpy as np
 from endoflow.config import SimColConfig
 from endoflow.data.base import DataFormatError, DatasetReader, Sequence
 from endoflow.data.imageio import image_size, read_png16, read_rgb
-from endoflow.data.layout import checked_intrinsics, frame_gap_note, natural_key, numbered_files, sized_loader
+from endoflow.data.layout import (
+    checked_intrinsics,
+    natural_key,
+    numbered_files,
+    pose_matrices,
+    report_frame_gaps,
+    report_non_finite_rows,
+    sized_loader,
+)
 from endoflow.geometry.camera import scale_intrinsics
-from endoflow.geometry.pose import quaternion_xyzw_to_matrix, unity_to_opencv
+from endoflow.geometry.pose import unity_to_opencv
 
 SCENES = ("SyntheticColon_I", "SyntheticColon_II", "SyntheticColon_III")
-DEPTH_CM_PER_COUNT = 20.0 / (255.0 * 256.0)
+DEPTH_COUNTS_PER_CM = 255.0 * 256.0 / 20.0  # depth cm = value / 255 / 256 * 20
+DEPTH_CM_PER_COUNT = 1.0 / DEPTH_COUNTS_PER_CM
 FRAME_PATTERN = r"FrameBuffer_(\d+)\.png"
 DEPTH_PATTERN = r"Depth_(\d+)\.png"
 
@@ -76,7 +85,8 @@ class SimColReader(DatasetReader):
         depth_size = image_size(depths[0])
         if depth_size != size:
             raise DataFormatError(depths[0], f"depth size {depth_size} differs from the frames' {size}")
-        problems = [note] if (note := frame_gap_note(frame_ids)) else []
+        problems: list[str] = []
+        report_frame_gaps(problems, folder, name, frame_ids)
         poses = self._read_poses(scene, name, frame_ids, problems)
         frame_paths = [frames[i] for i in frame_ids]
         return Sequence(
@@ -91,6 +101,7 @@ class SimColReader(DatasetReader):
             load_depth=sized_loader(depths, size, decode_depth),
             group=scene.name,
             problems=problems,
+            source_files=list(zip(frame_paths, depths)),
         )
 
     def _split(self, name: str) -> str:
@@ -128,10 +139,9 @@ class SimColReader(DatasetReader):
         zero = np.flatnonzero(np.linalg.norm(quaternions[ids], axis=1) == 0)
         if zero.size:
             raise DataFormatError(rotation_file, f"zero quaternion on line {ids[zero[0]] + 1}")
-        unity = np.tile(np.eye(4), (len(ids), 1, 1))
-        unity[:, :3, :3] = quaternion_xyzw_to_matrix(quaternions[ids])
-        unity[:, :3, 3] = positions[ids]
-        return unity_to_opencv(unity)
+        report_non_finite_rows(problems, position_file, positions[ids], frame_ids)
+        report_non_finite_rows(problems, rotation_file, quaternions[ids], frame_ids)
+        return unity_to_opencv(pose_matrices(positions[ids], quaternions[ids]))
 
 
 def decode_depth(path: Path) -> np.ndarray:
@@ -143,14 +153,18 @@ def read_cam_txt(path: Path) -> np.ndarray:
     """cam.txt as the official code reads it: 9 numbers, row-major 3x3, at the reference size."""
     if not path.is_file():
         raise DataFormatError(path, "cam.txt not found (or set data.simcol.intrinsics)")
-    text = path.read_text()
+    return parse_cam_txt(path.read_text(), path)
+
+
+def parse_cam_txt(text: str, source: str | Path) -> np.ndarray:
+    """The 3x3 K in the text of a ``cam.txt`` (9 numbers, row-major); errors name ``source``."""
     try:
         values = [float(token) for token in text.split()]
     except ValueError:
         values = []
     if len(values) != 9:
-        raise DataFormatError(path, f"malformed cam.txt: expected 9 numbers (row-major 3x3 K), found {text!r}")
-    return checked_intrinsics(np.reshape(values, (3, 3)), path)
+        raise DataFormatError(source, f"malformed cam.txt: expected 9 numbers (row-major 3x3 K), found {text!r}")
+    return checked_intrinsics(np.reshape(values, (3, 3)), source)
 
 
 def read_number_rows(path: Path, columns: int) -> np.ndarray:

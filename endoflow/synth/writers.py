@@ -17,17 +17,17 @@ left-handed poses, SceneNet's ray-length depth in mm):
 - ``scenenet``: ``<split>/0/<trajectory>/photo/<n>.jpg`` and ``depth/<n>.png`` (uint16 mm of ray length),
   ``n = 0, 25, 50, ...``; every tenth trajectory goes to ``val``. ``size`` 128 gives the native 320x240.
 
-Every sequence is rendered into a hidden temporary folder next to its final place and renamed into place
-when complete, so an interrupted run leaves no half sequence. Sequences are independent (their random
-streams derive from the seed, the layout and the sequence), so the output is the same bytes whatever
-the number of worker processes.
+Every sequence is rendered into a hidden temporary folder next to its final place and swapped into place
+when complete (:func:`endoflow.io.staged_directory`), so an interrupted run leaves no half sequence and two
+processes never share a temporary. Sequences are independent (their random streams derive from the seed,
+the layout and the sequence), so the output is the same bytes whatever the number of worker processes.
+Format constants (depth scales, UnityCam size and K, the CSV header, scene folders) are the readers'.
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import os
-import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -38,26 +38,26 @@ import cv2
 import numpy as np
 import torch
 
-from endoflow.config import Params
-from endoflow.data.endoslam import UNITYCAM_K
+from endoflow.config import Params, SimColConfig
+from endoflow.data.base import DATASETS
+from endoflow.data.endoslam import UNITYCAM_COLUMNS, UNITYCAM_K, UNITYCAM_POSE_SUFFIX, UNITYCAM_SIZE
 from endoflow.data.imageio import write_png
 from endoflow.data.scenenet import scenenet_intrinsics
+from endoflow.data.simcol import DEPTH_COUNTS_PER_CM as SIMCOL_DEPTH_COUNTS_PER_CM
+from endoflow.data.simcol import SCENES as SIMCOL_SCENE_FOLDERS
+from endoflow.data.simcol import parse_cam_txt
 from endoflow.geometry.camera import scale_intrinsics
 from endoflow.geometry.pose import matrix_to_quaternion_xyzw, opencv_to_unity
+from endoflow.io import staged_directory, write_text
 from endoflow.synth.render import MAX_DEPTH_CM, render_tube_frame
 from endoflow.synth.rooms import Room, camera_path, make_room, render_room
 from endoflow.synth.scenes import STYLES, TubeSequence, make_tube_sequence
 
-LAYOUTS = ("simcol", "endoslam", "scenenet")
-SIMCOL_SCENES = (("SyntheticColon_I", "S"), ("SyntheticColon_II", "B"), ("SyntheticColon_III", "O"))
+SIMCOL_SCENES = tuple(zip(SIMCOL_SCENE_FOLDERS, ("S", "B", "O")))  # scene folder, sequence letter
 SIMCOL_SCENE_III_SEQUENCES = 3
 SIMCOL_CAM_TXT = "227.60416 0 227.60416 0 237.5 237.5 0 0 1"  # byte-identical to the real file
-SIMCOL_REFERENCE_WIDTH = 475
-SIMCOL_DEPTH_COUNTS_PER_CM = 255 * 256 / 20.0
 SIMCOL_ALPHA = 65280
 UNITYCAM_ORGANS = (("Colon", "colon"), ("Small Intestine", "intestine"), ("Stomach", "stomach"))
-UNITYCAM_SIZE = 320
-UNITYCAM_HEADER = "tX,tY,tZ,rX,rY,rZ,rW,time(s)"
 SCENENET_FRAME_STEP = 25
 SCENENET_VAL_EVERY = 10
 SCENENET_JPEG_QUALITY = 90
@@ -99,8 +99,8 @@ def synthesize_layout(
     torch device. The EndoSLAM depth scale, pose unit and frame rate come from ``params.data.endoslam``,
     so that the reader decodes what was written. Same arguments, same bytes.
     """
-    if layout not in LAYOUTS:
-        raise ValueError(f"unknown layout {layout!r}; expected one of {', '.join(LAYOUTS)}")
+    if layout not in DATASETS:
+        raise ValueError(f"unknown layout {layout!r}; expected one of {', '.join(DATASETS)}")
     params = params or Params()
     defaults = getattr(params.synth, layout)
     sequences = defaults.sequences if sequences is None else sequences
@@ -116,7 +116,7 @@ def synthesize_layout(
     out.mkdir(parents=True, exist_ok=True)
     if layout == "simcol":
         for scene in sorted({job.group for job in jobs}):
-            _write_text_atomic(out / scene / "cam.txt", SIMCOL_CAM_TXT)
+            write_text(out / scene / "cam.txt", SIMCOL_CAM_TXT)
 
     started = time.perf_counter()
     if workers > 1 and len(jobs) > 1 and torch.device(device).type == "cpu":
@@ -151,7 +151,7 @@ def plan_jobs(
         endoslam_translation_to_cm=params.data.endoslam.unitycam_translation_to_cm,
         endoslam_fps=params.data.endoslam.fps,
     )
-    layout_id = LAYOUTS.index(layout)
+    layout_id = DATASETS.index(layout)
     jobs = []
     if layout == "simcol":
         for scene_id, (scene, letter) in enumerate(SIMCOL_SCENES):
@@ -175,25 +175,18 @@ def plan_jobs(
 
 
 def render_job(job: Job) -> None:
-    """Render one sequence into a temporary folder and move it into place (runs in worker processes)."""
+    """Render one sequence into a temporary folder and swap it into place (runs in worker processes)."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # same arithmetic, hence same bytes, in any process layout
     try:
         target = Path(job.target)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        staging = target.parent / f".{target.name}.tmp"
-        if staging.exists():
-            shutil.rmtree(staging)
-        staging.mkdir()
         writer = {"simcol": _write_simcol, "endoslam": _write_endoslam, "scenenet": _write_scenenet}[job.layout]
-        extra_files = writer(job, staging)
-        # Files that live beside the sequence folder (SimCol's pose files) go first: readers list
-        # sequences by their frame folders, so a pose file without frames is never read.
-        for name in extra_files:
-            os.replace(staging / name, target.parent / name)
-        if target.exists():
-            shutil.rmtree(target)
-        os.rename(staging, target)
+        with staged_directory(target) as staging:
+            extra_files = writer(job, staging)
+            # Files that live beside the sequence folder (SimCol's pose files) go first, before the folder
+            # swap: readers list sequences by their frame folders, so a pose file without frames is never read.
+            for name in extra_files:
+                os.replace(staging / name, target.parent / name)
     finally:
         torch.set_num_threads(threads)
 
@@ -210,9 +203,9 @@ def tube_sequence(job: Job) -> TubeSequence:
 
 # -------------------------------------------------------------------------------------------- SimCol3D
 def simcol_intrinsics(size: int) -> np.ndarray:
-    """The K our SimCol reader derives for ``size``-px frames: ``cam.txt`` scaled from 475 px."""
-    K = np.array(SIMCOL_CAM_TXT.split(), dtype=np.float64).reshape(3, 3)
-    scale = size / SIMCOL_REFERENCE_WIDTH
+    """The K our SimCol reader derives for ``size``-px frames: ``cam.txt`` scaled from its reference size."""
+    K = parse_cam_txt(SIMCOL_CAM_TXT, "cam.txt")
+    scale = size / SimColConfig().reference_size
     return scale_intrinsics(K, scale, scale)
 
 
@@ -248,8 +241,8 @@ def simcol_depth(depth_cm: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------- EndoSLAM UnityCam
 def unitycam_intrinsics(size: int) -> np.ndarray:
     """The K our EndoSLAM reader derives for ``size``-px UnityCam frames (documented K scaled from 320)."""
-    scale = size / UNITYCAM_SIZE
-    return scale_intrinsics(UNITYCAM_K, scale, scale)
+    height, width = UNITYCAM_SIZE
+    return scale_intrinsics(UNITYCAM_K, size / width, size / height)
 
 
 def _write_endoslam(job: Job, staging: Path) -> list[str]:
@@ -267,7 +260,7 @@ def _write_endoslam(job: Job, staging: Path) -> list[str]:
         [unity[:, :3, 3] / job.endoslam_translation_to_cm, matrix_to_quaternion_xyzw(unity[:, :3, :3]), times[:, None]],
         axis=1,
     )
-    _write_rows(staging / "Poses" / f"{job.name}_position_rotation.csv", rows, ",", header=UNITYCAM_HEADER)
+    _write_rows(staging / "Poses" / f"{job.name}{UNITYCAM_POSE_SUFFIX}", rows, ",", header=",".join(UNITYCAM_COLUMNS))
     return []
 
 
@@ -321,9 +314,3 @@ def _write_rows(path: Path, rows: np.ndarray, separator: str, header: Optional[s
     lines += [separator.join(f"{value:.9g}" for value in row) for row in rows]
     path.write_text("\n".join(lines) + "\n")
 
-
-def _write_text_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    staging = path.with_name(f".{path.name}.tmp")
-    staging.write_text(text)
-    os.replace(staging, path)
