@@ -29,10 +29,24 @@ TEMPORARY_MARK = ".tmp-"
 
 
 def temporary_sibling(path: Path, suffix: str = "") -> Path:
-    """A new, unique, empty file beside ``path`` (``.<name>.tmp-XXXX``), created so no other process gets it."""
+    """A new, unique, empty file beside ``path`` (``.<name>.tmp-XXXX``), created so no other process gets it.
+
+    ``mkstemp`` makes it private (0600); it gets the mode a plain ``open`` would give, as the target will.
+    """
     descriptor, name = tempfile.mkstemp(prefix=f".{path.name}{TEMPORARY_MARK}", suffix=suffix, dir=path.parent)
+    os.fchmod(descriptor, 0o666 & ~_UMASK)
     os.close(descriptor)
     return Path(name)
+
+
+def _read_umask() -> int:
+    # os.umask can only be read by setting it: done once, at import, before any writer thread exists
+    current = os.umask(0)
+    os.umask(current)
+    return current
+
+
+_UMASK = _read_umask()
 
 
 @contextmanager
@@ -103,6 +117,7 @@ def staged_directory(path: str | Path) -> Iterator[Path]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-", dir=path.parent))
+    staging.chmod(0o777 & ~_UMASK)  # mkdtemp's folder is private; the output is not
     try:
         yield staging
     except BaseException:

@@ -1,4 +1,5 @@
-"""Markdown tables like the paper's Tables 1-3 from the evaluation metrics of the workspace and experiments.
+"""Markdown tables like the paper's Tables 1-3 from the evaluation metrics of the workspace and experiments,
+and the summary the evaluate stage prints for one test set (:func:`format_evaluation`).
 
 Sources: ``<eval.metrics>/*.json`` of the workspace, and (unless disabled) every DVC experiment and its
 baseline commit as ``dvc exp show --json`` reports them, so after
@@ -26,6 +27,13 @@ SIMCOL_POSE_COLUMNS = (("ate", "ATE (cm)"), ("rte", "RTE (cm)"), ("rot", "ROT (Â
 ENDOSLAM_POSE_COLUMNS = (("ate", "ATE (cm)"), ("rpe_trans", "RPE trans (cm)"), ("rpe_rot", "RPE rot (Â°)"))
 BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map": "baseline: mean depth map",
                    "constant_velocity": "baseline: constant velocity"}
+# (title, protocol key of the evaluation JSON, columns), in the order the tables are shown
+PROTOCOL_TABLES = (
+    ("Depth, paper protocol (per-image median scaling, capped at 20 cm)", "depth_paper", PAPER_COLUMNS),
+    ("Depth, SimCol3D challenge protocol (one scale per sequence)", "depth_simcol", SIMCOL_DEPTH_COLUMNS),
+    ("Pose, SimCol3D challenge protocol (medians)", "pose_simcol", SIMCOL_POSE_COLUMNS),
+    ("Pose, EndoSLAM protocol (ATE RMSE, RPE means)", "pose_endoslam", ENDOSLAM_POSE_COLUMNS),
+)
 
 
 @dataclass
@@ -84,9 +92,13 @@ def dvc_experiments(project_root: str | Path) -> list[dict]:
 
 
 def markdown_table(headers: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join(" --- " for _ in headers) + "|"]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines)
+    """A Markdown table with its columns padded to one width, so it also reads well as plain text."""
+    widths = [max(3, *(len(cell) for cell in column)) for column in zip(headers, *rows)]
+
+    def line(cells: list[str]) -> str:
+        return "| " + " | ".join(cell.ljust(width) for cell, width in zip(cells, widths)) + " |"
+
+    return "\n".join([line(headers), line(["-" * width for width in widths])] + [line(row) for row in rows])
 
 
 def _number(value: Any) -> str:
@@ -94,7 +106,7 @@ def _number(value: Any) -> str:
 
 
 def protocol_table(runs: list[RunResults], test_set: str, protocol: str,
-                   columns: tuple[tuple[str, str], ...]) -> Optional[str]:
+                   columns: tuple[tuple[str, str], ...], label_header: str = "run") -> Optional[str]:
     """Rows: every run's model, then the first run's baselines; ``None`` when no run has this protocol."""
     rows = []
     baselines: dict[str, dict] = {}
@@ -110,7 +122,7 @@ def protocol_table(runs: list[RunResults], test_set: str, protocol: str,
     if not rows:
         return None
     rows += [[BASELINE_LABELS.get(m, m)] + [_number(v.get(key)) for key, _ in columns] for m, v in baselines.items()]
-    return markdown_table(["run"] + [title for _, title in columns], rows)
+    return markdown_table([label_header] + [title for _, title in columns], rows)
 
 
 def format_report(runs: list[RunResults], order: Iterable[str] = ()) -> str:
@@ -123,11 +135,7 @@ def format_report(runs: list[RunResults], order: Iterable[str] = ()) -> str:
     sections = []
     for test_set in test_sets:
         parts = [f"## {test_set}"]
-        for title, protocol, columns in (
-                ("Depth, paper protocol (per-image median scaling, capped at 20 cm)", "depth_paper", PAPER_COLUMNS),
-                ("Depth, SimCol3D challenge protocol (one scale per sequence)", "depth_simcol", SIMCOL_DEPTH_COLUMNS),
-                ("Pose, SimCol3D challenge protocol (medians)", "pose_simcol", SIMCOL_POSE_COLUMNS),
-                ("Pose, EndoSLAM protocol (ATE RMSE, RPE means)", "pose_endoslam", ENDOSLAM_POSE_COLUMNS)):
+        for title, protocol, columns in PROTOCOL_TABLES:
             table = protocol_table(runs, test_set, protocol, columns)
             if table:
                 parts.append(f"### {title}\n\n{table}")
@@ -148,6 +156,25 @@ def ablation_table(runs: list[RunResults], test_sets: list[str]) -> str:
             row.append(_number(metrics.get("pose_simcol", {}).get("model", {}).get("rte")))
         rows.append(row)
     return markdown_table(headers, rows)
+
+
+def format_evaluation(result: dict) -> str:
+    """Plain-text summary of one test set's evaluation (the dict ``evaluate_test_set`` returns and writes):
+    what was evaluated, then per protocol a table of the model beside its baselines."""
+    name = result.get("test_set", "?")
+    counts = [f"{result[key]} {noun}" for key, noun in
+              (("sequences", "sequences"), ("frames", "frames"), ("depth_frames", "frames with GT depth"))
+              if key in result]
+    speed = f", {result['frames_per_second']:.1f} frames/s" if "frames_per_second" in result else ""
+    parts = [f"Test set {name} ({result.get('dataset', '?')}): {', '.join(counts)}{speed}"]
+    run = RunResults("model", test_sets={name: result})
+    for title, protocol, columns in PROTOCOL_TABLES:
+        table = protocol_table([run], name, protocol, columns, label_header="method")
+        if table:
+            parts.append(f"{title}\n{table}")
+    if len(parts) == 1:
+        parts.append("No depth or pose metrics: the test set has neither GT depth nor consecutive GT poses.")
+    return "\n\n".join(parts) + "\n"
 
 
 def build_report(project_root: str | Path, metrics_dir: str, params: Optional[dict] = None,

@@ -1,17 +1,18 @@
 """DVC stage `evaluate` (foreach test set): trained model -> metrics, plots and challenge-format predictions.
 
 Usage: ``python stages/evaluate.py TESTSET`` (a key of ``eval.test_sets`` in ``params.yaml``); writes
-``<eval.metrics>/TESTSET.json``, ``<eval.plots>/TESTSET/`` and ``<eval.predictions>/TESTSET/``, and logs the
-metrics and plots into the MLflow run of the training that produced ``eval.model``.
+``<eval.metrics>/TESTSET.json``, ``<eval.plots>/TESTSET/`` and ``<eval.predictions>/TESTSET/``, logs the
+metrics and plots into the MLflow run of the training that produced ``eval.model``, and prints a summary: per
+protocol, the model beside its baselines.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 
 from endoflow.config import load_params
-from endoflow.evaluation.evaluate import PROTOCOLS, run_evaluation
+from endoflow.evaluation.evaluate import run_evaluation
+from endoflow.report import format_evaluation
 
 
 def main() -> None:
@@ -20,7 +21,7 @@ def main() -> None:
     parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
     args = parser.parse_args()
     result = run_evaluation(load_params(args.params), args.test_set)
-    print(json.dumps({k: v for k, v in result.items() if k in PROTOCOLS or k in ("test_set", "frames")}, indent=2))
+    print(format_evaluation(result), end="")
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from endoflow.cli import main
-from endoflow.report import experiment_results, format_report, workspace_results
+from endoflow.report import experiment_results, format_evaluation, format_report, markdown_table, workspace_results
 
 
 def evaluation(abs_rel: float, rte: float) -> dict:
@@ -18,6 +18,12 @@ def evaluation(abs_rel: float, rte: float) -> dict:
         "depth_simcol": {"model": {"l1": 0.4, "rel": 9.0, "rmse": 0.7}},
         "pose_simcol": {"model": {"ate": 2.0, "rte": rte, "rot": 1.5}, "constant_velocity": {"rte": 0.9}},
     }
+
+
+def table_rows(text: str) -> list[list[str]]:
+    """The cells of every table row in ``text``, stripped."""
+    return [[cell.strip() for cell in line.strip().strip("|").split("|")]
+            for line in text.splitlines() if line.startswith("|")]
 
 
 def exp_show(experiments: dict[str, tuple[bool, bool, float]]) -> list[dict]:
@@ -49,11 +55,46 @@ def test_report_has_a_table_per_protocol_with_baselines_and_an_ablation_summary(
     report = format_report(runs)
     assert "## simcol_12" in report
     assert "### Depth, paper protocol" in report and "### Depth, SimCol3D challenge protocol" in report
-    assert "| workspace (bank on, VAE on) | 0.1234 | 0.1000 |" in report
-    assert "| baseline: constant depth | 0.5000 | – |" in report
-    assert "| baseline: constant velocity | – | 0.9000 | – |" in report
-    assert "| no-bank (bank off, VAE on) | 0.2000 | 0.3000 |" in report.split("## Ablation summary")[1]
+    rows = table_rows(report)
+    assert ["workspace (bank on, VAE on)", "0.1234", "0.1000", "1.0000", "0.2000", "0.5000", "0.8000", "0.9000",
+            "0.9500"] in rows
+    assert ["baseline: constant depth", "0.5000", "–", "–", "–", "–", "0.3000", "–", "–"] in rows
+    assert ["baseline: constant velocity", "–", "0.9000", "–"] in rows
+    assert ["no-bank (bank off, VAE on)", "0.2000", "0.3000"] in table_rows(report.split("## Ablation summary")[1])
     assert "EndoSLAM protocol" not in report  # absent protocols get no empty table
+
+
+def test_markdown_tables_pad_their_columns_to_one_width():
+    table = markdown_table(["run", "Abs Rel"], [["a long run name", "0.1"], ["b", "–"]])
+    assert table.splitlines() == ["| run             | Abs Rel |",
+                                  "| --------------- | ------- |",
+                                  "| a long run name | 0.1     |",
+                                  "| b               | –       |"]
+
+
+def test_evaluation_summary_shows_the_model_beside_its_baselines_per_protocol():
+    result = {**evaluation(0.1234, 0.25), "dataset": "simcol", "sequences": 3, "frames": 120, "depth_frames": 114,
+              "frames_per_second": 41.25, "mlflow_run_id": "abc"}
+    summary = format_evaluation(result)
+    assert summary.startswith("Test set simcol_12 (simcol): 3 sequences, 120 frames, 114 frames with GT depth, "
+                              "41.2 frames/s\n")
+    sections = {block.splitlines()[0]: table_rows(block) for block in summary.split("\n\n")[1:]}
+    assert list(sections) == ["Depth, paper protocol (per-image median scaling, capped at 20 cm)",
+                              "Depth, SimCol3D challenge protocol (one scale per sequence)",
+                              "Pose, SimCol3D challenge protocol (medians)"]  # no EndoSLAM metrics in the result
+    paper = sections["Depth, paper protocol (per-image median scaling, capped at 20 cm)"]
+    assert paper[0] == ["method", "Abs Rel", "Sq Rel", "RMSE", "RMSE log", "L1", "δ<1.25", "δ<1.25²", "δ<1.25³"]
+    assert [row[:2] for row in paper[2:]] == [["model", "0.1234"], ["baseline: constant depth", "0.5000"]]
+    pose = sections["Pose, SimCol3D challenge protocol (medians)"]
+    assert pose[0] == ["method", "ATE (cm)", "RTE (cm)", "ROT (°)"]
+    assert pose[2:] == [["model", "2.0000", "0.2500", "1.5000"],
+                        ["baseline: constant velocity", "–", "0.9000", "–"]]
+
+
+def test_evaluation_summary_without_metrics_says_so():
+    summary = format_evaluation({"test_set": "endoslam_colon", "dataset": "endoslam", "sequences": 1, "frames": 5,
+                                 "depth_frames": 0})
+    assert "No depth or pose metrics" in summary and "|" not in summary
 
 
 def test_cli_report_on_a_workspace_without_metrics(tmp_path: Path, monkeypatch, capsys):

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import copy
 import json
+from dataclasses import replace
 
 import pytest
 import torch
@@ -16,10 +16,10 @@ from endoflow.models.critic import Critic
 from endoflow.models.endoflow_model import build_model
 from endoflow.models.latent_bank import (
     GeneratorSpec,
+    InitScaledConv2d,
     LatentBankGenerator,
     generator_payload,
     load_generator,
-    shrink_scale_free_weights,
 )
 from endoflow.models.resnet_encoder import ResNetEncoder
 from endoflow.models.summary import model_summary
@@ -27,7 +27,7 @@ from endoflow.training import objective
 from endoflow.training.objective import training_step_losses
 
 SPEC = GeneratorSpec(resolution=32, start_resolution=4, latent_dim=16, style_dim=16, mapping_layers=2,
-                     channel_base=128, channel_max=32)
+                     channel_base=128, channel_max=32, conv_init_scale=1.0)
 
 
 def small_params(**model) -> Params:
@@ -97,14 +97,21 @@ def test_generator_noise_injection_and_styles_both_shape_the_output():
     assert not torch.allclose(generator(z), generator(torch.randn(2, SPEC.latent_dim)))
 
 
+def generator_with_conv_init_scale(scale: float, seed: int = 0) -> LatentBankGenerator:
+    torch.manual_seed(seed)
+    return LatentBankGenerator(replace(SPEC, conv_init_scale=scale))
+
+
 def test_shrunk_synthesis_convolutions_keep_a_fresh_generator_and_turn_faster_under_adam():
-    default = LatentBankGenerator(SPEC)
-    shrunk = copy.deepcopy(default)
-    shrink_scale_free_weights(shrunk, 0.25)
+    default, shrunk = generator_with_conv_init_scale(1.0), generator_with_conv_init_scale(0.25)
     z = torch.randn(4, SPEC.latent_dim)
     # AdaIN follows every shrunk convolution; only its epsilon tells the two apart.
     assert (shrunk(z) - default(z)).norm() < 0.05 * default(z).norm()
-    assert torch.equal(shrunk.blocks[-1].conv.weight, 0.25 * default.blocks[-1].conv.weight)
+    for block, default_block in zip(shrunk.blocks, default.blocks):  # the same draw, scaled
+        for conv, default_conv in ((block.up, default_block.up), (block.conv, default_block.conv)):
+            if conv is not None:
+                assert torch.equal(conv.weight, 0.25 * default_conv.weight)
+                assert torch.equal(conv.bias, 0.25 * default_conv.bias)
     assert torch.equal(shrunk.to_depth[-1].weight, default.to_depth[-1].weight)  # not scale-free: untouched
 
     def relative_change_after_one_adam_step(generator: LatentBankGenerator) -> float:
@@ -117,8 +124,31 @@ def test_shrunk_synthesis_convolutions_keep_a_fresh_generator_and_turn_faster_un
 
     ratio = relative_change_after_one_adam_step(shrunk) / relative_change_after_one_adam_step(default)
     assert ratio == pytest.approx(4.0, rel=0.05)
-    with pytest.raises(ValueError, match="latent_bank.conv_init_scale"):
-        shrink_scale_free_weights(shrunk, 0.0)
+
+
+def test_the_init_scale_is_recorded_in_the_state_dict_and_survives_a_save_and_load(tmp_path):
+    shrunk = generator_with_conv_init_scale(0.25)
+    recorded = {k: v for k, v in shrunk.state_dict().items() if k.endswith("init_scale")}
+    assert set(recorded) == {f"blocks.{i}.{name}.init_scale" for i in range(len(SPEC.resolutions))
+                             for name in (("up", "conv") if i else ("conv",))}
+    assert all(value.item() == 0.25 for value in recorded.values())
+    path = tmp_path / "bank.pt"
+    torch.save(generator_payload(shrunk), path)
+    loaded = load_generator(path)
+    assert loaded.spec.conv_init_scale == 0.25
+    assert loaded.blocks[-1].conv.init_scale.item() == 0.25
+
+
+def test_reinitialising_an_init_scaled_convolution_keeps_its_scale():
+    torch.manual_seed(3)
+    shrunk = InitScaledConv2d(2, 64, 3, init_scale=0.25)
+    torch.manual_seed(3)
+    default = torch.nn.Conv2d(2, 64, 3)
+    assert torch.equal(shrunk.weight, 0.25 * default.weight) and torch.equal(shrunk.bias, 0.25 * default.bias)
+    shrunk.reset_parameters()
+    bound = 0.25 / (2 * 3 * 3) ** 0.5  # PyTorch's default is uniform within 1 / sqrt(fan_in) (weight and bias)
+    assert shrunk.weight.abs().max() <= bound and shrunk.weight.abs().max() > 0.9 * bound
+    assert shrunk.bias.abs().max() <= bound
 
 
 def test_bank_features_follow_any_grid_and_reject_mismatched_styles():

@@ -13,9 +13,10 @@ import webdataset as wds
 
 from endoflow import tracking
 from endoflow.config import Params
+from endoflow.data.shard_format import MANIFEST, MANIFEST_SCHEMA, ShardEntry, file_sha256, manifest_bytes, shard_name
 from endoflow.evaluation.swd import laplacian_pyramid, multiscale_swd
 from endoflow.models.latent_bank import LatentBankGenerator, load_generator
-from endoflow.training.pretrain import normalise_depth, pretrain_latent_bank, stage_schedule
+from endoflow.training.pretrain import PretrainProgress, Stage, normalise_depth, pretrain_latent_bank, stage_schedule
 
 DEPTH_UNIT_CM = 0.1
 
@@ -44,11 +45,13 @@ def room_depth(rng: np.random.Generator, size: int) -> np.ndarray:
 
 
 def write_depth_shards(root: Path, counts: dict[str, int], size: int = 32, seed: int = 0) -> None:
-    """SceneNet-like depth-only shards (``depth.png`` + ``meta.json``) in the shard schema."""
+    """SceneNet-like depth-only shards (``depth.png`` + ``meta.json``) in the shard schema, with their manifest."""
     rng = np.random.default_rng(seed)
     root.mkdir(parents=True, exist_ok=True)
+    entries, rows = [], {name: [] for name in MANIFEST_SCHEMA.names}
     for split, count in counts.items():
-        with wds.TarWriter(str(root / f"{split}-000000.tar")) as sink:
+        name = shard_name(split, 0)
+        with wds.TarWriter(str(root / name)) as sink:
             for i in range(count):
                 depth = room_depth(rng, size)
                 ok, png = cv2.imencode(".png", np.round(depth / DEPTH_UNIT_CM).astype(np.uint16))
@@ -58,8 +61,13 @@ def write_depth_shards(root: Path, counts: dict[str, int], size: int = 32, seed:
                     "frame": i, "K": np.eye(3).tolist(), "depth_unit": DEPTH_UNIT_CM, "native_size": [size, size],
                     "T_world_cam": {"prev": None, "cur": None, "next": None},
                 }
-                sink.write({"__key__": f"scenenet-{split}-{i:04d}", "depth.png": png.tobytes(),
-                            "meta.json": json.dumps(meta).encode()})
+                key = f"scenenet-{split}-{i:04d}"
+                sink.write({"__key__": key, "depth.png": png.tobytes(), "meta.json": json.dumps(meta).encode()})
+                for column, value in (("shard", name), ("key", key), ("dataset", "scenenet"),
+                                      ("sequence", meta["sequence"]), ("group", "0"), ("frame", i), ("split", split)):
+                    rows[column].append(value)
+        entries.append(ShardEntry(name, count, file_sha256(str(root / name))))
+    (root / MANIFEST).write_bytes(manifest_bytes(rows, entries))
 
 
 def test_swd_separates_sets_of_the_same_kind_from_different_kinds():
@@ -92,7 +100,7 @@ def test_normalised_depth_is_scale_free_and_in_range():
     assert np.all(a[0, :4] == 0)
 
 
-def test_tiny_pretraining_writes_a_loadable_bank_metrics_and_plots(tmp_path):
+def test_tiny_pretraining_writes_a_loadable_bank_metrics_and_plots(tmp_path, capsys):
     shards = tmp_path / "shards"
     write_depth_shards(shards, {"train": 40, "val": 16})
     params = Params()
@@ -120,6 +128,11 @@ def test_tiny_pretraining_writes_a_loadable_bank_metrics_and_plots(tmp_path):
     assert run.info.status == "FINISHED"
     assert run.data.metrics["swd_final"] == pytest.approx(written["swd_final"])
     assert run.data.params["latent_bank.resolution"] == "16"
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0] == ("[pretrain] 40 training depth maps, 16 held out for the SWD; generator steps per "
+                          "resolution: 4 px x4, 8 px x4, 16 px x4")
+    assert printed[-2].startswith("[pretrain] trained 12 generator steps over 3 resolutions (4, 8, 16 px) in ")
+    assert printed[-1].startswith("[pretrain] done in ") and printed[-1].endswith(f"latent bank written to {out}")
 
 
 def test_steps_and_critic_steps_are_one_number_for_all_resolutions_or_one_per_resolution():
@@ -135,3 +148,46 @@ def test_steps_and_critic_steps_are_one_number_for_all_resolutions_or_one_per_re
     params.latent_bank.steps_per_stage, params.latent_bank.n_critic = 5, [2, 1]
     with pytest.raises(ValueError, match=r"latent_bank.n_critic: expected one number or 3"):
         stage_schedule(params)
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def losses(alpha: float = 1.0) -> dict[str, float]:
+    return {"critic_loss": -1.5, "wasserstein": 2.25, "generator_loss": 0.5, "resolution": 4.0, "alpha": alpha}
+
+
+def test_progress_lines_come_every_few_seconds_with_the_time_left_for_the_whole_pretraining():
+    clock, lines = FakeClock(), []
+    schedule = [Stage(4, 10, 1), Stage(8, 10, 1), Stage(16, 10, 2)]
+    progress = PretrainProgress(schedule, interval=5.0, clock=clock, write=lines.append)
+
+    def run_steps(count: int, seconds_each: float, alpha: float = 1.0) -> None:
+        for _ in range(count):
+            clock.now += seconds_each
+            progress.step(losses(alpha))
+
+    progress.start_stage(0)
+    run_steps(10, 1.0)  # 1 s per step: 1/3 s per unit (a critic step counts two)
+    assert len(lines) == 2  # at 5 s and 10 s, not one per step
+    assert lines[0].startswith("[pretrain] 4 px (stage 1/3) step 5/10, 5/30 in all | critic -1.500, W 2.250, "
+                               "generator 0.500 | 1.0 steps/s")
+    # the rest of stage 1 (5 s), then stage 2 (10 steps * 3 units) and stage 3 (10 * 5 units), each at twice
+    # the previous stage's time per unit until a second stage is timed: 5 + 10 * 2 + 50 / 3 * 4 = 91.7 s
+    assert lines[0].endswith("~1m31s left")
+
+    progress.start_stage(1)
+    run_steps(3, 3.0, alpha=0.4)  # a unit now takes three times as long, and stage 3 is expected to triple again
+    assert len(lines) == 3
+    assert lines[2].startswith("[pretrain] 8 px (stage 2/3, fade-in 0.40) step 2/10, 12/30 in all")
+    assert "| 0.3 steps/s |" in lines[2]
+    assert progress.seconds_left(clock.now) == pytest.approx(7 * 3 * 1.0 + 10 * 5 * 3.0)
+
+    progress.finish(losses())
+    assert lines[-1] == ("[pretrain] trained 13 generator steps over 3 resolutions (4, 8, 16 px) in 0m19s "
+                         "(0.7 steps/s); last losses: critic -1.500, W 2.250, generator 0.500")

@@ -16,8 +16,8 @@ import torch
 
 from endoflow import tracking
 from endoflow.config import Params
+from endoflow.data.base import DataFormatError
 from endoflow.models.model_file import (
-    ModelFileError,
     ModelRecord,
     TrainingBaselines,
     load_model_file,
@@ -77,7 +77,7 @@ def test_training_state_round_trips_through_a_weights_only_load(tmp_path: Path) 
 
 def test_a_planted_state_file_that_would_run_code_is_refused_naming_it(tmp_path: Path) -> None:
     plant(tmp_path / "state.pt", tmp_path / "payload-ran")
-    with pytest.raises(ModelFileError, match="could run code") as caught:
+    with pytest.raises(DataFormatError, match="could run code") as caught:
         load_training_state(tmp_path)
     assert str(tmp_path / "state.pt") in str(caught.value)
     assert not (tmp_path / "payload-ran").exists()
@@ -85,7 +85,7 @@ def test_a_planted_state_file_that_would_run_code_is_refused_naming_it(tmp_path:
 
 def test_a_model_file_that_would_run_code_or_is_damaged_is_refused_naming_it(tmp_path: Path) -> None:
     plant(tmp_path / "evil.pt", tmp_path / "payload-ran")
-    with pytest.raises(ModelFileError, match="could run code") as caught:
+    with pytest.raises(DataFormatError, match="could run code") as caught:
         load_model_file(tmp_path / "evil.pt")
     assert str(tmp_path / "evil.pt") in str(caught.value) and not (tmp_path / "payload-ran").exists()
 
@@ -97,7 +97,7 @@ def test_a_model_file_that_would_run_code_or_is_damaged_is_refused_naming_it(tmp
     (tmp_path / "truncated.pt").write_bytes(data[: len(data) // 2])
     torch.save({"format": 99}, tmp_path / "other.pt")
     for name, problem in (("truncated.pt", "not a readable torch file"), ("other.pt", "format 99")):
-        with pytest.raises(ModelFileError, match=problem) as caught:
+        with pytest.raises(DataFormatError, match=problem) as caught:
             load_model_file(tmp_path / name)
         assert str(tmp_path / name) in str(caught.value)
 
@@ -124,7 +124,7 @@ def test_train_refuses_a_planted_checkpoint_before_ray_starts_and_marks_the_run_
     run = storage / f"{params.ray.run_name}-{training_fingerprint(params, shards, None)}"
     plant(run / "epoch-0000" / "state.pt", tmp_path / "payload-ran")
 
-    with pytest.raises(ModelFileError, match="could run code") as caught:
+    with pytest.raises(DataFormatError, match="could run code") as caught:
         train(params, tmp_path)
 
     assert str(run / "epoch-0000" / "state.pt") in str(caught.value)

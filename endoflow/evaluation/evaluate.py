@@ -27,7 +27,6 @@ FrameBuffer_NNNN_to_FrameBuffer_MMMM.txt``: the 16 numbers of ``inv(P_i) @ P_{i+
 
 from __future__ import annotations
 
-import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +41,7 @@ from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig
 from endoflow.evaluation import metrics, plots
 from endoflow.io import save_figure, staged_directory, write_csv, write_json
+from endoflow.data.base import slug
 from endoflow.data.shard_format import read_manifest
 from endoflow.locations import absolute_location
 from endoflow.models.model_file import TrainingBaselines, load_trained_model
@@ -247,9 +247,7 @@ class SequenceEvaluator:
                 "mean_depth_map": mean_map.astype(np.float32)}
 
     def _frame_folder(self, frame: FrameRecord) -> Path:
-        slug = re.sub(r"[^A-Za-z0-9_-]", "_", frame.sequence)
-        group = re.sub(r"[^A-Za-z0-9_-]", "_", frame.group or "test")
-        return self.predictions_dir / f"{group}_Test" / f"Frames_{slug}_OP"
+        return self.predictions_dir / f"{slug(frame.group or 'test')}_Test" / f"Frames_{slug(frame.sequence)}_OP"
 
     def _write_depth(self, frame: FrameRecord, depth_cm: np.ndarray) -> None:
         side = min(frame.native_size)  # the stored image is the centred square crop of the native frame
@@ -390,10 +388,9 @@ def write_plots(name: str, out_plots: Path, evaluator: SequenceEvaluator, frames
         if rows:
             write_csv(folder / "trajectory.csv", pd.DataFrame(rows))
         for seq, traj in trajectories.items():
-            slug = re.sub(r"[^A-Za-z0-9_-]", "_", seq)
             figure = plots.trajectory_figure(f"{name} {seq}: trajectory (scale fitted, chained from the first "
                                              f"GT pose)", traj["gt"], {m: traj[m] for m in POSE_METHODS})
-            save_figure(folder / f"trajectory_{slug}.png", figure)
+            save_figure(folder / f"trajectory_{slug(seq)}.png", figure)
         if evaluator.examples:
             save_figure(folder / "depth_examples.png",
                         plots.depth_examples_figure(f"{name}: depth examples", evaluator.examples))

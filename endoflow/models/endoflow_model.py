@@ -60,32 +60,37 @@ class EndoflowModel(nn.Module):
         return self.disp_to_depth(self.depth_net(rgb)[0])
 
     def forward_motion(
-        self, earlier: torch.Tensor, later: torch.Tensor
+        self, earlier: torch.Tensor, later: torch.Tensor, sample: bool
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """(vector used, mean, logvar) of ``T_later_earlier``; the vector is sampled in training mode."""
+        """(vector used, mean, logvar) of ``T_later_earlier``; the vector is a sample when ``sample`` and the
+        network predicts a variance, else the mean."""
         mean, logvar = self.pose_net(earlier, later)
-        if self.training and logvar is not None:
+        if sample and logvar is not None:
             vec = mean + torch.exp(0.5 * logvar) * torch.randn_like(mean)
         else:
             vec = mean
         return vec, mean, logvar
 
     def source_pose(self, target: torch.Tensor, source: torch.Tensor, source_is_next: bool) -> PoseEstimate:
-        """The pose that warps ``source`` (the next or the previous frame) into ``target``."""
-        if source_is_next:
-            vec, mean, logvar = self.forward_motion(target, source)
-            T = pose_vec_to_matrix(vec)
-        else:
-            vec, mean, logvar = self.forward_motion(source, target)
-            T = invert_pose(pose_vec_to_matrix(vec))
-        return PoseEstimate(T_source_target=T, vec=vec, mean=mean, logvar=logvar)
+        """The pose that warps ``source`` (the next or the previous frame) into ``target``; sampled in
+        training mode."""
+        return self._pose_of_source(target, source, source_is_next, sample=self.training)
 
     @torch.no_grad()
     def predict_pose(self, target: torch.Tensor, source: torch.Tensor, source_is_next: bool = True) -> torch.Tensor:
         """Mean ``T_source_target [B, 4, 4]``; ``source`` is the next frame unless ``source_is_next=False``."""
-        if source_is_next:
-            return pose_vec_to_matrix(self.pose_net(target, source)[0])
-        return invert_pose(pose_vec_to_matrix(self.pose_net(source, target)[0]))
+        return self._pose_of_source(target, source, source_is_next, sample=False).T_source_target
+
+    def _pose_of_source(
+        self, target: torch.Tensor, source: torch.Tensor, source_is_next: bool, sample: bool
+    ) -> PoseEstimate:
+        """The one place of the earlier/later rule (module docstring): the network reads the pair in temporal
+        order, and its forward motion is ``T_source_target`` for the next frame, the inverse for the previous."""
+        earlier, later = (target, source) if source_is_next else (source, target)
+        vec, mean, logvar = self.forward_motion(earlier, later, sample)
+        T_later_earlier = pose_vec_to_matrix(vec)
+        T = T_later_earlier if source_is_next else invert_pose(T_later_earlier)
+        return PoseEstimate(T_source_target=T, vec=vec, mean=mean, logvar=logvar)
 
 
 def generator_spec(params: Params) -> GeneratorSpec:
@@ -99,6 +104,7 @@ def generator_spec(params: Params) -> GeneratorSpec:
         mapping_layers=cfg.mapping_layers,
         channel_base=cfg.channel_base,
         channel_max=cfg.channel_max,
+        conv_init_scale=cfg.conv_init_scale,
     )
 
 

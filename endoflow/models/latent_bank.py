@@ -22,14 +22,19 @@ in [-1, 1]).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
-from typing import Sequence
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from endoflow.data.base import DataFormatError
+from endoflow.models.model_file import load_plain_torch_file
+
+LATENT_BANK_FORMAT = "endoflow.latent_bank/2"  # 2: the synthesis convolutions record their init_scale
+_RERUN = "(re)run the pretrain_latent_bank stage to write it"
 
 
 @dataclass(frozen=True)
@@ -43,6 +48,8 @@ class GeneratorSpec:
     mapping_layers: int
     channel_base: int
     channel_max: int
+    # Initial scale of the synthesis convolutions, relative to PyTorch's default (see InitScaled).
+    conv_init_scale: float
 
     def __post_init__(self) -> None:
         for name in ("resolution", "start_resolution"):
@@ -64,7 +71,7 @@ class GeneratorSpec:
         """Feature channels at ``resolution`` (ProGAN's rule: base / resolution, capped)."""
         return max(1, min(self.channel_base // resolution, self.channel_max))
 
-    def to_dict(self) -> dict[str, int]:
+    def to_dict(self) -> dict[str, int | float]:
         return asdict(self)
 
 
@@ -148,16 +155,68 @@ def blur(x: torch.Tensor) -> torch.Tensor:
     return F.conv2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), kernel, groups=x.shape[1])
 
 
+class InitScaled:
+    """Mixin for ``nn.Conv2d`` and ``nn.ConvTranspose2d``: weight and bias start at ``init_scale`` times
+    PyTorch's default initialisation (the same random draw, multiplied), and the scale is a persistent buffer,
+    so a state dict shows how the layer was built.
+
+    Why a scale: the generator's synthesis convolutions reach an instance normalisation (AdaIN) only through
+    scale-free steps (blur, leaky ReLU, noise whose strength starts at 0), so their weights' size does not
+    change what a fresh generator computes, up to the normalisation's epsilon; only their direction does.
+    Adam moves every weight by about ``lr`` per step whatever its size, so such a layer turns by about
+    ``lr / |w|`` per step. PyTorch's default (``|w| ~ 1 / sqrt(fan_in)``) gives the few-channel
+    high-resolution blocks the largest weights, and at the paper's fixed lr they barely turn in a short run;
+    ``init_scale`` < 1 makes the layer turn ``1 / init_scale`` times faster, the effect StyleGAN gets from its
+    equalised learning rate.
+    """
+
+    weight: nn.Parameter
+    bias: nn.Parameter | None
+
+    def __init__(self, *args: Any, init_scale: float = 1.0, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.register_buffer("init_scale", torch.tensor(float(init_scale)))
+        self._scale_parameters(init_scale)
+
+    def reset_parameters(self) -> None:
+        super().reset_parameters()  # type: ignore[misc]
+        # The parent constructor draws its initialisation before __init__ has registered the scale;
+        # __init__ scales that first draw itself.
+        if hasattr(self, "init_scale"):
+            self._scale_parameters(self.init_scale.item())
+
+    @torch.no_grad()
+    def _scale_parameters(self, scale: float) -> None:
+        self.weight.mul_(scale)
+        if self.bias is not None:
+            self.bias.mul_(scale)
+
+
+class InitScaledConv2d(InitScaled, nn.Conv2d):
+    """``nn.Conv2d`` initialised at ``init_scale`` times PyTorch's default (see :class:`InitScaled`)."""
+
+
+class InitScaledConvTranspose2d(InitScaled, nn.ConvTranspose2d):
+    """``nn.ConvTranspose2d`` initialised at ``init_scale`` times PyTorch's default (see :class:`InitScaled`)."""
+
+
 class SynthesisBlock(nn.Module):
     """One resolution: (transposed-conv upsampling + blur, or nothing) -> noise -> AdaIN -> conv -> noise -> AdaIN.
 
     The two AdaIN slots are :attr:`adains`; in latent-bank mode the caller passes its own modules instead.
+    Both convolutions start at ``conv_init_scale`` times PyTorch's default scale (:class:`InitScaled`).
     """
 
-    def __init__(self, in_channels: int, out_channels: int, style_dim: int, upsample: bool) -> None:
+    def __init__(
+        self, in_channels: int, out_channels: int, style_dim: int, upsample: bool, conv_init_scale: float
+    ) -> None:
         super().__init__()
-        self.up = nn.ConvTranspose2d(in_channels, out_channels, 4, stride=2, padding=1) if upsample else None
-        self.conv = nn.Conv2d(out_channels, out_channels, 3, padding=1)
+        self.up = (
+            InitScaledConvTranspose2d(in_channels, out_channels, 4, stride=2, padding=1, init_scale=conv_init_scale)
+            if upsample
+            else None
+        )
+        self.conv = InitScaledConv2d(out_channels, out_channels, 3, padding=1, init_scale=conv_init_scale)
         self.noises = nn.ModuleList([NoiseInjection(out_channels), NoiseInjection(out_channels)])
         self.adains = nn.ModuleList([AdaIN(out_channels, style_dim), AdaIN(out_channels, style_dim)])
         self.out_channels = out_channels
@@ -185,7 +244,9 @@ class LatentBankGenerator(nn.Module):
         blocks, to_depth = [], []
         for i, r in enumerate(res):
             c_in = self.spec.channels(res[i - 1]) if i else self.spec.channels(r)
-            blocks.append(SynthesisBlock(c_in, self.spec.channels(r), self.spec.style_dim, upsample=i > 0))
+            blocks.append(
+                SynthesisBlock(c_in, self.spec.channels(r), self.spec.style_dim, i > 0, self.spec.conv_init_scale)
+            )
             to_depth.append(nn.Conv2d(self.spec.channels(r), 1, 1))
         self.blocks = nn.ModuleList(blocks)
         self.to_depth = nn.ModuleList(to_depth)
@@ -256,42 +317,65 @@ class LatentBankGenerator(nn.Module):
         return features
 
 
-def shrink_scale_free_weights(generator: LatentBankGenerator, factor: float) -> None:
-    """Multiply the weights and biases of every synthesis block's transposed and 3x3 convolution by ``factor``.
-
-    Each of these convolutions reaches an instance normalisation (AdaIN) only through scale-free steps (blur,
-    leaky ReLU, noise whose strength starts at 0), so a fresh generator's maps do not change, up to the
-    normalisation's epsilon. Training does: Adam moves every weight by about ``lr`` per step whatever its size,
-    so a scale-free weight turns by about ``lr / |w|`` per step. PyTorch's default initialisation gives the
-    few-channel high-resolution blocks (small fan-in) the largest weights, and at the paper's fixed lr they
-    barely turn in a short run; ``factor`` < 1 makes every such layer turn ``1 / factor`` times faster, the
-    effect StyleGAN gets from its equalised learning rate.
-    """
-    if factor <= 0:
-        raise ValueError(f"latent_bank.conv_init_scale must be positive, got {factor}")
-    with torch.no_grad():
-        for block in generator.blocks:
-            for conv in (block.up, block.conv):
-                if conv is not None:
-                    conv.weight.mul_(factor)
-                    conv.bias.mul_(factor)
-
-
 def generator_payload(generator: LatentBankGenerator, extra: dict | None = None) -> dict:
     """The dict written to ``latent_bank.pt``: tensors and plain values only (``weights_only`` loadable)."""
     return {
-        "format": "endoflow.latent_bank/1",
+        "format": LATENT_BANK_FORMAT,
         "spec": generator.spec.to_dict(),
         "state_dict": {k: v.detach().cpu().clone() for k, v in generator.state_dict().items()},
         **(extra or {}),
     }
 
 
-def load_generator(path: str, map_location: str | torch.device = "cpu") -> LatentBankGenerator:
-    """Rebuild the generator saved by :func:`endoflow.training.pretrain.pretrain_latent_bank`."""
-    payload = torch.load(path, map_location=map_location, weights_only=True)
-    if not isinstance(payload, dict) or payload.get("format") != "endoflow.latent_bank/1":
-        raise DataFormatError(path, "expected a latent bank file written by pretrain_latent_bank")
-    generator = LatentBankGenerator(GeneratorSpec(**payload["spec"]))
-    generator.load_state_dict(payload["state_dict"])
+def load_generator(path: str | Path) -> LatentBankGenerator:
+    """Rebuild the generator saved by :func:`endoflow.training.pretrain.pretrain_latent_bank`, on the CPU.
+
+    Only tensors and plain data are unpickled (``weights_only=True``). Raises ``FileNotFoundError`` for a
+    missing file and :class:`~endoflow.data.base.DataFormatError` for one that is truncated, corrupt, holds
+    other objects, or is not a latent bank of this format; both messages name the file.
+    """
+    payload = _read_payload(Path(path))
+    generator = LatentBankGenerator(_payload_spec(path, payload))
+    state_dict = payload.get("state_dict")
+    if not isinstance(state_dict, dict):
+        raise DataFormatError(path, f"no 'state_dict' in the latent bank file; {_RERUN}")
+    try:
+        generator.load_state_dict(state_dict)
+    except RuntimeError as error:  # missing, unexpected or misshapen tensors
+        problems = " ".join(str(error).split())[:300]
+        raise DataFormatError(path, f"weights do not fit the stored architecture ({problems}); {_RERUN}") from error
     return generator
+
+
+def check_latent_bank_file(path: str | Path) -> None:
+    """Fail fast, before training starts, on a latent bank file :func:`load_generator` would reject.
+
+    It loads the file on CPU and rebuilds the generator (a bank is a few MB: well under a second), so
+    every error :func:`load_generator` can raise is raised here, with the file named.
+    """
+    load_generator(path)
+
+
+def _read_payload(path: Path) -> dict:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: latent bank file not found; {_RERUN}")
+    payload = load_plain_torch_file(path, f"a latent bank file written by pretrain_latent_bank; {_RERUN}")
+    if not isinstance(payload, dict) or payload.get("format") != LATENT_BANK_FORMAT:
+        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+        raise DataFormatError(
+            path, f"expected a latent bank file of format {LATENT_BANK_FORMAT!r} written by pretrain_latent_bank, "
+                  f"found {found!r}; {_RERUN}"
+        )
+    return payload
+
+
+def _payload_spec(path: str | Path, payload: dict) -> GeneratorSpec:
+    spec = payload.get("spec")
+    expected = {f.name for f in fields(GeneratorSpec)}
+    if not isinstance(spec, dict) or set(spec) != expected:
+        found = sorted(spec) if isinstance(spec, dict) else type(spec).__name__
+        raise DataFormatError(path, f"'spec' must have the keys {sorted(expected)}, found {found}; {_RERUN}")
+    try:
+        return GeneratorSpec(**spec)
+    except (TypeError, ValueError) as error:
+        raise DataFormatError(path, f"invalid generator spec: {error}") from error

@@ -20,14 +20,11 @@ import numpy as np
 import torch
 
 from endoflow.config import ConfigError, Params, params_from_dict, params_to_dict
+from endoflow.data.base import DataFormatError
 from endoflow.io import save_torch
 
 MODEL_FORMAT = 1
 _ZIP_MAGIC = b"PK\x03\x04"
-
-
-class ModelFileError(ValueError):
-    """A model, bank or checkpoint file cannot be used; the message names the file and what was expected."""
 
 
 @dataclass
@@ -83,7 +80,7 @@ def load_model_file(path: str | Path) -> ModelRecord:
 
     Raises:
         FileNotFoundError: no file at ``path``.
-        ModelFileError: naming ``path``: not a torch file, a file that would run code, or another format.
+        DataFormatError: naming ``path``: not a torch file, a file that would run code, or another format.
     """
     path = Path(path)
     if not path.is_file():
@@ -91,12 +88,12 @@ def load_model_file(path: str | Path) -> ModelRecord:
     raw = load_plain_torch_file(path, "an endoflow model file")
     if not isinstance(raw, dict) or raw.get("format") != MODEL_FORMAT:
         found = raw.get("format") if isinstance(raw, dict) else type(raw).__name__
-        raise ModelFileError(f"{path}: model file format {found!r}, expected {MODEL_FORMAT} (an endoflow model file "
-                             f"written by the train stage)")
+        raise DataFormatError(path, f"model file format {found!r}, expected {MODEL_FORMAT} (an endoflow model file "
+                                    f"written by the train stage)")
     try:
         params = params_from_dict(raw["params"])
     except ConfigError as exc:
-        raise ModelFileError(f"{path}: the params stored in the model file are not valid: {exc}") from None
+        raise DataFormatError(path, f"the params stored in the model file are not valid: {exc}") from None
     return ModelRecord(params=params, state=raw["model"], epoch=int(raw["epoch"]), val=raw["val"],
                        mlflow_run_id=raw["mlflow_run_id"], baselines=TrainingBaselines.from_record(raw["baselines"]))
 
@@ -121,15 +118,15 @@ def load_plain_torch_file(source: str | Path | bytes, what: str, name: Optional[
     label = name or str(source)
     data = source if isinstance(source, bytes) else Path(source).read_bytes()
     if not data.startswith(_ZIP_MAGIC):
-        raise ModelFileError(f"{label}: not a torch file (no zip archive header; truncated or another kind of "
-                             f"file); expected {what}")
+        raise DataFormatError(label, f"not a torch file (no zip archive header: truncated, empty or another kind of "
+                                     f"file); expected {what}")
     try:
         return torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         # torch's text goes on to explain how to allowlist the global: advice we do not pass on
         reason = next((line.strip() for line in str(exc).splitlines() if "Unsupported" in line), "").split(". ")[0]
-        raise ModelFileError(f"{label}: refused to load: it holds objects other than tensors and plain data, which "
-                             f"could run code ({reason or 'weights-only load failed'}); expected {what}") from None
-    except (RuntimeError, EOFError, zipfile.BadZipFile, KeyError) as exc:
-        raise ModelFileError(f"{label}: not a readable torch file ({str(exc).splitlines()[0]}); "
-                             f"expected {what}") from None
+        raise DataFormatError(label, f"refused to load: it holds objects other than tensors and plain data, which "
+                                     f"could run code ({reason or 'weights-only load failed'}); expected {what}") from None
+    except (RuntimeError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:  # how torch reports damage
+        raise DataFormatError(label, f"not a readable torch file, truncated or corrupt ({str(exc).splitlines()[0][:200]}); "
+                                     f"expected {what}") from None

@@ -30,7 +30,8 @@ import numpy as np
 import torch
 
 from endoflow.io import save_torch, write_text
-from endoflow.models.model_file import ModelFileError, load_plain_torch_file
+from endoflow.data.base import DataFormatError
+from endoflow.models.model_file import load_plain_torch_file
 
 STATE_FILE = "state.pt"
 TRAINING_STATE = "an endoflow training state (state.pt of a Ray checkpoint)"
@@ -80,7 +81,7 @@ def load_training_state(checkpoint: str | Path) -> TrainingCheckpoint:
     """``state.pt`` of a checkpoint folder given as a local path or an fsspec URL.
 
     Raises:
-        ModelFileError: naming the file, when it is not a training state of this format or would run code.
+        DataFormatError: naming the file, when it is not a training state of this format or would run code.
     """
     location = f"{str(checkpoint).rstrip('/')}/{STATE_FILE}"
     raw = load_plain_torch_file(_read_bytes(location), TRAINING_STATE, name=location)
@@ -89,7 +90,7 @@ def load_training_state(checkpoint: str | Path) -> TrainingCheckpoint:
         state.best = None if raw["best"] is None else BestEpoch(**raw["best"])
         return TrainingCheckpoint(state, raw["model"], raw["optimizer"], raw["scheduler"])
     except (KeyError, TypeError) as exc:
-        raise ModelFileError(f"{location}: not {TRAINING_STATE} of this endoflow version ({exc})") from None
+        raise DataFormatError(location, f"not {TRAINING_STATE} of this endoflow version ({exc})") from None
 
 
 # ---------------------------------------------------------------------------------------- random state

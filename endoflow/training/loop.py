@@ -341,7 +341,7 @@ class RankZeroLogger:
         self.active = rank == 0
         self.uri = config.tracking_uri
         self.run_id = config.run_id
-        self.log_every = max(config.params.train.log_every, 1)
+        self.log_every = config.params.train.log_every
         self.epochs = config.params.train.epochs
 
     def step(self, global_step: int, epoch: int, step: int, total_steps: int, losses: dict[str, float],

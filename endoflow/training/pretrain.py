@@ -17,8 +17,11 @@ over the first ``fade_fraction`` of its stage (generator, critic and the real ma
 from :mod:`endoflow.losses.gan` (WGAN-GP, ``gp_gamma``) plus ProGAN's small drift penalty on real scores; Adam
 ``betas``, fixed ``lr``. The synthesis convolutions start at ``conv_init_scale`` times PyTorch's default
 scale (they are scale-free, so the fresh generator is unchanged but they learn faster at the fixed ``lr``;
-see :func:`endoflow.models.latent_bank.shrink_scale_free_weights`). The saved generator is an exponential
-moving average of the trained weights (``ema_decay``, warmed up).
+see :class:`endoflow.models.latent_bank.InitScaled`). The saved generator is an exponential moving average
+of the trained weights (``ema_decay``, warmed up).
+
+Progress: a line every few seconds (stage and resolution, steps, losses, steps/s, time left for the whole
+pretraining) and a summary at the end, on stdout.
 
 Outputs: ``out_path`` (``{"format", "spec", "state_dict", "normalisation"}``, loadable with
 ``torch.load(weights_only=True)`` and :func:`endoflow.models.latent_bank.load_generator`), ``metrics_path``
@@ -30,7 +33,6 @@ per-level values, steps, seconds), sample grids under ``plots_dir`` and an MLflo
 from __future__ import annotations
 
 import copy
-import io
 import math
 import time
 from pathlib import Path
@@ -43,13 +45,14 @@ import torch.nn.functional as F
 
 from endoflow.config import Params
 from endoflow.data.base import DataFormatError
-from endoflow.data.loader import decode_sample, list_shards, raw_samples
-from endoflow.evaluation.outputs import save_figure, write_bytes, write_json
+from endoflow.data.loader import list_shards, raw_samples
+from endoflow.data.shard_format import decode_sample
 from endoflow.evaluation.swd import multiscale_swd
+from endoflow.io import save_figure, save_torch, write_json
 from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
 from endoflow.models.critic import Critic
 from endoflow.models.endoflow_model import generator_spec
-from endoflow.models.latent_bank import LatentBankGenerator, generator_payload, shrink_scale_free_weights
+from endoflow.models.latent_bank import LatentBankGenerator, generator_payload
 
 SWD_MIN_RESOLUTION = 16
 
@@ -146,13 +149,6 @@ def stage_schedule(params: Params) -> list[Stage]:
     return [Stage(*stage) for stage in zip(resolutions, steps, critic_steps)]
 
 
-def fresh_generator(params: Params) -> LatentBankGenerator:
-    """An untrained generator for ``params``, its scale-free convolutions at ``conv_init_scale``."""
-    generator = LatentBankGenerator(generator_spec(params))
-    shrink_scale_free_weights(generator, params.latent_bank.conv_init_scale)
-    return generator
-
-
 @torch.no_grad()
 def generate(generator: LatentBankGenerator, count: int, latent_dim: int, seed: int, batch: int = 64) -> torch.Tensor:
     """``count`` maps at the full resolution from latents drawn with ``seed``."""
@@ -174,14 +170,17 @@ def train_gan(
     """Progressive WGAN-GP training; returns the generator's moving average and the loss history."""
     cfg = params.latent_bank
     spec = generator_spec(params)
-    generator, critic = fresh_generator(params), Critic(spec)
+    generator, critic = LatentBankGenerator(spec), Critic(spec)
     ema = EMA(generator, cfg.ema_decay)
     opt_g = torch.optim.Adam(generator.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
     opt_c = torch.optim.Adam(critic.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
     rng = torch.Generator().manual_seed(params.seed)
     history: list[dict[str, float]] = []
+    schedule = stage_schedule(params)
+    progress = PretrainProgress(schedule)
     step = 0
-    for stage, (resolution, steps, n_critic) in enumerate(stage_schedule(params)):
+    for stage, (resolution, steps, n_critic) in enumerate(schedule):
+        progress.start_stage(stage)
         reals = at_resolution(train, resolution, 1.0)
         fade_steps = max(1, int(cfg.fade_fraction * steps)) if stage > 0 else 0
         for i in range(steps):
@@ -220,10 +219,110 @@ def train_gan(
                 "alpha": alpha,
             }
             history.append(record)
+            progress.step(record)
             if step % 25 == 0:
                 log(record, step)
             step += 1
+    progress.finish(history[-1])
     return ema, history
+
+
+# ------------------------------------------------------------------------------------------- progress
+PROGRESS_INTERVAL_S = 5.0
+# A critic step runs the gradient penalty's double backward: about two generator steps' time (CPU, measured at
+# the default sizes).
+CRITIC_STEP_COST = 2.0
+# Until a second stage has been timed, assume a unit's time doubles with each resolution (CPU, default sizes).
+ASSUMED_STAGE_GROWTH = 2.0
+
+
+def report_line(line: str) -> None:
+    """One progress line on stdout, flushed (the stage's output is often a pipe, block-buffered)."""
+    print(line, flush=True)
+
+
+def format_duration(seconds: float) -> str:
+    seconds = int(max(seconds, 0))
+    hours, rest = divmod(seconds, 3600)
+    minutes, seconds = divmod(rest, 60)
+    return f"{hours}h{minutes:02d}m" if hours else f"{minutes}m{seconds:02d}s"
+
+
+def step_work(stage: Stage) -> float:
+    """The cost of one of the stage's generator steps with its critic steps, in units of a bare generator step."""
+    return 1 + CRITIC_STEP_COST * stage.n_critic
+
+
+class PretrainProgress:
+    """Progress lines at most every ``interval`` seconds, and a summary at the end (through ``write``).
+
+    Time left covers the whole pretraining: the rest of the current stage at its measured pace, and every
+    later stage at that pace times its work (:func:`step_work`) and the growth of a unit's time from one
+    resolution to the next (measured between the current stage and the previous one, at least 1; assumed
+    ``ASSUMED_STAGE_GROWTH`` during the first stage).
+    """
+
+    def __init__(
+        self,
+        schedule: list[Stage],
+        interval: float = PROGRESS_INTERVAL_S,
+        clock: Callable[[], float] = time.monotonic,
+        write: Callable[[str], None] = report_line,
+    ) -> None:
+        self.schedule, self.interval, self.clock, self.write = schedule, interval, clock, write
+        self.total = sum(stage.steps for stage in schedule)
+        self.started = self.last_line = self.stage_started = clock()
+        self.done = self.done_at_last_line = self.stage_done = 0
+        self.stage = 0
+        self.unit_seconds: list[float] = []  # measured seconds per work unit of each finished stage
+
+    def start_stage(self, stage: int) -> None:
+        now = self.clock()
+        if stage > 0:
+            self.unit_seconds.append(self._unit_seconds(now))
+        self.stage, self.stage_started, self.stage_done = stage, now, 0
+
+    def step(self, record: dict[str, float]) -> None:
+        """After each generator step: a line when ``interval`` has passed since the last one."""
+        self.done += 1
+        self.stage_done += 1
+        now = self.clock()
+        if now - self.last_line < self.interval:
+            return
+        rate = (self.done - self.done_at_last_line) / (now - self.last_line)
+        self.last_line, self.done_at_last_line = now, self.done
+        stage = self.schedule[self.stage]
+        fade = f", fade-in {record['alpha']:.2f}" if record["alpha"] < 1 else ""
+        self.write(
+            f"[pretrain] {stage.resolution} px (stage {self.stage + 1}/{len(self.schedule)}{fade}) "
+            f"step {self.stage_done}/{stage.steps}, {self.done}/{self.total} in all | "
+            f"critic {record['critic_loss']:.3f}, W {record['wasserstein']:.3f}, "
+            f"generator {record['generator_loss']:.3f} | {rate:.1f} steps/s | "
+            f"~{format_duration(self.seconds_left(now))} left"
+        )
+
+    def seconds_left(self, now: float) -> float:
+        pace = self._unit_seconds(now)
+        growth = max(1.0, pace / self.unit_seconds[-1]) if self.unit_seconds else ASSUMED_STAGE_GROWTH
+        current = self.schedule[self.stage]
+        left = (current.steps - self.stage_done) * step_work(current) * pace
+        for distance, later in enumerate(self.schedule[self.stage + 1 :], start=1):
+            left += later.steps * step_work(later) * pace * growth**distance
+        return left
+
+    def finish(self, record: dict[str, float]) -> None:
+        """The summary line: steps, time, pace and the last losses."""
+        elapsed = self.clock() - self.started
+        self.write(
+            f"[pretrain] trained {self.done} generator steps over {len(self.schedule)} resolutions "
+            f"({', '.join(str(stage.resolution) for stage in self.schedule)} px) in {format_duration(elapsed)} "
+            f"({self.done / max(elapsed, 1e-9):.1f} steps/s); last losses: critic {record['critic_loss']:.3f}, "
+            f"W {record['wasserstein']:.3f}, generator {record['generator_loss']:.3f}"
+        )
+
+    def _unit_seconds(self, now: float) -> float:
+        """Seconds per work unit in the current stage so far."""
+        return (now - self.stage_started) / (self.stage_done * step_work(self.schedule[self.stage]))
 
 
 # -------------------------------------------------------------------------------------------- outputs
@@ -293,15 +392,20 @@ def pretrain_latent_bank(
     train, heldout = train_and_heldout(shards_dir, params)
     swd_count = min(cfg.swd_samples, len(heldout))
     heldout = heldout[:swd_count]
+    stages = ", ".join(f"{stage.resolution} px x{stage.steps}" for stage in stage_schedule(params))
+    report_line(f"[pretrain] {len(train)} training depth maps, {swd_count} held out for the SWD; "
+                f"generator steps per resolution: {stages}")
 
     uri = tracking.tracking_uri(params, project_root)
     run_id = tracking.start_run(params, project_root, params.tracking.latent_bank_experiment, "pretrain_latent_bank")
     try:
         spec = generator_spec(params)
-        untrained = fresh_generator(params)
+        untrained = LatentBankGenerator(spec)
         fake_untrained = generate(untrained, swd_count, spec.latent_dim, params.seed + 1)
         swd_untrained = swd_against(heldout, fake_untrained, params.seed)
         swd_reference = swd_against(heldout, train[:swd_count], params.seed)
+        report_line(f"[pretrain] SWD to the held-out maps: untrained generator {swd_untrained['mean']:.1f}, "
+                    f"real training maps {swd_reference['mean']:.1f} (the floor)")
 
         ema, history = train_gan(
             params, train, lambda values, step: tracking.log_metrics(uri, run_id, values, step)
@@ -313,11 +417,8 @@ def pretrain_latent_bank(
             ema.model,
             {"normalisation": {"kind": "centred_log_depth", "depth_log_range": cfg.depth_log_range}},
         )
-        buffer = io.BytesIO()
-        torch.save(payload, buffer)
-        write_bytes(out_path, buffer.getvalue())
+        save_torch(out_path, payload)
 
-        plots_dir.mkdir(parents=True, exist_ok=True)
         save_sample_grid(fake_final, heldout, plots_dir / "samples_final.png", f"EMA generator, SWD {swd_final['mean']:.1f}")
         save_sample_grid(
             fake_untrained, heldout, plots_dir / "samples_untrained.png", f"untrained generator, SWD {swd_untrained['mean']:.1f}"
@@ -337,6 +438,7 @@ def pretrain_latent_bank(
             "seconds": time.time() - started,
         }
         write_json(metrics_path, metrics)
+        report_line(summary_line(metrics, out_path))
         scalars = {k: v for k, v in metrics.items() if isinstance(v, (int, float))}
         tracking.log_metrics(uri, run_id, scalars, step=len(history))
         tracking.log_artifact(uri, run_id, plots_dir, "plots")
@@ -347,3 +449,12 @@ def pretrain_latent_bank(
         raise
     tracking.end_run(uri, run_id)
     return metrics
+
+
+def summary_line(metrics: dict, out_path: Path) -> str:
+    """The closing line of a pretraining run: SWD before and after, its floor, time and the bank's file."""
+    return (
+        f"[pretrain] done in {format_duration(metrics['seconds'])}: SWD {metrics['swd_untrained']:.1f} untrained "
+        f"-> {metrics['swd_final']:.1f} trained (ratio {metrics['swd_ratio']:.2f}; real-vs-real floor "
+        f"{metrics['swd_real_reference']:.1f}); latent bank written to {out_path}"
+    )

@@ -44,7 +44,8 @@ from endoflow.training.worker_config import WorkerConfig
 
 # Params that do not change what training computes: excluded from the fingerprint.
 NOT_FINGERPRINTED = ("train.epochs", "train.log_every", "train.image_examples", "train.keep_checkpoints",
-                     "train.out", "train.metrics", "train.plots", "train.shards", "train.latent_bank", "tracking.",
+                     "train.out", "train.metrics", "train.plots", "train.shards", "train.latent_bank",
+                     "latent_bank.out", "latent_bank.metrics", "latent_bank.plots", "tracking.",
                      "eval.", "synth.",
                      "ray.address", "ray.storage_path", "ray.num_cpus", "ray.object_store_mb", "ray.run_name",
                      "ray.use_gpu", "ray.cpus_per_worker")
@@ -171,10 +172,10 @@ def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str
 
     Ray keeps the newest ``train.keep_checkpoints`` checkpoints (each carries the best epoch's weights).
     """
-    from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig
+    from ray.train import CheckpointConfig, FailureConfig, RunConfig
     from ray.train.torch import TorchTrainer
 
-    from endoflow.training.cluster import check_worker_resources
+    from endoflow.training.cluster import check_worker_resources, scaling_config
     from endoflow.training.loop import train_loop_per_worker
 
     started_ray = connect_ray(params.ray)
@@ -183,8 +184,7 @@ def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str
         trainer = TorchTrainer(
             train_loop_per_worker,
             train_loop_config=config,
-            scaling_config=ScalingConfig(num_workers=params.ray.num_workers, use_gpu=params.ray.use_gpu,
-                                         resources_per_worker={"CPU": params.ray.cpus_per_worker}),
+            scaling_config=scaling_config(params.ray),
             run_config=RunConfig(name=run_name, storage_path=storage, failure_config=FailureConfig(max_failures=0),
                                  checkpoint_config=CheckpointConfig(num_to_keep=params.train.keep_checkpoints)),
         )
