@@ -10,6 +10,7 @@ out take the defaults below.
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -252,6 +253,12 @@ class TrackingConfig:
     latent_bank_experiment: str = "endoflow-latent-bank"
 
 
+# The datasets endoflow reads, one per section of ``data``: the one list every command, stage, reader and
+# writer takes. SceneNet is read for its depth alone (the latent bank): its shards hold no triplets.
+DATASETS = tuple(name for name, tp in typing.get_type_hints(DataConfig).items() if dataclasses.is_dataclass(tp))
+DEPTH_ONLY_DATASETS = frozenset({"scenenet"})
+
+
 # ---------------------------------------------------------------------------------------------- all
 @dataclass
 class Params:
@@ -403,6 +410,8 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
         number = _float_or_none(value) if isinstance(value, str) else value
         if number is None or isinstance(number, bool) or not isinstance(number, (int, float)):
             raise ConfigError(f"{key} must be a number, got {value!r}")
+        if not math.isfinite(number):
+            raise ConfigError(f"{key} must be a finite number, got {value!r}")
         return float(number)
     if tp is str:
         if not isinstance(value, str):
@@ -473,10 +482,6 @@ ENCODER_STRIDE = 32
 SWD_MIN_RESOLUTION = 16
 # Ray refuses smaller object stores (ray._private.ray_constants.OBJECT_STORE_MINIMUM_MEMORY_BYTES, 75 MiB).
 _RAY_MIN_OBJECT_STORE_MB = 75
-# The synthetic UnityCam layout renders one sequence per organ (synth/writers.py UNITYCAM_ORGANS).
-_UNITYCAM_ORGANS = 3
-# Layouts whose shards hold prev/cur/next triplets (scenenet shards are depth-only: every frame is a sample).
-_TRIPLET_LAYOUTS = ("simcol", "endoslam")
 
 _TOP_RULES: tuple[tuple[str, _Check | _Each], ...] = (
     # numpy seeds (the loader's shard order, the synthetic scenes) must be non-negative.
@@ -499,8 +504,7 @@ _SYNTH_RULES: tuple[tuple[str, _Check | _Each], ...] = (
     ("synth.seed", _NON_NEGATIVE),
     ("synth.workers", _COUNT),
     ("synth.simcol.sequences", _COUNT),
-    ("synth.endoslam.sequences", _Check(lambda v: 1 <= v <= _UNITYCAM_ORGANS,
-                                       f"in 1..{_UNITYCAM_ORGANS} (one sequence per UnityCam organ)")),
+    ("synth.endoslam.sequences", _COUNT),  # at most one per UnityCam organ: the writers check that
     ("synth.scenenet.sequences", _COUNT),
     # Two frames make the shortest trajectory the writers render; triplets need more (a cross-field rule).
     ("synth.simcol.frames", _at_least(2)),
@@ -650,7 +654,7 @@ def _check_bank_growth(params: Params) -> None:
 
 def _check_synth_triplets(params: Params) -> None:
     offset = params.preprocess.neighbour_offset
-    for layout in _TRIPLET_LAYOUTS:
+    for layout in (name for name in DATASETS if name not in DEPTH_ONLY_DATASETS):
         frames = getattr(params.synth, layout).frames
         if frames <= 2 * offset:
             raise ConfigError(
@@ -682,13 +686,8 @@ def _check_workers_have_shards(params: Params) -> None:
         )
 
 
-def _dataset_names() -> list[str]:
-    """The datasets ``params.data`` has a section for (``preprocess`` writes shards for each)."""
-    return [name for name, tp in typing.get_type_hints(DataConfig).items() if dataclasses.is_dataclass(tp)]
-
-
 def _check_test_sets(params: Params) -> None:
-    known = _dataset_names()
+    known = list(DATASETS)
     for name, test_set in params.eval.test_sets.items():
         if not _is_test_set_name(name):
             raise ConfigError(f"eval.test_sets: name {name!r} must be letters, digits, _ and - only (it names a "

@@ -130,10 +130,17 @@ def replace_directory(staging: str | Path, path: str | Path) -> None:
     """Put the complete folder ``staging`` in place of ``path`` (the old one is moved aside, then removed)."""
     staging, path = Path(staging), Path(path)
     old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
-    if path.exists():
+    had_old = path.exists()
+    if had_old:
         os.replace(path, old)  # renaming onto an empty folder replaces it
-    os.replace(staging, path)
-    shutil.rmtree(old, ignore_errors=True)
+    try:
+        os.replace(staging, path)
+    except BaseException:
+        if had_old:
+            os.replace(old, path)  # put the previous output back: never leave neither
+        raise
+    finally:
+        shutil.rmtree(old, ignore_errors=True)
     _fsync_folder(path.parent)
 
 

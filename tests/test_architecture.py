@@ -13,6 +13,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "endoflow"
 FORBIDDEN = {
     "endoflow.io": ["endoflow."],
     "endoflow.config": ["endoflow."],
+    "endoflow.locations": ["endoflow."],
+    "endoflow.progress": ["endoflow."],
+    "endoflow.synth": ["endoflow.models", "endoflow.training", "endoflow.evaluation"],
     "endoflow.geometry": ["endoflow.data", "endoflow.models", "endoflow.losses", "endoflow.training",
                           "endoflow.evaluation", "endoflow.synth"],
     "endoflow.losses": ["endoflow.data", "endoflow.models", "endoflow.training", "endoflow.evaluation"],

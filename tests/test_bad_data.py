@@ -18,7 +18,7 @@ import pytest
 
 from endoflow.config import Params
 from endoflow.data.base import Sequence, missing_frame_ids
-from endoflow.data.check import check_dataset, format_check
+from endoflow.data.check import check_dataset, check_sequence, format_check
 from endoflow.data.inspect import format_inspection, inspect_dataset
 from endoflow.data.registry import open_reader
 from endoflow.data.shards import EncodeSettings, preprocess_dataset, sequence_samples
@@ -179,6 +179,13 @@ def test_preprocess_builds_no_sample_across_the_gap(simcol_with_a_gap: Path, tmp
         assert (ids["prev"], ids["next"]) == (ids["cur"] - 1, ids["cur"] + 1)
 
 
+def test_the_gt_check_measures_no_pair_across_the_gap(simcol_with_a_gap: Path) -> None:
+    sequences, _ = read_sequences(simcol_with_a_gap)
+    result = check_sequence(sequences["S1"], max_frames=100)
+    # 7 frames give 12 neighbour pairs; the two across the gap (3 <-> 5) are not measured
+    assert result["pairs"] == 10
+
+
 def sequence_numbered(frame_ids: list[int]) -> Sequence:
     return Sequence("simcol", "S", "train", np.eye(3), (8, 8), frame_ids, None, None, None)
 
@@ -195,7 +202,7 @@ def sequence_numbered(frame_ids: list[int]) -> Sequence:
 def test_targets_need_neighbours_exactly_offset_frame_steps_away(
     frame_ids: list[int], offset: int, targets: list[int]
 ) -> None:
-    settings = EncodeSettings("simcol", 8, offset, 0.001, depth_only=False)
+    settings = EncodeSettings("simcol", 8, offset, 0.001, depth_only=False, reader_params="{}")
     assert [s.frame for s in sequence_samples(sequence_numbered(frame_ids), settings)] == targets
 
 

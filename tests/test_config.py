@@ -142,7 +142,7 @@ OUT_OF_RANGE = [
     ("synth.seed", -1),
     ("synth.workers", 0),
     ("synth.simcol.sequences", 0),
-    ("synth.endoslam.sequences", 4),  # three UnityCam organs
+    ("synth.endoslam.sequences", 0),
     ("synth.scenenet.sequences", 0),
     ("synth.scenenet.frames", 1),
     ("preprocess.workers", 0),
@@ -273,3 +273,13 @@ def test_local_cpu_budget_applies_only_to_a_local_ray():
     assert params_from_dict(defaults_with(cluster)).ray.num_workers == 4
     fits = {"ray.num_workers": 2, "ray.cpus_per_worker": 1.5, "ray.num_cpus": 3}
     assert params_from_dict(defaults_with(fits)).ray.num_workers == 2
+
+
+@pytest.mark.parametrize("key", ["train.lr", "model.max_depth", "ray.cpus_per_worker", "train.grad_clip",
+                                 "loss.kl_weight"])
+@pytest.mark.parametrize("value", [".inf", ".nan", "-.inf"])
+def test_non_finite_numbers_are_refused_naming_the_key(tmp_path, key: str, value: str) -> None:
+    path = tmp_path / "params.yaml"
+    path.write_text("seed: 0\n")
+    with pytest.raises(ConfigError, match=f"{key} must be a finite number"):
+        load_params(path, [f"{key}={value}"])

@@ -221,3 +221,23 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     assert "eval/simcol_3/depth_paper/model/abs_rel" in run.data.metrics
     artifacts = [a.path for a in tracking.client(uri).list_artifacts(run_id, "eval/simcol_3")]
     assert "eval/simcol_3/trajectory_O1.png" in artifacts
+
+
+def target_sample(frame: int, sequence: str = "S1") -> dict:
+    """A decoded triplet sample of ``frame`` with neighbours frame -/+ 1 and identity poses."""
+    pose = np.eye(4).tolist()
+    meta = {"sequence": sequence, "group": "g", "frame": frame, "split": "test", "native_size": [8, 8],
+            "frame_ids": {"prev": frame - 1, "cur": frame, "next": frame + 1},
+            "T_world_cam": {"prev": pose, "cur": pose, "next": pose}}
+    image = torch.zeros(3, 8, 8)
+    return {"meta": meta, "prev": image, "cur": image, "next": image, "depth": torch.ones(1, 8, 8)}
+
+
+def test_frames_on_both_sides_of_missing_frames_are_evaluated_and_never_paired_across_the_gap() -> None:
+    # frames 1..8 with frame 4 missing: targets 2 | 6 7 (no triplet spans the gap)
+    frames = list(frames_in_order([target_sample(2), target_sample(6), target_sample(7)]))
+    assert [f.frame for f in frames] == [1, 2, 3, 5, 6, 7, 8]
+    assert [f.frame for f in frames if f.after_gap] == [5]
+    poses = [np.eye(4)] * 7
+    assert longest_posed_run(poses, gaps={3}) == (3, 7)  # frames 5..8, not 1..8 across the gap
+    assert longest_posed_run(poses) == (0, 7)

@@ -25,8 +25,8 @@ from endoflow.data.shard_format import (
     ShardEntry,
     collate_samples,
     decode_sample,
-    file_sha256,
     manifest_bytes,
+    shard_digests,
     shard_entries,
     shard_name,
 )
@@ -148,7 +148,9 @@ def write_shard_folder(folder: Path, samples: list[dict], sizes: list[int]) -> l
                                       ("sequence", meta["sequence"]), ("group", meta["group"]),
                                       ("frame", meta["frame"]), ("split", "train")):
                     rows[column].append(value)
-        entries.append(ShardEntry(name, size, file_sha256(str(folder / name))))
+        file_digest, digests = shard_digests(str(folder / name))
+        rows["sha256"].extend(digest for _, digest in digests)
+        entries.append(ShardEntry(name, size, file_digest))
     (folder / MANIFEST).write_bytes(manifest_bytes(rows, entries))
     return list_shards(folder, "train")
 

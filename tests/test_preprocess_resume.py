@@ -147,3 +147,16 @@ def test_a_source_file_gone_since_listing_is_named(tmp_path: Path) -> None:
     sequences[0].frame_files(1)[1].unlink()
     with pytest.raises(DataFormatError, match="Depth_0001.png: source file listed by the reader cannot be read"):
         write_dataset_shards(lambda: sequences, "simcol", params, tmp_path / "out")
+
+
+def test_a_reader_setting_that_changes_decoded_frames_changes_every_shard_key() -> None:
+    from dataclasses import replace
+
+    from endoflow.data.shards import ShardSpec, encode_settings, shard_keys
+
+    params = Params()
+    rescaled = Params()
+    rescaled.data.endoslam = replace(rescaled.data.endoslam, depth_full_scale_cm=25.0)  # same files, other depth
+    shard = [ShardSpec("test-000000.tar", "test", ())]
+    assert (shard_keys(shard, encode_settings("endoslam", params), [])
+            != shard_keys(shard, encode_settings("endoslam", rescaled), []))

@@ -13,7 +13,7 @@ import webdataset as wds
 
 from endoflow import tracking
 from endoflow.config import Params
-from endoflow.data.shard_format import MANIFEST, MANIFEST_SCHEMA, ShardEntry, file_sha256, manifest_bytes, shard_name
+from endoflow.data.shard_format import MANIFEST, MANIFEST_SCHEMA, ShardEntry, manifest_bytes, shard_digests, shard_name
 from endoflow.evaluation.swd import laplacian_pyramid, multiscale_swd
 from endoflow.models.latent_bank import LatentBankGenerator, load_generator
 from endoflow.training.pretrain import PretrainProgress, Stage, normalise_depth, pretrain_latent_bank, stage_schedule
@@ -66,7 +66,9 @@ def write_depth_shards(root: Path, counts: dict[str, int], size: int = 32, seed:
                 for column, value in (("shard", name), ("key", key), ("dataset", "scenenet"),
                                       ("sequence", meta["sequence"]), ("group", "0"), ("frame", i), ("split", split)):
                     rows[column].append(value)
-        entries.append(ShardEntry(name, count, file_sha256(str(root / name))))
+        file_digest, samples = shard_digests(str(root / name))
+        rows["sha256"].extend(digest for _, digest in samples)
+        entries.append(ShardEntry(name, count, file_digest))
     (root / MANIFEST).write_bytes(manifest_bytes(rows, entries))
 
 

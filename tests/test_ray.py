@@ -53,7 +53,7 @@ def checkpoint_folders(storage: Path) -> list[Path]:
 def first_checkpoint_complete(storage: Path) -> bool:
     """Ray has finished copying epoch 0: a complete ``state.pt`` and both ranks' audits."""
     runs = list(storage.glob("endoflow-train-*"))
-    return bool(runs) and latest_checkpoint(str(runs[0])) is not None and len(
+    return bool(runs) and latest_checkpoint(str(runs[0]), ranks=2) is not None and len(
         list(runs[0].glob("epoch-0000/rank-*.json"))) == 2
 
 
@@ -154,14 +154,19 @@ def test_weights_digest_tells_models_apart():
 
 def test_resume_picks_the_newest_complete_checkpoint_also_through_a_url(tmp_path: Path):
     run = tmp_path / "endoflow-train-abc"
-    for epoch in range(3):
-        (run / f"epoch-{epoch:04d}").mkdir(parents=True)
-        torch.save({"epoch": epoch}, run / f"epoch-{epoch:04d}" / "state.pt")
-    data = (run / "epoch-0002" / "state.pt").read_bytes()
-    (run / "epoch-0002" / "state.pt").write_bytes(data[: len(data) // 2])  # killed while copying
-    assert latest_checkpoint(str(run)) == str(run / "epoch-0001")
-    assert latest_checkpoint(run.as_uri()) == (run / "epoch-0001").as_uri()
-    assert latest_checkpoint(str(tmp_path / "never-ran")) is None
+    for epoch in range(4):
+        folder = run / f"epoch-{epoch:04d}"
+        folder.mkdir(parents=True)
+        torch.save({"epoch": epoch}, folder / "state.pt")
+        for rank in range(2):
+            torch.save({"rank": rank}, folder / f"rng-rank-{rank}.pt")
+    data = (run / "epoch-0003" / "state.pt").read_bytes()
+    (run / "epoch-0003" / "state.pt").write_bytes(data[: len(data) // 2])  # killed while copying
+    (run / "epoch-0002" / "rng-rank-1.pt").unlink()  # killed before rank 1's files arrived
+    assert latest_checkpoint(str(run), ranks=2) == str(run / "epoch-0001")
+    assert latest_checkpoint(run.as_uri(), ranks=2) == (run / "epoch-0001").as_uri()
+    assert latest_checkpoint(str(run), ranks=1) == str(run / "epoch-0002")
+    assert latest_checkpoint(str(tmp_path / "never-ran"), ranks=1) is None
 
 
 def test_fingerprint_ignores_the_epoch_count_but_not_what_training_computes(tmp_path: Path):

@@ -137,7 +137,7 @@ def test_a_shard_swapped_for_another_of_the_same_size_fails_the_checksum(shard_d
     entries = shard_entries(urls)
     same_size = [u for u in urls[1:] if entries[u].samples == entries[urls[0]].samples]
     Path(urls[0]).write_bytes(Path(same_size[0]).read_bytes())
-    with pytest.raises(DataFormatError, match="SHA-256") as caught:
+    with pytest.raises(DataFormatError, match="the manifest records") as caught:
         list(raw_samples(urls[:1]))
     assert urls[0] in str(caught.value)
 
@@ -148,3 +148,42 @@ def test_bytes_beyond_the_tar_end_are_part_of_the_checked_file(shard_dir: Path) 
         f.write(io.BytesIO(b"\0" * 1024).read())
     with pytest.raises(DataFormatError, match="SHA-256"):
         list(raw_samples(urls[:1]))
+
+
+def change_first_meta_byte(shard: Path) -> None:
+    """Change one digit inside the first sample's meta.json: still a valid tar, valid JSON, a wrong frame."""
+    name, _, data = next(m for m in member_offsets(shard) if m[0].endswith("meta.json"))
+    raw = shard.read_bytes()
+    text = raw[data : data + 8192]
+    at = data + text.index(b'"frame": ') + len(b'"frame": ')
+    overwrite(shard, at, b"9" if raw[at : at + 1] != b"9" else b"8")
+
+
+def test_a_reader_that_stops_part_way_through_a_shard_has_checked_what_it_used(shard_dir: Path) -> None:
+    urls = list_shards(shard_dir, "train")
+    for url in urls:
+        change_first_meta_byte(Path(url))
+    with pytest.raises(DataFormatError, match="SHA-256 of its members") as caught:
+        next(iter(rank_batches(urls, 1, 2, batch_size=1, epoch=0, seed=0)))  # one batch of a two-rank deal
+    assert any(url in str(caught.value) for url in urls)
+    with pytest.raises(DataFormatError, match="SHA-256 of its members"):
+        next(iter(triplet_dataset(urls)))
+
+
+def test_a_shard_the_manifest_lists_but_the_folder_lacks_is_an_error_naming_it(shard_dir: Path) -> None:
+    missing = Path(list_shards(shard_dir, "train")[2])
+    missing.unlink()
+    with pytest.raises(DataFormatError, match="shard listed in manifest.parquet is missing") as caught:
+        list_shards(shard_dir, "train")
+    assert str(missing) in str(caught.value)
+
+
+def test_a_malformed_shard_table_is_named() -> None:
+    import pyarrow as pa
+
+    from endoflow.data.shard_format import MANIFEST_SCHEMA, SHARD_TABLE_KEY, _shard_table
+
+    table = pa.table({name: pa.array([], field.type) for name, field in zip(MANIFEST_SCHEMA.names, MANIFEST_SCHEMA)})
+    for raw in (b"{not json", b'{"train-000000.tar": {"samples": 0}}', b"[1, 2]"):
+        with pytest.raises(DataFormatError, match=SHARD_TABLE_KEY.decode()):
+            _shard_table("/data/shards/simcol/manifest.parquet", raw, table)

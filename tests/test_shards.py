@@ -30,7 +30,7 @@ from endoflow.data.shards import (
     stored_intrinsics,
     write_dataset_shards,
 )
-from endoflow.data.shard_format import MANIFEST, SHARD_TABLE_KEY, file_sha256
+from endoflow.data.shard_format import MANIFEST, SHARD_TABLE_KEY, shard_digests
 from tests.samples import SIMCOL_SAMPLE
 
 NATIVE_K = np.array([[40.0, 0.0, 31.0], [0.0, 42.0, 22.5], [0.0, 0.0, 1.0]])
@@ -200,10 +200,10 @@ def test_manifest_lists_exactly_the_tar_contents_in_even_sequence_contiguous_sha
     out_dir, summary = shards
     table = pq.read_table(out_dir / MANIFEST)
     manifest = table.to_pandas()
-    assert list(manifest.columns) == ["shard", "key", "dataset", "sequence", "group", "frame", "split"]
+    assert list(manifest.columns) == ["shard", "key", "dataset", "sequence", "group", "frame", "split", "sha256"]
     entries = json.loads(table.schema.metadata[SHARD_TABLE_KEY])
     counts = {name: entry["samples"] for name, entry in entries.items()}
-    assert all(entry["sha256"] == file_sha256(str(out_dir / name)) for name, entry in entries.items())
+    assert all(entry["sha256"] == shard_digests(str(out_dir / name))[0] for name, entry in entries.items())
     tars = sorted(p.name for p in out_dir.glob("*.tar"))
     assert sorted(counts) == tars and sorted(p.name for p in out_dir.iterdir()) == sorted(tars + [MANIFEST])
     for name in tars:

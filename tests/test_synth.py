@@ -284,3 +284,10 @@ def test_gt_warp_at_most_half_the_identity_error_on_scenenet_rooms():
     gt = ((warped - image_t).abs() * mask).sum() / mask.sum()
     identity = ((image_s - image_t).abs() * mask).sum() / mask.sum()
     assert gt <= 0.5 * identity
+
+
+def test_more_unitycam_sequences_than_organs_is_refused_naming_the_key(tmp_path: Path) -> None:
+    from endoflow.config import ConfigError
+
+    with pytest.raises(ConfigError, match="synth.endoslam.sequences must be at most 3"):
+        plan_jobs("endoslam", tmp_path, 4, 4, 48, 3, "cpu", Params())

@@ -21,6 +21,7 @@ from endoflow.models.model_file import (
     ModelRecord,
     TrainingBaselines,
     load_model_file,
+    load_trained_model,
     save_model_file,
 )
 from endoflow.training.checkpoint import (
@@ -96,6 +97,11 @@ def test_a_model_file_that_would_run_code_or_is_damaged_is_refused_naming_it(tmp
     data = (tmp_path / "model.pt").read_bytes()
     (tmp_path / "truncated.pt").write_bytes(data[: len(data) // 2])
     torch.save({"format": 99}, tmp_path / "other.pt")
+    record.state = {"not.a.layer": torch.ones(2)}
+    save_model_file(tmp_path / "mismatch.pt", record)
+    with pytest.raises(DataFormatError, match="weights do not fit") as caught:
+        load_trained_model(tmp_path / "mismatch.pt", torch.device("cpu"))
+    assert str(tmp_path / "mismatch.pt") in str(caught.value)
     for name, problem in (("truncated.pt", "not a readable torch file"), ("other.pt", "format 99")):
         with pytest.raises(DataFormatError, match=problem) as caught:
             load_model_file(tmp_path / name)
@@ -114,7 +120,9 @@ def test_every_random_generator_continues_where_it_was_saved(tmp_path: Path) -> 
     assert set(random_state()) == {"torch", "cuda", "numpy", "python"}
 
 
-def test_train_refuses_a_planted_checkpoint_before_ray_starts_and_marks_the_run_failed(tmp_path: Path) -> None:
+def test_train_refuses_a_planted_checkpoint_before_ray_starts_and_marks_the_run_failed(
+    tmp_path: Path, monkeypatch
+) -> None:
     from tests.test_ray import project
 
     params = project(tmp_path)
@@ -123,7 +131,12 @@ def test_train_refuses_a_planted_checkpoint_before_ray_starts_and_marks_the_run_
     shards = str(tmp_path / params.train.shards)
     run = storage / f"{params.ray.run_name}-{training_fingerprint(params, shards, None)}"
     plant(run / "epoch-0000" / "state.pt", tmp_path / "payload-ran")
+    save_random_state(run / "epoch-0000", rank=0)  # an otherwise complete checkpoint folder
 
+    def ray_must_not_start(*_args, **_kwargs):
+        raise AssertionError("Ray was started although the checkpoint to resume from is unsafe")
+
+    monkeypatch.setattr("endoflow.training.ray_trainer.fit_on_ray", ray_must_not_start)
     with pytest.raises(DataFormatError, match="could run code") as caught:
         train(params, tmp_path)
 
@@ -132,3 +145,53 @@ def test_train_refuses_a_planted_checkpoint_before_ray_starts_and_marks_the_run_
     uri = tracking.tracking_uri(params, tmp_path)
     runs = tracking.client(uri).search_runs([tracking.ensure_experiment(params, tmp_path, "endoflow")])
     assert [r.info.status for r in runs] == ["FAILED"]
+
+
+def test_a_corrupted_latent_bank_fails_before_ray_starts_naming_the_file(tmp_path: Path, monkeypatch) -> None:
+    from tests.test_ray import project
+
+    params = project(tmp_path)
+    bank = tmp_path / "models" / "latent_bank.pt"
+    bank.parent.mkdir(parents=True)
+    bank.write_bytes(b"PK\x03\x04" + bytes(200))  # a zip header, then damage
+    params.model = replace(params.model, latent_bank=True)
+    params.train = replace(params.train, latent_bank=str(bank))
+
+    def ray_must_not_start(*_args, **_kwargs):
+        raise AssertionError("Ray was started with an unreadable latent bank")
+
+    monkeypatch.setattr("endoflow.training.ray_trainer.fit_on_ray", ray_must_not_start)
+
+    with pytest.raises(DataFormatError, match="truncated or corrupt") as caught:
+        train(params, tmp_path)
+
+    assert str(bank) in str(caught.value)
+    assert not (tmp_path / "mlflow.db").exists()  # checked before any MLflow run is opened
+
+
+def test_workers_the_cluster_cannot_hold_fail_naming_the_key_and_the_run_is_failed(tmp_path: Path) -> None:
+    from endoflow.config import ConfigError
+    from tests.test_ray import project
+
+    params = project(tmp_path)
+    params.ray = replace(params.ray, num_cpus=None, cpus_per_worker=64.0, storage_path=str(tmp_path / "ray"))
+
+    with pytest.raises(ConfigError, match="ray.cpus_per_worker") as caught:
+        train(params, tmp_path)
+
+    assert "rerun the stage" not in str(caught.value)
+    uri = tracking.tracking_uri(params, tmp_path)
+    runs = tracking.client(uri).search_runs([tracking.ensure_experiment(params, tmp_path, "endoflow")])
+    assert [r.info.status for r in runs] == ["FAILED"]
+
+
+def test_the_worker_config_survives_pickling_and_a_misspelt_field_fails_on_the_driver() -> None:
+    import pickle
+
+    from endoflow.training.worker_config import WorkerConfig
+
+    config = WorkerConfig(Params(), ("/s/train-000000.tar",), (), None, "sqlite:///m.db", "run", resume_from=None)
+    assert pickle.loads(pickle.dumps(config)) == config
+    with pytest.raises(TypeError, match="train_shard"):
+        WorkerConfig(Params(), train_shard=(), val_shards=(), latent_bank=None, tracking_uri="", run_id="",
+                     resume_from=None)

@@ -28,8 +28,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-# The datasets endoflow reads, by reader name: the one list every command, stage and writer takes.
-DATASETS = ("simcol", "endoslam", "scenenet")
+from endoflow.config import DATASETS, DEPTH_ONLY_DATASETS  # noqa: F401  (re-exported: readers' names)
 
 
 class DataFormatError(ValueError):

@@ -88,6 +88,12 @@ def _missing_ground_truth(sequence: Sequence) -> str:
     return f"no {' or '.join(absent)}" if absent else ""
 
 
+def _is_adjacent(sequence: Sequence, target: int, source: int) -> bool:
+    """``source`` is the frame right beside ``target``: inside the sequence, with no frame missing between."""
+    return (0 <= source < len(sequence)
+            and abs(sequence.frame_ids[source] - sequence.frame_ids[target]) == sequence.frame_step)
+
+
 def check_sequence(
     sequence: Sequence, max_ratio: float = DEFAULT_MAX_RATIO, max_frames: int = DEFAULT_MAX_FRAMES
 ) -> dict[str, Any]:
@@ -104,7 +110,7 @@ def check_sequence(
         _pair_errors(frames, sequence, target, source)
         for target in _sample_targets(sequence, max_frames)
         for source in (target + 1, target - 1)
-        if 0 <= source < len(sequence) and sequence.pose(source) is not None
+        if _is_adjacent(sequence, target, source) and sequence.pose(source) is not None
     ]
     with_pixels = [pair for pair in measured if pair.errors is not None]
     means = np.mean([pair.errors for pair in with_pixels], axis=0) if with_pixels else [None] * 4

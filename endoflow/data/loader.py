@@ -16,12 +16,10 @@ epoch's samples, cycling through its own shards when they hold fewer samples tha
 from __future__ import annotations
 
 import itertools
-import posixpath
 import random
 from functools import partial
 from typing import Iterable, Iterator, Mapping, Optional
 
-import fsspec
 import numpy as np
 import webdataset as wds
 
@@ -31,23 +29,18 @@ from endoflow.data.shard_format import (
     decode_sample,
     read_shard,
     shard_entries,
-    shard_glob,
+    split_shards,
 )
 
 
 # --------------------------------------------------------------------------------------------- listing
 def list_shards(root: str, split: str) -> list[str]:
-    """Sorted shard URLs ``<root>/<split>-NNNNNN.tar``; ``root`` is a local path or an fsspec URL.
+    """The shards of ``split`` in the folder ``root`` (a local path or an fsspec URL), as its manifest lists them.
 
-    Local paths come back as paths, URLs as URLs with the same protocol (``file:///abs/train-000000.tar``).
+    Local paths come back as paths, URLs as URLs (``file:///abs/train-000000.tar``). A shard the manifest lists
+    but the folder lacks is an error naming it (:func:`~endoflow.data.shard_format.split_shards`).
     """
-    pattern = shard_glob(split)
-    root = str(root)
-    fs, path = fsspec.core.url_to_fs(root)
-    found = sorted(fs.glob(posixpath.join(path.rstrip("/"), pattern)))
-    if "://" in root:
-        return [fs.unstrip_protocol(p) for p in found]
-    return found
+    return split_shards(str(root), split)
 
 
 # --------------------------------------------------------------------------------------------- reading

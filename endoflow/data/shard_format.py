@@ -15,12 +15,14 @@ order. A complete sample is exactly :data:`TRIPLET_MEMBERS` (a target frame with
   (``prev``/``cur``/``next``: 4x4 camera-to-world in cm, or null), ``depth_unit`` (cm per count),
   ``native_size`` ``[H, W]``.
 
-``manifest.parquet`` has one row per sample (:data:`MANIFEST_SCHEMA`, in shard order) and, in its schema
-metadata under :data:`SHARD_TABLE_KEY`, every shard (empty ones too) with its sample count and the SHA-256 of
-its bytes, recorded when it was written. Every read of a shard (:func:`read_shard`) is checked against that
-entry: a shard whose bytes or sample count differ, or that holds an incomplete sample, is a
-:class:`~endoflow.data.base.DataFormatError` naming the shard file and what was expected. The check of bytes
-and count completes when the shard's last sample has been read, before the next shard is opened.
+``manifest.parquet`` has one row per sample (:data:`MANIFEST_SCHEMA`, in shard order, with the SHA-256 of the
+sample's members, :func:`sample_sha256`) and, in its schema metadata under :data:`SHARD_TABLE_KEY`, every shard
+(empty ones too) with its sample count and the SHA-256 of its bytes, all recorded when it was written. The
+manifest is the list of shards (:func:`split_shards`): one that is listed but missing is an error. Every read
+of a shard (:func:`read_shard`) is checked against the manifest: each sample as it is read (its key, its
+members, their SHA-256), so a reader that stops part-way through a shard has still checked all it used; and at
+the shard's end its sample count and the SHA-256 of its bytes. A mismatch is a
+:class:`~endoflow.data.base.DataFormatError` naming the shard file and what was expected.
 
 Locations may be local paths or fsspec URLs (``s3://...``, ``file:///...``).
 """
@@ -67,6 +69,7 @@ MANIFEST_SCHEMA = pa.schema(
         ("group", pa.string()),
         ("frame", pa.int64()),
         ("split", pa.string()),
+        ("sha256", pa.string()),
     ]
 )
 _HASH_BLOCK = 1 << 20
@@ -74,11 +77,12 @@ _HASH_BLOCK = 1 << 20
 
 @dataclass(frozen=True)
 class ShardEntry:
-    """A shard as the manifest records it."""
+    """A shard as the manifest records it: its samples' keys and SHA-256 in stored order, its bytes' SHA-256."""
 
     name: str
     samples: int
     sha256: str
+    sample_sha256: tuple[tuple[str, str], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -146,9 +150,47 @@ def read_manifest(folder: str) -> Manifest:
             f"schema metadata {SHARD_TABLE_KEY.decode()} (shard sizes and checksums) missing: written by an older "
             f"endoflow (format {FORMAT_VERSION} expected); rerun the preprocess stage",
         )
-    entries = json.loads(metadata[SHARD_TABLE_KEY])
-    shards = {name: ShardEntry(name, int(e["samples"]), str(e["sha256"])) for name, e in entries.items()}
-    return Manifest(location, table.select(MANIFEST_SCHEMA.names), shards)
+    table = table.select(MANIFEST_SCHEMA.names)
+    return Manifest(location, table, _shard_table(location, metadata[SHARD_TABLE_KEY], table))
+
+
+def _shard_table(location: str, raw: bytes, table: pa.Table) -> dict[str, ShardEntry]:
+    """The shard entries of the schema metadata, each with its samples' rows."""
+    per_shard: dict[str, list[tuple[str, str]]] = {}
+    for shard, key, digest in zip(*(table.column(c).to_pylist() for c in ("shard", "key", "sha256"))):
+        per_shard.setdefault(shard, []).append((key, digest))
+    try:
+        entries = {name: ShardEntry(name, int(e["samples"]), str(e["sha256"]), tuple(per_shard.get(name, ())))
+                   for name, e in json.loads(raw).items()}
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise DataFormatError(location, f"shard table {SHARD_TABLE_KEY.decode()} is malformed ({exc!r}); "
+                                        f"rerun the preprocess stage") from None
+    unlisted = sorted(set(per_shard) - set(entries))
+    wrong = [name for name, e in entries.items() if len(e.sample_sha256) != e.samples]
+    if unlisted or wrong:
+        raise DataFormatError(location, f"rows and shard table disagree (rows of unlisted shards {unlisted}, "
+                                        f"sample counts differing for {wrong}); rerun the preprocess stage")
+    return entries
+
+
+def split_shards(folder: str, split: str) -> list[str]:
+    """The shards of ``split`` that the manifest of ``folder`` lists, in order, as paths or URLs like ``folder``.
+
+    Raises:
+        DataFormatError: a listed shard is missing (naming it).
+    """
+    shard_glob(split)  # validates the split name
+    manifest = read_manifest(folder)
+    names = sorted(name for name in manifest.shards if name.startswith(f"{split}-"))
+    fs, path = fsspec.core.url_to_fs(str(folder))
+    urls = []
+    for name in names:
+        shard = posixpath.join(path.rstrip("/"), name)
+        url = fs.unstrip_protocol(shard) if "://" in str(folder) else shard
+        if not fs.exists(shard):
+            raise DataFormatError(url, f"shard listed in {MANIFEST} is missing ({manifest.entry(name).samples} samples)")
+        urls.append(url)
+    return urls
 
 
 def shard_entries(urls: Iterable[str]) -> dict[str, ShardEntry]:
@@ -163,13 +205,24 @@ def shard_entries(urls: Iterable[str]) -> dict[str, ShardEntry]:
     return entries
 
 
-def file_sha256(location: str) -> str:
-    """SHA-256 (hex) of a file's bytes, at a path or an fsspec URL."""
+def sample_sha256(sample: Mapping[str, object]) -> str:
+    """SHA-256 over a sample's members (name, length, bytes) in sorted order; ``__``-keys are not members."""
     digest = hashlib.sha256()
-    with fsspec.open(location, "rb") as f:
-        for block in iter(lambda: f.read(_HASH_BLOCK), b""):
-            digest.update(block)
+    for name in sorted(k for k in sample if not k.startswith("__")):
+        data = sample[name]
+        digest.update(f"{name}:{len(data)}:".encode())
+        digest.update(data)
     return digest.hexdigest()
+
+
+def shard_digests(location: str) -> tuple[str, list[tuple[str, str]]]:
+    """What the manifest records of a freshly written shard: the SHA-256 of its bytes, and each sample's key and
+    :func:`sample_sha256` in stored order (the writer's side of :func:`read_shard`'s checks)."""
+    with fsspec.open(location, "rb") as stream:
+        reader = _HashingReader(stream)
+        members = ({**member, "__url__": location} for member in tar_file_iterator(reader))
+        samples = [(str(sample["__key__"]), sample_sha256(sample)) for sample in group_by_keys(members)]
+        return reader.drain(), samples
 
 
 # --------------------------------------------------------------------------------------- reading
@@ -196,8 +249,9 @@ def read_shard(url: str, entry: ShardEntry) -> Iterator[dict]:
     """The raw samples of one shard (member -> bytes, plus ``__key__`` and ``__url__``), in stored order.
 
     Raises:
-        DataFormatError: naming ``url``: an incomplete sample (as soon as it is read), or, after the last
-            sample, a sample count or SHA-256 that differs from the manifest's ``entry``.
+        DataFormatError: naming ``url``: a sample whose key, members or SHA-256 differ from the manifest's (as
+            soon as it is read, before it is yielded), or, after the last sample, a sample count or a SHA-256
+            of the whole file that differs from the manifest's ``entry``.
     """
     count = 0
     with fsspec.open(url, "rb") as stream:
@@ -206,6 +260,7 @@ def read_shard(url: str, entry: ShardEntry) -> Iterator[dict]:
             members = ({**member, "__url__": url} for member in tar_file_iterator(reader))
             for sample in group_by_keys(members):
                 check_complete(sample, url)
+                check_recorded(sample, entry, count, url)
                 count += 1
                 yield sample
         except (OSError, ValueError, EOFError, tarfile.TarError) as exc:
@@ -224,6 +279,19 @@ def read_shards(urls: Iterable[str], entries: Mapping[str, ShardEntry]) -> Itera
     """:func:`read_shard` of each URL in turn."""
     for url in urls:
         yield from read_shard(url, entries[url])
+
+
+def check_recorded(sample: Mapping[str, object], entry: ShardEntry, index: int, url: str) -> None:
+    """The ``index``-th sample of a shard must be the one the manifest recorded there, byte for byte."""
+    key = sample.get("__key__", "?")
+    if index >= len(entry.sample_sha256):
+        raise DataFormatError(url, f"sample {key} is beyond the {entry.samples} samples the manifest records")
+    expected_key, expected_digest = entry.sample_sha256[index]
+    if key != expected_key:
+        raise DataFormatError(url, f"sample {index} is {key}, the manifest records {expected_key} (damaged shard)")
+    if sample_sha256(sample) != expected_digest:
+        raise DataFormatError(url, f"sample {key}: SHA-256 of its members differs from the manifest's "
+                                   f"(damaged or replaced shard)")
 
 
 def check_complete(sample: Mapping[str, object], url: str) -> None:

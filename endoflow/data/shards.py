@@ -49,24 +49,24 @@ import cv2
 import numpy as np
 import webdataset as wds
 
-from endoflow.config import Params
-from endoflow.data.base import DATASETS, DataFormatError, Sequence, slug
+from endoflow.config import Params, params_to_dict
+from endoflow.data.base import DATASETS, DEPTH_ONLY_DATASETS, DataFormatError, Sequence, slug
 from endoflow.data.registry import open_reader
 from endoflow.data.shard_format import (
     DEPTH_MEMBER,
     FORMAT_VERSION,
+    IMAGE_NAMES,
     MANIFEST,
     META_MEMBER,
     SPLITS,
     ShardEntry,
-    file_sha256,
     manifest_bytes,
+    shard_digests,
     shard_name,
 )
 from endoflow.geometry.camera import scale_intrinsics
 from endoflow.io import atomic_path, replace_directory, write_bytes
 
-DEPTH_ONLY_DATASETS = frozenset({"scenenet"})
 # cm per stored depth count: colon data up to 65.535 cm at 10 um steps (finer than SimCol3D's own 0.078 cm);
 # indoor scenes up to 65.5 m at 1 mm.
 DEPTH_UNIT_CM = {"simcol": 0.001, "endoslam": 0.001, "scenenet": 0.1}
@@ -84,6 +84,9 @@ class EncodeSettings:
     neighbour_offset: int
     depth_unit: float
     depth_only: bool
+    # data.<dataset> as JSON: reader settings (depth scale, units, intrinsics...) change the decoded frames
+    # without changing any file, so they are part of every shard's resume key
+    reader_params: str
 
 
 @dataclass(frozen=True)
@@ -188,6 +191,7 @@ def encode_settings(dataset: str, params: Params) -> EncodeSettings:
         neighbour_offset=params.preprocess.neighbour_offset,
         depth_unit=DEPTH_UNIT_CM.get(dataset, DEPTH_UNIT_CM["simcol"]),
         depth_only=dataset in DEPTH_ONLY_DATASETS,
+        reader_params=json.dumps(params_to_dict(getattr(params.data, dataset)), sort_keys=True),
     )
 
 
@@ -396,6 +400,12 @@ def write_manifest(staging: Path, shards: list[ShardSpec], dataset: str) -> None
     Checksums are taken from the finished files, so shards reused from an interrupted run are covered too.
     """
     rows = [(shard.name, sample) for shard in shards for sample in shard.samples]
+    digests = {shard.name: shard_digests(str(staging / shard.name)) for shard in shards}
+    for shard in shards:
+        stored = [key for key, _ in digests[shard.name][1]]
+        if stored != [sample.key for sample in shard.samples]:
+            raise DataFormatError(staging / shard.name, f"holds samples {stored[:3]}..., the plan has "
+                                                        f"{[sample.key for sample in shard.samples][:3]}...")
     columns = {
         "shard": [name for name, _ in rows],
         "key": [s.key for _, s in rows],
@@ -404,8 +414,9 @@ def write_manifest(staging: Path, shards: list[ShardSpec], dataset: str) -> None
         "group": [s.group for _, s in rows],
         "frame": [s.frame for _, s in rows],
         "split": [s.split for _, s in rows],
+        "sha256": [digest for shard in shards for _, digest in digests[shard.name][1]],
     }
-    entries = [ShardEntry(s.name, len(s.samples), file_sha256(str(staging / s.name))) for s in shards]
+    entries = [ShardEntry(s.name, len(s.samples), digests[s.name][0]) for s in shards]
     write_bytes(staging / MANIFEST, manifest_bytes(columns, entries))
 
 
@@ -535,7 +546,7 @@ def encode_sample(
     """The files of one sample (extension -> bytes) and its count of depth pixels beyond range."""
     i = spec.position
     frames = sample_positions(spec, settings)
-    positions = dict(zip(("cur",) if settings.depth_only else ("prev", "cur", "next"), frames))
+    positions = dict(zip(("cur",) if settings.depth_only else IMAGE_NAMES, frames))
     files: dict[str, bytes] = {}
     if not settings.depth_only:
         cache.evict_before(frames[0])
@@ -550,7 +561,7 @@ def encode_sample(
 def sample_meta(
     spec: SampleSpec, sequence: Sequence, positions: dict[str, int], settings: EncodeSettings
 ) -> dict:
-    names = ("prev", "cur", "next")
+    names = IMAGE_NAMES
     poses = {name: _pose_list(sequence, positions[name]) if name in positions else None for name in names}
     frame_ids = {name: int(sequence.frame_ids[positions[name]]) if name in positions else None for name in names}
     return {

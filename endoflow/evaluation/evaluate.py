@@ -28,9 +28,9 @@ FrameBuffer_NNNN_to_FrameBuffer_MMMM.txt``: the 16 numbers of ``inv(P_i) @ P_{i+
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterable, Iterator, Optional
+from typing import Collection, Iterable, Iterator, Optional
 
 import cv2
 import numpy as np
@@ -59,6 +59,7 @@ class FrameRecord:
         rgb: ``[3, H, W]`` float in [0, 1] at the stored size.
         depth_cm: ``H x W`` GT z-depth in cm, or ``None`` (edge frames from ``prev``/``next``, or no GT).
         pose: ``4 x 4`` GT ``T_world_cam`` or ``None``.
+        after_gap: frames are missing between the previous frame of the sequence and this one.
     """
 
     sequence: str
@@ -68,6 +69,7 @@ class FrameRecord:
     depth_cm: Optional[np.ndarray]
     pose: Optional[np.ndarray]
     native_size: tuple[int, int]
+    after_gap: bool = False
 
 
 @dataclass
@@ -79,6 +81,7 @@ class SequenceResult:
     frames: list[int] = field(default_factory=list)
     poses: list[Optional[np.ndarray]] = field(default_factory=list)
     predicted_relative: list[np.ndarray] = field(default_factory=list)  # Q'_i between frames i and i+1
+    gaps: set[int] = field(default_factory=set)  # indices of frames that follow missing frames
     depth_frames: list[int] = field(default_factory=list)
     # frames with GT only, encoded as the challenge's files are (float16 depth / 20 cm), so the challenge
     # protocol sees the same quantisation as the official scorer
@@ -137,10 +140,24 @@ def frames_in_order(samples: Iterable[dict], max_frames: Optional[int] = None) -
         if max_frames is not None and count >= max_frames:
             continue
         count += 1
-        yield _record(sample, "cur")
+        if not new_sequence and follows_gap(last, sample):
+            # no triplet spans missing frames: the frames on both sides come from the edge members
+            yield from _edge_frame(last, "next")
+            edge = list(_edge_frame(sample, "prev"))
+            yield from (replace(frame, after_gap=True) for frame in edge)
+            yield replace(_record(sample, "cur"), after_gap=not edge)
+        else:
+            yield _record(sample, "cur")
         last = sample
     if last is not None:
         yield from _edge_frame(last, "next")
+
+
+def follows_gap(last: dict, sample: dict) -> bool:
+    """Consecutive targets of a sequence further apart than a target is from its neighbours: frames between
+    them are missing from the dataset."""
+    ids = sample["meta"]["frame_ids"]
+    return sample["meta"]["frame"] - last["meta"]["frame"] > ids["next"] - ids["cur"]
 
 
 def _edge_frame(sample: dict, which: str) -> Iterator[FrameRecord]:
@@ -207,7 +224,8 @@ class SequenceEvaluator:
             # T_earlier_later = inv(P_earlier) @ P_later: the challenge's relative pose
             relative = self.model.predict_pose(target, source, source_is_next=False).double().cpu().numpy()
             for first, second, pose in zip(earlier, later, relative):
-                self._write_pose(first, second, pose)
+                if not second.after_gap:  # no challenge pose across missing frames; never scored either
+                    self._write_pose(first, second, pose)
                 result.predicted_relative.append(pose)
         for frame, prediction in zip(batch, depth):
             self._add_frame(result, frame, prediction)
@@ -223,6 +241,8 @@ class SequenceEvaluator:
         return self.sequences[-1]
 
     def _add_frame(self, result: SequenceResult, frame: FrameRecord, prediction: np.ndarray) -> None:
+        if frame.after_gap:
+            result.gaps.add(len(result.frames))
         result.frames.append(frame.frame)
         result.poses.append(frame.pose)
         self._write_depth(frame, prediction)
@@ -293,7 +313,7 @@ def score_sequences(evaluator: SequenceEvaluator) -> tuple[dict, pd.DataFrame, p
                     per_frame[f][f"abs_rel_{method}"] = seq.paper[method][i]["abs_rel"]
                     per_frame[f][f"rmse_{method}"] = seq.paper[method][i]["rmse"]
                     per_frame[f][f"simcol_l1_{method}"] = result["per_frame"]["l1"][i]
-        run = longest_posed_run(seq.poses)
+        run = longest_posed_run(seq.poses, seq.gaps)
         if run is not None:
             start, stop = run
             gt_poses = np.stack(seq.poses[start:stop])
@@ -326,17 +346,20 @@ def score_sequences(evaluator: SequenceEvaluator) -> tuple[dict, pd.DataFrame, p
     return summary, frames_table, pd.DataFrame(sequence_rows), trajectories
 
 
-def longest_posed_run(poses: list[Optional[np.ndarray]]) -> Optional[tuple[int, int]]:
-    """``(start, stop)`` of the longest run of consecutive frames with GT poses (at least two), else None."""
+def longest_posed_run(poses: list[Optional[np.ndarray]], gaps: Collection[int] = ()) -> Optional[tuple[int, int]]:
+    """``(start, stop)`` of the longest run of consecutive frames with GT poses (at least two), else None.
+
+    A run ends before a frame in ``gaps`` (one that follows missing frames), which may start the next one.
+    """
     best: Optional[tuple[int, int]] = None
     start = None
     for i, pose in enumerate([*poses, None]):
-        if pose is not None and start is None:
-            start = i
-        elif pose is None and start is not None:
+        if start is not None and (pose is None or i in gaps):
             if i - start >= 2 and (best is None or i - start > best[1] - best[0]):
                 best = (start, i)
             start = None
+        if pose is not None and start is None:
+            start = i
     return best
 
 

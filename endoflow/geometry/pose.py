@@ -1,6 +1,6 @@
 """Rigid poses: 6-DoF vectors, 4x4 matrices, inverses, relative poses, Unity <-> OpenCV handedness.
 
-Conventions (see ``docs/design.md``):
+Conventions (see ``docs/architecture.md``):
 
 - A pose ``T_a_b`` is a 4x4 rigid transform that maps points from frame ``b`` into frame ``a``:
   ``p_a = T_a_b @ p_b``. Absolute poses are camera-to-world, ``T_world_cam``.

@@ -23,7 +23,8 @@ from endoflow.config import ConfigError, Params, params_from_dict, params_to_dic
 from endoflow.data.base import DataFormatError
 from endoflow.io import save_torch
 
-MODEL_FORMAT = 1
+# 2: the latent bank's init-scaled convolutions carry an init_scale buffer in the state dict.
+MODEL_FORMAT = 2
 _ZIP_MAGIC = b"PK\x03\x04"
 
 
@@ -105,7 +106,11 @@ def load_trained_model(path: str | Path, device: torch.device) -> tuple[torch.nn
     record = load_model_file(path)
     # the bank's weights are part of the state dict: build an empty one, then load everything
     model = build_model(record.params, latent_bank_path=None)
-    model.load_state_dict(record.state)
+    try:
+        model.load_state_dict(record.state)
+    except RuntimeError as exc:  # missing, unexpected or misshapen tensors
+        raise DataFormatError(path, f"weights do not fit the architecture of its params "
+                                    f"({' '.join(str(exc).split())[:300]})") from None
     return model.to(device).eval(), record
 
 

@@ -14,7 +14,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from endoflow.config import ENCODER_STRIDE
 from endoflow.data.base import DataFormatError
+from endoflow.models.model_file import load_plain_torch_file
 
 # Feature channels at strides 2, 4, 8, 16, 32.
 CHANNELS = (64, 64, 128, 256, 512)
@@ -67,9 +69,11 @@ class ResNetEncoder(nn.Module):
 
     def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
         expected = 3 * self.num_images
-        if images.ndim != 4 or images.shape[1] != expected or images.shape[-2] % 32 or images.shape[-1] % 32:
+        if (images.ndim != 4 or images.shape[1] != expected
+                or images.shape[-2] % ENCODER_STRIDE or images.shape[-1] % ENCODER_STRIDE):
             raise ValueError(
-                f"images: expected [B, {expected}, H, W] with H, W divisible by 32, got {tuple(images.shape)}"
+                f"images: expected [B, {expected}, H, W] with H, W divisible by {ENCODER_STRIDE}, "
+                f"got {tuple(images.shape)}"
             )
         x = F.relu(self.bn1(self.conv1((images - MEAN) / STD)))
         features = [x]
@@ -90,7 +94,7 @@ def load_imagenet_weights(encoder: ResNetEncoder, path: str | Path) -> None:
     path = Path(path)
     if not path.is_file():
         raise DataFormatError(path, "ResNet-18 weights file (model.encoder_weights) not found")
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    state = load_plain_torch_file(path, "a ResNet-18 state dict (model.encoder_weights)")
     state = {k: v for k, v in state.items() if not k.startswith("fc.")}
     if "conv1.weight" in state and encoder.num_images > 1:
         state["conv1.weight"] = state["conv1.weight"].repeat(1, encoder.num_images, 1, 1) / encoder.num_images

@@ -18,6 +18,7 @@ import numpy as np  # noqa: E402
 
 from endoflow.config import Params  # noqa: E402
 from endoflow.data.scenenet import scenenet_intrinsics  # noqa: E402
+from endoflow.io import save_figure  # noqa: E402
 from endoflow.synth.render import MAX_DEPTH_CM, render_tube_frame  # noqa: E402
 from endoflow.synth.rooms import render_room  # noqa: E402
 from endoflow.synth.writers import (  # noqa: E402
@@ -65,9 +66,7 @@ def save_preview(path: Path, size: int = 192, seed: int = 0) -> None:
         figure.colorbar(shown, ax=row[3], fraction=0.046)
         for axis in row:
             axis.set_axis_off()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=90)
-    plt.close(figure)
+    save_figure(path, figure, dpi=90)
 
 
 def main() -> None:

@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 import torch
 
-from endoflow.config import Params, SimColConfig
+from endoflow.config import ConfigError, Params, SimColConfig
 from endoflow.data.base import DATASETS
 from endoflow.data.endoslam import UNITYCAM_COLUMNS, UNITYCAM_K, UNITYCAM_POSE_SUFFIX, UNITYCAM_SIZE
 from endoflow.data.imageio import write_png
@@ -162,7 +162,8 @@ def plan_jobs(
                 jobs.append(Job("simcol", scene, name, str(target), entropy=(seed, layout_id, scene_id, i), **common))
     elif layout == "endoslam":
         if sequences > len(UNITYCAM_ORGANS):
-            raise ValueError(f"the UnityCam layout has {len(UNITYCAM_ORGANS)} organs; asked for {sequences} sequences")
+            raise ConfigError(f"synth.endoslam.sequences must be at most {len(UNITYCAM_ORGANS)} (one sequence per "
+                              f"UnityCam organ), got {sequences}")
         for organ_id, (organ, stem) in enumerate(UNITYCAM_ORGANS[:sequences]):
             target = out / "UnityCam" / organ
             jobs.append(Job("endoslam", organ, stem, str(target), entropy=(seed, layout_id, organ_id), **common))

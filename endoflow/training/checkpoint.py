@@ -21,7 +21,7 @@ import hashlib
 import json
 import random
 import zipfile
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Optional
 
@@ -69,7 +69,8 @@ class TrainingCheckpoint:
 def save_training_state(directory: Path, checkpoint: TrainingCheckpoint) -> None:
     """Write ``state.pt`` into a checkpoint folder."""
     save_torch(Path(directory) / STATE_FILE, {
-        "state": {**asdict(checkpoint.state), "best": None},  # asdict would deep-copy the best weights
+        # field by field: asdict would deep-copy the best epoch's weights on every save
+        "state": {f.name: getattr(checkpoint.state, f.name) for f in fields(TrainState) if f.name != "best"},
         "best": None if checkpoint.state.best is None else vars(checkpoint.state.best),
         "model": checkpoint.model,
         "optimizer": checkpoint.optimizer,
@@ -86,7 +87,7 @@ def load_training_state(checkpoint: str | Path) -> TrainingCheckpoint:
     location = f"{str(checkpoint).rstrip('/')}/{STATE_FILE}"
     raw = load_plain_torch_file(_read_bytes(location), TRAINING_STATE, name=location)
     try:
-        state = TrainState(**raw["state"])
+        state = TrainState(**raw["state"], best=None)
         state.best = None if raw["best"] is None else BestEpoch(**raw["best"])
         return TrainingCheckpoint(state, raw["model"], raw["optimizer"], raw["scheduler"])
     except (KeyError, TypeError) as exc:
@@ -136,20 +137,26 @@ def load_random_state(checkpoint: str | Path, rank: int) -> Optional[dict[str, A
 
 
 # ------------------------------------------------------------------------------------------ finding
-def latest_checkpoint(run_location: str) -> Optional[str]:
-    """The newest ``epoch-NNNN`` checkpoint under a Ray run folder (path or fsspec URL) whose ``state.pt``
-    is complete, or ``None``. A run killed while Ray copied a checkpoint leaves a truncated file, which
-    fails the zip check here (``torch.save`` writes zip archives) and is skipped."""
+def latest_checkpoint(run_location: str, ranks: int) -> Optional[str]:
+    """The newest ``epoch-NNNN`` checkpoint under a Ray run folder (path or fsspec URL) that is complete, or
+    ``None``: a ``state.pt`` and the random state of each of ``ranks`` ranks, all whole. A run killed while
+    Ray copied a checkpoint leaves files missing or truncated (``torch.save`` writes zip archives, so a cut
+    file fails the zip check); such a folder is skipped for the one before it."""
     fs, root = fsspec.core.url_to_fs(run_location)
     folders = sorted(fs.glob(f"{root.rstrip('/')}/epoch-*"), reverse=True)
     for folder in folders:
-        try:
-            with fs.open(f"{folder}/{STATE_FILE}", "rb") as f, zipfile.ZipFile(f):
-                pass
-        except (OSError, zipfile.BadZipFile):
-            continue
-        return fs.unstrip_protocol(folder) if "://" in run_location else folder
+        names = [STATE_FILE, *(rng_file(rank) for rank in range(ranks))]
+        if all(_is_whole_zip(fs, f"{folder}/{name}") for name in names):
+            return fs.unstrip_protocol(folder) if "://" in run_location else folder
     return None
+
+
+def _is_whole_zip(fs: Any, path: str) -> bool:
+    try:
+        with fs.open(path, "rb") as f, zipfile.ZipFile(f):
+            return True
+    except (OSError, zipfile.BadZipFile):
+        return False
 
 
 # --------------------------------------------------------------------------------------------- audit

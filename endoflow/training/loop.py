@@ -49,6 +49,7 @@ from endoflow.data.shard_format import ShardEntry, shard_entries  # noqa: E402
 from endoflow.evaluation import metrics, plots  # noqa: E402
 from endoflow.locations import local_file  # noqa: E402
 from endoflow.models.endoflow_model import EndoflowModel, build_model  # noqa: E402
+from endoflow.progress import format_duration  # noqa: E402
 from endoflow.training.checkpoint import (  # noqa: E402
     BestEpoch,
     TrainingCheckpoint,
@@ -71,7 +72,7 @@ class NonFiniteLossError(RuntimeError):
     """The training loss became NaN or infinite; the message names the epoch and step."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class EpochContext:
     """What one rank's training needs every epoch."""
 
@@ -381,13 +382,6 @@ def examples_figure(model: EndoflowModel, examples: list[dict], device: torch.de
     rows = [{"label": f"{e['meta']['sequence']} #{e['meta']['frame']}", "rgb": e["cur"].permute(1, 2, 0).numpy(),
              "gt": e["depth"][0].numpy(), "pred": d} for e, d in zip(examples, depth)]
     return plots.depth_examples_figure(title, rows)
-
-
-def format_duration(seconds: float) -> str:
-    seconds = int(max(seconds, 0))
-    hours, rest = divmod(seconds, 3600)
-    minutes, seconds = divmod(rest, 60)
-    return f"{hours}h{minutes:02d}m" if hours else f"{minutes}m{seconds:02d}s"
 
 
 def progress(line: str) -> None:

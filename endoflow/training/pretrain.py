@@ -43,18 +43,18 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from endoflow.config import Params
+from endoflow.config import SWD_MIN_RESOLUTION, Params
 from endoflow.data.base import DataFormatError
 from endoflow.data.loader import list_shards, raw_samples
 from endoflow.data.shard_format import decode_sample
 from endoflow.evaluation.swd import multiscale_swd
-from endoflow.io import save_figure, save_torch, write_json
+from endoflow.io import save_figure, save_torch, staged_directory, write_json
 from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
 from endoflow.models.critic import Critic
 from endoflow.models.endoflow_model import generator_spec
 from endoflow.models.latent_bank import LatentBankGenerator, generator_payload
+from endoflow.progress import format_duration
 
-SWD_MIN_RESOLUTION = 16
 
 
 # ------------------------------------------------------------------------------------------------ data
@@ -241,13 +241,6 @@ def report_line(line: str) -> None:
     print(line, flush=True)
 
 
-def format_duration(seconds: float) -> str:
-    seconds = int(max(seconds, 0))
-    hours, rest = divmod(seconds, 3600)
-    minutes, seconds = divmod(rest, 60)
-    return f"{hours}h{minutes:02d}m" if hours else f"{minutes}m{seconds:02d}s"
-
-
 def step_work(stage: Stage) -> float:
     """The cost of one of the stage's generator steps with its critic steps, in units of a bare generator step."""
     return 1 + CRITIC_STEP_COST * stage.n_critic
@@ -419,11 +412,12 @@ def pretrain_latent_bank(
         )
         save_torch(out_path, payload)
 
-        save_sample_grid(fake_final, heldout, plots_dir / "samples_final.png", f"EMA generator, SWD {swd_final['mean']:.1f}")
-        save_sample_grid(
-            fake_untrained, heldout, plots_dir / "samples_untrained.png", f"untrained generator, SWD {swd_untrained['mean']:.1f}"
-        )
-        save_loss_curves(history, plots_dir / "losses.png")
+        with staged_directory(plots_dir) as folder:
+            save_sample_grid(fake_final, heldout, folder / "samples_final.png",
+                             f"EMA generator, SWD {swd_final['mean']:.1f}")
+            save_sample_grid(fake_untrained, heldout, folder / "samples_untrained.png",
+                             f"untrained generator, SWD {swd_untrained['mean']:.1f}")
+            save_loss_curves(history, folder / "losses.png")
 
         metrics = {
             "swd_untrained": swd_untrained["mean"],

@@ -30,9 +30,16 @@ import pandas as pd
 import torch
 
 from endoflow import tracking
-from endoflow.config import Params, RayConfig, flatten_params
+from endoflow.config import ConfigError, Params, RayConfig, flatten_params
 from endoflow.data.loader import list_shards, raw_samples
-from endoflow.data.shard_format import decode_depth, manifest_location, shard_entries
+from endoflow.data.shard_format import (
+    DEPTH_MEMBER,
+    META_MEMBER,
+    decode_depth,
+    decode_meta,
+    manifest_location,
+    shard_entries,
+)
 from endoflow.evaluation import plots
 from endoflow.geometry.pose import matrix_to_pose_vec, pose_vec_to_matrix
 from endoflow.io import save_figure, staged_directory, write_csv, write_json
@@ -95,8 +102,8 @@ def training_baselines(train_urls: list[str]) -> TrainingBaselines:
     depth_count: Optional[np.ndarray] = None
     pose_vectors = []
     for sample in raw_samples(train_urls):
-        meta = json.loads(sample["meta.json"])
-        depth = decode_depth(sample["depth.png"], meta["depth_unit"], sample["__url__"]).astype(np.float64)
+        meta = decode_meta(sample[META_MEMBER], sample["__url__"])
+        depth = decode_depth(sample[DEPTH_MEMBER], meta["depth_unit"], sample["__url__"]).astype(np.float64)
         if depth_sum is None:
             depth_sum, depth_count = np.zeros_like(depth), np.zeros_like(depth)
         if depth.shape == depth_sum.shape:
@@ -148,13 +155,15 @@ def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: 
     baselines = training_baselines(list(config.train_shards))
     storage = absolute_location(params.ray.storage_path, root)
     run_name = f"{params.ray.run_name}-{fingerprint}"
-    resume_from = latest_checkpoint(f"{storage.rstrip('/')}/{run_name}")
+    resume_from = latest_checkpoint(f"{storage.rstrip('/')}/{run_name}", params.ray.num_workers)
     saved = load_training_state(resume_from) if resume_from else None
     if saved is not None:
         print(f"[train] resuming after epoch {saved.state.epoch + 1} from {resume_from}", flush=True)
     if saved is None or saved.state.epoch + 1 < params.train.epochs:
         try:
             saved = fit_on_ray(params, replace(config, resume_from=resume_from), storage, run_name)
+        except ConfigError:
+            raise  # a setting the cluster cannot hold: rerunning would not help, the message names the key
         except Exception as exc:
             raise TrainingError(f"training failed (rerun the stage to resume from the last checkpoint): "
                                 f"{worker_error(exc)}") from exc
