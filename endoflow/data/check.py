@@ -88,10 +88,9 @@ def _missing_ground_truth(sequence: Sequence) -> str:
     return f"no {' or '.join(absent)}" if absent else ""
 
 
-def _is_adjacent(sequence: Sequence, target: int, source: int) -> bool:
-    """``source`` is the frame right beside ``target``: inside the sequence, with no frame missing between."""
-    return (0 <= source < len(sequence)
-            and abs(sequence.frame_ids[source] - sequence.frame_ids[target]) == sequence.frame_step)
+def _is_adjacent(sequence: Sequence, target: int, source: int, step: int) -> bool:
+    """``source`` is the frame right beside ``target`` (``step`` apart): inside the sequence, none missing between."""
+    return 0 <= source < len(sequence) and abs(sequence.frame_ids[source] - sequence.frame_ids[target]) == step
 
 
 def check_sequence(
@@ -106,11 +105,12 @@ def check_sequence(
     ``frames_without_pose`` (skipped frames: no pose, or a non-finite one), ``flagged`` and ``reason``.
     """
     frames = _FrameCache(sequence)
+    step = sequence.frame_step
     measured = [
         _pair_errors(frames, sequence, target, source)
         for target in _sample_targets(sequence, max_frames)
         for source in (target + 1, target - 1)
-        if _is_adjacent(sequence, target, source) and sequence.pose(source) is not None
+        if _is_adjacent(sequence, target, source, step) and sequence.pose(source) is not None
     ]
     with_pixels = [pair for pair in measured if pair.errors is not None]
     means = np.mean([pair.errors for pair in with_pixels], axis=0) if with_pixels else [None] * 4

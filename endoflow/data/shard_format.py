@@ -107,11 +107,10 @@ def shard_name(split: str, index: int) -> str:
     return f"{split}-{index:06d}.tar"
 
 
-def shard_glob(split: str) -> str:
-    """Glob pattern matching the shard names of ``split``."""
+def check_split(split: str) -> None:
+    """``split`` must be one of :data:`SPLITS`."""
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
-    return f"{split}-*.tar"
 
 
 def manifest_location(folder: str) -> str:
@@ -179,7 +178,7 @@ def split_shards(folder: str, split: str) -> list[str]:
     Raises:
         DataFormatError: a listed shard is missing (naming it).
     """
-    shard_glob(split)  # validates the split name
+    check_split(split)
     manifest = read_manifest(folder)
     names = sorted(name for name in manifest.shards if name.startswith(f"{split}-"))
     fs, path = fsspec.core.url_to_fs(str(folder))
@@ -188,7 +187,8 @@ def split_shards(folder: str, split: str) -> list[str]:
         shard = posixpath.join(path.rstrip("/"), name)
         url = fs.unstrip_protocol(shard) if "://" in str(folder) else shard
         if not fs.exists(shard):
-            raise DataFormatError(url, f"shard listed in {MANIFEST} is missing ({manifest.entry(name).samples} samples)")
+            raise DataFormatError(url, f"shard listed in {MANIFEST} is missing "
+                                       f"({manifest.entry(name).samples} samples)")
         urls.append(url)
     return urls
 
@@ -215,9 +215,25 @@ def sample_sha256(sample: Mapping[str, object]) -> str:
     return digest.hexdigest()
 
 
+class HashingWriter:
+    """A write-only stream that hashes every byte written through it: the writer's side of a shard's SHA-256,
+    taken while the shard is written rather than by reading it back."""
+
+    def __init__(self, stream: IO[bytes]) -> None:
+        self.stream = stream
+        self.digest = hashlib.sha256()
+
+    def write(self, data: bytes) -> int:
+        self.digest.update(data)
+        return self.stream.write(data)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+
 def shard_digests(location: str) -> tuple[str, list[tuple[str, str]]]:
-    """What the manifest records of a freshly written shard: the SHA-256 of its bytes, and each sample's key and
-    :func:`sample_sha256` in stored order (the writer's side of :func:`read_shard`'s checks)."""
+    """What the manifest records of a shard already on disk (one kept from an interrupted run): the SHA-256 of
+    its bytes, and each sample's key and :func:`sample_sha256` in stored order."""
     with fsspec.open(location, "rb") as stream:
         reader = _HashingReader(stream)
         members = ({**member, "__url__": location} for member in tar_file_iterator(reader))

@@ -59,8 +59,10 @@ from endoflow.data.shard_format import (
     MANIFEST,
     META_MEMBER,
     SPLITS,
+    HashingWriter,
     ShardEntry,
     manifest_bytes,
+    sample_sha256,
     shard_digests,
     shard_name,
 )
@@ -110,8 +112,7 @@ class ShardSpec:
 
 @dataclass(frozen=True)
 class ShardResult:
-    name: str
-    samples: int
+    entry: ShardEntry  # what the manifest records of the shard, hashed as it was written
     frames_decoded: int
     depth_out_of_range: int
 
@@ -163,7 +164,9 @@ def write_dataset_shards(
     reused = prepare_staging(staging, shard_keys(shards, settings, sequences))
     todo = [shard for shard in shards if shard.name not in reused]
     results = run_shard_writers(todo, staging, settings, sequences, load_sequences, params.preprocess.workers)
-    write_manifest(staging, shards, dataset)
+    entries = {r.entry.name: r.entry for r in results}
+    entries.update({shard.name: kept_shard_entry(staging, shard) for shard in shards if shard.name in reused})
+    write_manifest(staging, shards, dataset, entries)
     (staging / PLAN_FILE).unlink()
     replace_directory(staging, out_dir)
     seconds = time.perf_counter() - started
@@ -394,18 +397,19 @@ def recorded_keys(plan_path: Path) -> dict[str, str]:
     return keys if isinstance(keys, dict) else {}
 
 
-def write_manifest(staging: Path, shards: list[ShardSpec], dataset: str) -> None:
-    """The manifest of the shards in ``staging``: one row per sample, and each shard's count and SHA-256.
+def kept_shard_entry(staging: Path, shard: ShardSpec) -> ShardEntry:
+    """The manifest entry of a shard kept from an interrupted run, read back from its file."""
+    file_digest, samples = shard_digests(str(staging / shard.name))
+    planned = [sample.key for sample in shard.samples]
+    if [key for key, _ in samples] != planned:
+        raise DataFormatError(staging / shard.name, f"holds samples {[key for key, _ in samples][:3]}..., the "
+                                                    f"plan has {planned[:3]}...")
+    return ShardEntry(shard.name, len(samples), file_digest, tuple(samples))
 
-    Checksums are taken from the finished files, so shards reused from an interrupted run are covered too.
-    """
+
+def write_manifest(staging: Path, shards: list[ShardSpec], dataset: str, entries: dict[str, ShardEntry]) -> None:
+    """The manifest of the shards in ``staging``: one row per sample, and each shard's count and SHA-256."""
     rows = [(shard.name, sample) for shard in shards for sample in shard.samples]
-    digests = {shard.name: shard_digests(str(staging / shard.name)) for shard in shards}
-    for shard in shards:
-        stored = [key for key, _ in digests[shard.name][1]]
-        if stored != [sample.key for sample in shard.samples]:
-            raise DataFormatError(staging / shard.name, f"holds samples {stored[:3]}..., the plan has "
-                                                        f"{[sample.key for sample in shard.samples][:3]}...")
     columns = {
         "shard": [name for name, _ in rows],
         "key": [s.key for _, s in rows],
@@ -414,10 +418,9 @@ def write_manifest(staging: Path, shards: list[ShardSpec], dataset: str) -> None
         "group": [s.group for _, s in rows],
         "frame": [s.frame for _, s in rows],
         "split": [s.split for _, s in rows],
-        "sha256": [digest for shard in shards for _, digest in digests[shard.name][1]],
+        "sha256": [digest for shard in shards for _, digest in entries[shard.name].sample_sha256],
     }
-    entries = [ShardEntry(s.name, len(s.samples), digests[s.name][0]) for s in shards]
-    write_bytes(staging / MANIFEST, manifest_bytes(columns, entries))
+    write_bytes(staging / MANIFEST, manifest_bytes(columns, [entries[shard.name] for shard in shards]))
 
 
 # ------------------------------------------------------------------------------------------- shard writing
@@ -500,14 +503,18 @@ def write_shard(
     """
     cache = FrameCache(settings)
     out_of_range = 0
+    digests = []
     with atomic_path(staging / shard.name) as temporary, open(temporary, "wb", buffering=WRITE_BUFFER) as stream:
-        with wds.TarWriter(stream, encoder=False, mtime=0, user="", group="") as tar:
+        hashing = HashingWriter(stream)
+        with wds.TarWriter(hashing, encoder=False, mtime=0, user="", group="") as tar:
             for spec in shard.samples:
                 files, bad_depth = encode_sample(spec, sequences[spec.sequence], settings, cache)
                 out_of_range += bad_depth
                 tar.write({"__key__": spec.key, **files})
+                digests.append((spec.key, sample_sha256(files)))
     frames = len(shard.samples) if settings.depth_only else cache.decoded
-    return ShardResult(shard.name, len(shard.samples), frames, out_of_range)
+    entry = ShardEntry(shard.name, len(shard.samples), hashing.digest.hexdigest(), tuple(digests))
+    return ShardResult(entry, frames, out_of_range)
 
 
 class FrameCache:

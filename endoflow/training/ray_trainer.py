@@ -38,7 +38,6 @@ from endoflow.data.shard_format import (
     decode_depth,
     decode_meta,
     manifest_location,
-    shard_entries,
 )
 from endoflow.evaluation import plots
 from endoflow.geometry.pose import matrix_to_pose_vec, pose_vec_to_matrix
@@ -133,7 +132,6 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
     train_urls, val_urls = list_shards(shards, "train"), list_shards(shards, "val")
     if not train_urls:
         raise FileNotFoundError(f"{shards}: no train-*.tar shards (run the preprocess stage first)")
-    shard_entries(train_urls + val_urls)
     latent_bank = absolute_location(params.train.latent_bank, root) if params.model.latent_bank else None
     if latent_bank:
         check_latent_bank_file(local_file(latent_bank))
