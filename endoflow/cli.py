@@ -53,7 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
         sub.set_defaults(handler=handler)
 
     model = commands.add_parser("model", help="the depth + pose model").add_subparsers()
-    summary = model.add_parser("summary", help="trainable and frozen parameter counts per component")
+    summary = model.add_parser(
+        "summary", help="trainable and frozen parameter counts per component, beside the released code's"
+    )
     summary.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     summary.add_argument("--json", action="store_true")
     summary.set_defaults(handler=_model_summary)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -23,6 +24,11 @@ import yaml
 
 class ConfigError(ValueError):
     """A parameter is unknown, missing or of the wrong type; the message names the key."""
+
+
+# What a device key may say, and what a precision key may say; endoflow/devices.py turns them into torch terms.
+DEVICE_NAME = re.compile(r"auto|cpu|cuda(:[0-9]+)?")
+Precision = Literal["auto", "bf16", "float32"]
 
 
 # --------------------------------------------------------------------------------------------- data
@@ -85,7 +91,9 @@ class SynthConfig:
     size: int = 128
     seed: int = 0
     workers: int = 2  # processes rendering sequences in parallel (CPU)
-    device: str = "cpu"  # torch device for rendering, e.g. "cuda" (then one process)
+    # Rendering device: auto (a CUDA GPU if torch sees one, else the CPU), cpu, cuda or cuda:N (endoflow.devices).
+    # A GPU renders in one process, and its float arithmetic may differ from the CPU's in the last bits.
+    device: str = "cpu"
     simcol: SynthLayoutConfig = field(default_factory=lambda: SynthLayoutConfig(15, 60))
     endoslam: SynthLayoutConfig = field(default_factory=lambda: SynthLayoutConfig(2, 120))
     scenenet: SynthLayoutConfig = field(default_factory=lambda: SynthLayoutConfig(60, 20))
@@ -94,8 +102,13 @@ class SynthConfig:
 # ---------------------------------------------------------------------------------------- preprocess
 @dataclass
 class PreprocessConfig:
+    # A local path or an fsspec URL (file:///shared/shards, s3://bucket/shards) that every Ray node can write.
     out: str = "data/shards"
-    workers: int = 2
+    # Who writes the shards: local (preprocess.workers processes on this machine) or ray (one Ray task per
+    # shard on the cluster at ray.address, or on a local Ray when it is null; the dataset root must be at the
+    # same path on every node). Both write the same bytes.
+    engine: Literal["local", "ray"] = "local"
+    workers: int = 2  # processes of the local engine
     samples_per_shard: int = 128
     # Each split's shard count is a multiple of this, so whole shards divide evenly over workers.
     shard_multiple: int = 4
@@ -137,6 +150,11 @@ class LatentBankConfig:
     # Maps are centred log-depth divided by this (natural-log units), clipped to [-1, 1].
     depth_log_range: float = 1.5
     holdout_fraction: float = 0.1  # held out of train for the SWD when the shards have no val split
+    device: str = "auto"  # auto, cpu, cuda or cuda:N (endoflow.devices); the bank file is saved as CPU tensors
+    # float32 by default, also on GPUs: the gradient penalty differentiates the critic twice, and bf16 moves it
+    # most (critic loss up to 6% off float32 at a first step); bf16 pretraining is unmeasured on a GPU
+    # (docs/method.md, "Devices and precision"). auto or bf16 as for train.precision.
+    precision: Precision = "float32"
 
 
 # ------------------------------------------------------------------------------------------ model
@@ -191,10 +209,16 @@ class TrainConfig:
     grad_clip: Optional[float] = None  # max gradient norm; null: no clipping
     steps_per_epoch: Optional[int] = None  # cap per epoch (smoke runs); null: one pass over the shards
     val_batches: Optional[int] = None  # cap on validation batches per epoch; null: the whole val split
-    bf16: bool = True  # bf16 autocast and channels-last on GPU (ignored on CPU)
+    # auto: bf16 autocast (and channels-last) on a GPU with native bf16, float32 elsewhere; bf16 also runs on
+    # the CPU (CI does). The device is Ray's (ray.use_gpu). See endoflow.devices.
+    precision: Precision = "auto"
     image_examples: int = 3  # fixed val frames whose depth is logged beside GT each epoch
     # Ray checkpoints kept (the newest; each holds the best epoch's weights too, so the model is never lost)
     keep_checkpoints: int = 2
+    # Processes per Ray worker that read, check, decode and collate its batches (0: the training process does,
+    # between steps). The batch order depends on it (0 and 1 agree), so a run resumes only with its value. With
+    # loader processes, loader_workers + 1 (the training process) must fit ray.cpus_per_worker.
+    loader_workers: int = 0
 
 
 @dataclass
@@ -203,6 +227,13 @@ class RayConfig:
     num_workers: int = 1
     use_gpu: bool = False
     cpus_per_worker: float = 1.0
+    # Where Ray puts the workers: PACK / SPREAD as few / as many nodes as it can, STRICT_PACK all on one node,
+    # STRICT_SPREAD each on a node of its own (Ray Train's ScalingConfig.placement_strategy).
+    placement_strategy: Literal["PACK", "SPREAD", "STRICT_PACK", "STRICT_SPREAD"] = "PACK"
+    # Worker failures (a process or node lost, or any error a worker raises) that Ray Train recovers from by
+    # restarting every worker from the newest checkpoint; -1: no limit. A real error is raised after max_failures
+    # retries, each repeating at most the epoch it broke in.
+    max_failures: int = 2
     # Checkpoints: a local path (made absolute), a shared filesystem or an fsspec URL (s3://, file://...).
     storage_path: str = "ray_results"
     # Local Ray only (address null): logical CPUs (null: this machine's) and object store size.
@@ -242,6 +273,8 @@ class EvalConfig:
     batch_size: int = 8
     depth_examples: int = 3  # frames shown with error maps per test set
     max_frames_per_sequence: Optional[int] = None  # null: every frame
+    device: str = "auto"  # auto, cpu, cuda or cuda:N (endoflow.devices)
+    precision: Precision = "auto"  # as train.precision; depth and pose are scored in float32 after the network
 
 
 # ----------------------------------------------------------------------------------------- tracking
@@ -476,6 +509,7 @@ _POSITIVE = _above(0)
 _NON_NEGATIVE = _at_least(0)
 _FRACTION = _within(0, 1)
 _PROPER_FRACTION = _within(0, 1, include_high=False)
+_DEVICE = _Check(lambda v: DEVICE_NAME.fullmatch(v) is not None, "auto, cpu, cuda or cuda:N")
 # The ResNet encoder downsamples by 32, and DepthNet needs whole feature maps at every level.
 ENCODER_STRIDE = 32
 # pretrain.py measures the bank with a sliced Wasserstein distance on pyramids down to 16 px.
@@ -503,6 +537,7 @@ _SYNTH_RULES: tuple[tuple[str, _Check | _Each], ...] = (
     ("synth.size", _Check(lambda v: v >= 8, ">= 8 (the smallest frame the synthetic writers render)")),
     ("synth.seed", _NON_NEGATIVE),
     ("synth.workers", _COUNT),
+    ("synth.device", _DEVICE),
     ("synth.simcol.sequences", _COUNT),
     ("synth.endoslam.sequences", _COUNT),  # at most one per UnityCam organ: the writers check that
     ("synth.scenenet.sequences", _COUNT),
@@ -543,6 +578,7 @@ _LATENT_BANK_RULES: tuple[tuple[str, _Check | _Each], ...] = (
     ("latent_bank.fade_fraction", _FRACTION),
     ("latent_bank.depth_log_range", _POSITIVE),
     ("latent_bank.holdout_fraction", _PROPER_FRACTION),
+    ("latent_bank.device", _DEVICE),
 )
 
 _MODEL_RULES: tuple[tuple[str, _Check | _Each], ...] = (
@@ -570,6 +606,7 @@ _TRAIN_RULES: tuple[tuple[str, _Check | _Each], ...] = (
     ("train.val_batches", _optional(_COUNT)),
     ("train.image_examples", _NON_NEGATIVE),
     ("train.keep_checkpoints", _COUNT),  # Ray's CheckpointConfig refuses to keep none
+    ("train.loader_workers", _NON_NEGATIVE),
 )
 
 _RAY_RULES: tuple[tuple[str, _Check | _Each], ...] = (
@@ -577,12 +614,14 @@ _RAY_RULES: tuple[tuple[str, _Check | _Each], ...] = (
     ("ray.cpus_per_worker", _POSITIVE),
     ("ray.num_cpus", _optional(_COUNT)),
     ("ray.object_store_mb", _at_least(_RAY_MIN_OBJECT_STORE_MB)),
+    ("ray.max_failures", _at_least(-1)),  # -1: Ray Train retries without limit
 )
 
 _EVAL_RULES: tuple[tuple[str, _Check | _Each], ...] = (
     ("eval.batch_size", _COUNT),
     ("eval.depth_examples", _NON_NEGATIVE),
     ("eval.max_frames_per_sequence", _optional(_COUNT)),
+    ("eval.device", _DEVICE),
 )
 
 _RANGE_RULES = (_TOP_RULES + _DATA_RULES + _SYNTH_RULES + _PREPROCESS_RULES + _LATENT_BANK_RULES + _MODEL_RULES
@@ -686,6 +725,17 @@ def _check_workers_have_shards(params: Params) -> None:
         )
 
 
+def _check_loader_workers_fit_worker_cpus(params: Params) -> None:
+    # Loader processes run beside the training process inside the CPUs Ray reserves for the worker; beyond
+    # them they would take cores from other workers or trials on the node.
+    loaders, cpus = params.train.loader_workers, params.ray.cpus_per_worker
+    if loaders and loaders + 1 > cpus:
+        raise ConfigError(
+            f"train.loader_workers ({loaders}) + 1 (the training process) = {loaders + 1} CPUs exceed "
+            f"ray.cpus_per_worker = {cpus:g}; raise ray.cpus_per_worker or lower train.loader_workers"
+        )
+
+
 def _check_test_sets(params: Params) -> None:
     known = list(DATASETS)
     for name, test_set in params.eval.test_sets.items():
@@ -703,5 +753,6 @@ _CROSS_FIELD_CHECKS: tuple[Callable[[Params], None], ...] = (
     _check_synth_triplets,
     _check_ray_fits_local_cpus,
     _check_workers_have_shards,
+    _check_loader_workers_fit_worker_cpus,
     _check_test_sets,
 )

@@ -9,6 +9,8 @@ Every writer in endoflow goes through this module (``docs/architecture.md``, "At
   :func:`save_torch` are built on it.
 - :func:`staged_directory` fills a unique temporary sibling folder and swaps it in whole
   (:func:`replace_directory`), so a reader never sees a half-filled folder.
+- :func:`atomic_location` is :func:`atomic_path` for any fsspec URL too: on an object store (``s3://``) the
+  file is written locally and uploaded with a single put, so the object appears whole or not at all.
 
 ``durable=True`` (the default) fsyncs the file before the rename and the folder after it, so a power loss
 cannot leave a renamed but empty file; bulk writers of many small files inside a staged folder (rendered
@@ -19,11 +21,15 @@ from __future__ import annotations
 
 import json
 import os
+import posixpath
 import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
+
+import fsspec
+from fsspec.implementations.local import LocalFileSystem
 
 TEMPORARY_MARK = ".tmp-"
 
@@ -68,6 +74,25 @@ def atomic_path(path: str | Path, durable: bool = True) -> Iterator[Path]:
         raise
     if durable:
         _fsync_folder(path.parent)
+
+
+@contextmanager
+def atomic_location(location: str | Path, durable: bool = True) -> Iterator[Path]:
+    """:func:`atomic_path` for a local path or an fsspec URL: yields a local temporary to write the content to.
+
+    On a local filesystem (a path, ``file://``) this is :func:`atomic_path`. Elsewhere there is no rename: the
+    temporary is uploaded with one ``put`` when the block succeeds, and an object store shows an object only
+    once its upload is complete; on failure nothing is uploaded.
+    """
+    fs, path = fsspec.core.url_to_fs(str(location))
+    if isinstance(fs, LocalFileSystem):
+        with atomic_path(path, durable) as temporary:
+            yield temporary
+        return
+    with tempfile.TemporaryDirectory(prefix="endoflow-upload-") as folder:
+        temporary = Path(folder) / posixpath.basename(path)
+        yield temporary
+        fs.put_file(str(temporary), path)
 
 
 def write_bytes(path: str | Path, data: bytes, durable: bool = True) -> None:

@@ -1,18 +1,23 @@
 """DVC stage `preprocess` (foreach dataset): native layout -> WebDataset shards + manifest.parquet.
 
 Usage: ``python stages/preprocess.py {simcol,endoslam,scenenet}``; reads ``params.yaml`` and writes
-``<preprocess.out>/<dataset>/``. An interrupted run resumes from ``<preprocess.out>/.<dataset>.partial/``.
+``<preprocess.out>/<dataset>/`` (a local path, made absolute against the working folder, or an fsspec URL).
+An interrupted run resumes from ``<preprocess.out>/.<dataset>.partial/`` (on an object store, from the
+shards already in ``<preprocess.out>/<dataset>/``). ``preprocess.engine: ray`` writes the shards as Ray
+tasks on the cluster at ``ray.address``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import posixpath
 from pathlib import Path
 
 from endoflow.config import load_params
 from endoflow.data.base import DATASETS
 from endoflow.data.shards import preprocess_dataset
+from endoflow.locations import absolute_location
 
 
 def main() -> None:
@@ -21,7 +26,8 @@ def main() -> None:
     parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
     args = parser.parse_args()
     params = load_params(args.params)
-    summary = preprocess_dataset(args.dataset, params, Path(params.preprocess.out) / args.dataset)
+    out = absolute_location(params.preprocess.out, Path.cwd())
+    summary = preprocess_dataset(args.dataset, params, posixpath.join(out.rstrip("/"), args.dataset))
     print(json.dumps(summary, indent=2))
 
 

@@ -15,6 +15,8 @@ FORBIDDEN = {
     "endoflow.config": ["endoflow."],
     "endoflow.locations": ["endoflow."],
     "endoflow.progress": ["endoflow."],
+    "endoflow.ray_runtime": ["endoflow.data", "endoflow.models", "endoflow.training", "endoflow.evaluation",
+                             "endoflow.synth"],
     "endoflow.synth": ["endoflow.models", "endoflow.training", "endoflow.evaluation"],
     "endoflow.geometry": ["endoflow.data", "endoflow.models", "endoflow.losses", "endoflow.training",
                           "endoflow.evaluation", "endoflow.synth"],

@@ -72,6 +72,17 @@ def test_bool_is_not_an_integer_and_int_is_a_float(tmp_path):
 def test_choices_are_enforced():
     with pytest.raises(ConfigError, match=r"loss\.photometric must be one of"):
         params_from_dict({"loss": {"photometric": "l2"}})
+    for key in ("train.precision", "latent_bank.precision", "eval.precision"):
+        with pytest.raises(ConfigError, match=rf"^{re.escape(key)} must be one of \['auto', 'bf16', 'float32'\], "
+                                              rf"got 'fp16'$"):
+            params_from_dict(defaults_with({key: "fp16"}))
+
+
+def test_device_keys_take_auto_cpu_cuda_and_numbered_gpus():
+    for name in ("auto", "cpu", "cuda", "cuda:1"):
+        params = params_from_dict(defaults_with({"synth.device": name, "latent_bank.device": name,
+                                                 "eval.device": name}))
+        assert params.synth.device == params.latent_bank.device == params.eval.device == name
 
 
 def test_nested_list_types_are_checked():
@@ -141,6 +152,7 @@ OUT_OF_RANGE = [
     ("synth.size", 4),
     ("synth.seed", -1),
     ("synth.workers", 0),
+    ("synth.device", "gpu"),
     ("synth.simcol.sequences", 0),
     ("synth.endoslam.sequences", 0),
     ("synth.scenenet.sequences", 0),
@@ -171,6 +183,7 @@ OUT_OF_RANGE = [
     ("latent_bank.fade_fraction", 1.5),
     ("latent_bank.depth_log_range", 0.0),
     ("latent_bank.holdout_fraction", 1.0),
+    ("latent_bank.device", "cuda:first"),
     ("model.min_depth", 0.0),
     ("model.scales", 0),
     ("model.scales", 5),
@@ -197,6 +210,7 @@ OUT_OF_RANGE = [
     ("eval.batch_size", 0),
     ("eval.depth_examples", -1),
     ("eval.max_frames_per_sequence", 0),
+    ("eval.device", "CUDA"),
 ]
 
 

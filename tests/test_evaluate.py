@@ -120,7 +120,8 @@ def oracle_baselines() -> TrainingBaselines:
 
 
 def run_oracle(root: Path, test_set: EvalSetConfig, out: Path) -> SequenceEvaluator:
-    evaluator = SequenceEvaluator(OracleModel(), oracle_baselines(), out, torch.device("cpu"), max_examples=2)
+    evaluator = SequenceEvaluator(OracleModel(), oracle_baselines(), out, torch.device("cpu"), "float32",
+                                  max_examples=2)
     samples = triplet_dataset(eval_set_shards(str(root), test_set))
     selected = (s for s in samples if s["meta"]["group"] in test_set.groups)
     for batch in batches_within_sequences(frames_in_order(selected), size=3):

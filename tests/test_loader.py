@@ -1,12 +1,15 @@
-"""Reading shards back: decoded tensors, shard listing by path and URL, ordered and per-rank iteration.
+"""Reading shards back: decoded tensors, shard listing by path and URL, ordered and per-rank iteration, in
+the training process or in loader processes (``train.loader_workers``).
 
 Training shards here are deliberately uneven: 5 shards of 2 or 3 samples dealt to 2 ranks.
 """
 
 from __future__ import annotations
 
+import collections
 import itertools
 import json
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -17,8 +20,20 @@ import pytest
 import torch
 import webdataset as wds
 
+from endoflow.config import ConfigError, params_from_dict
 from endoflow.data.base import DataFormatError
-from endoflow.data.loader import batches_per_epoch, list_shards, rank_batches, rank_shards, raw_samples, triplet_dataset
+from endoflow.data.loader import (
+    PREFETCH_BATCHES,
+    batches_per_epoch,
+    epoch_loader,
+    list_shards,
+    rank_batches,
+    rank_epoch,
+    rank_shards,
+    raw_samples,
+    triplet_dataset,
+    worker_batches,
+)
 from endoflow.data.shard_format import (
     MANIFEST,
     MANIFEST_SCHEMA,
@@ -31,6 +46,8 @@ from endoflow.data.shard_format import (
     shard_name,
 )
 from endoflow.data.shards import write_dataset_shards
+from endoflow.training.ray_trainer import training_fingerprint
+from tests.test_config import defaults_with
 from tests.test_shards import SyntheticSource, native_pose, small_params
 
 
@@ -178,3 +195,116 @@ def test_more_ranks_than_shards_or_a_missing_manifest_fail_clearly(shard_dir: Pa
         shard_entries([str(copy)])
     with pytest.raises(DataFormatError, match="manifest not found"):
         next(raw_samples([str(copy)]))
+
+
+# ----------------------------------------------------------------------------------------- loader processes
+LOADER_WORKERS = [0, 1, 2, 4]  # 4: more loader processes than a rank has shards (2 or 3) or batches (3)
+# torch warns when a DataLoader starts more processes than this machine has cores: intended here
+MORE_PROCESSES_THAN_CORES = pytest.mark.filterwarnings("ignore:This DataLoader will create")
+
+
+def keys_of(batches) -> list[str]:
+    return [key for batch in batches for key in batch["key"]]
+
+
+@MORE_PROCESSES_THAN_CORES
+@pytest.mark.parametrize("loader_workers", LOADER_WORKERS)
+def test_every_rank_gets_its_even_share_from_its_own_shards_with_any_number_of_loader_processes(
+        shard_dir: Path, loader_workers: int) -> None:
+    urls = list_shards(shard_dir, "train")
+    expected = batches_per_epoch(urls, world_size=2, batch_size=2)
+    seen = []
+    for rank in (0, 1):
+        batches = list(rank_batches(urls, rank, 2, batch_size=2, epoch=1, seed=7, loader_workers=loader_workers))
+        assert len(batches) == expected == 3
+        assert all(b["cur"].shape == (2, 3, 32, 32) and b["depth"].shape == (2, 1, 32, 32) for b in batches)
+        keys = keys_of(batches)
+        own = [s["__key__"] for s in raw_samples(rank_shards(urls, rank, 2, epoch=1, seed=7))]
+        assert set(keys) <= set(own)
+        # a rank short of its 6 samples re-reads its own: every sample as often as another, give or take one
+        uses = collections.Counter(keys)
+        assert max(uses.values()) - min(uses[key] for key in own) <= 1 and len(uses) == min(len(own), 6)
+        seen.append(set(keys))
+    assert not seen[0] & seen[1]
+
+
+@MORE_PROCESSES_THAN_CORES
+def test_a_rank_with_samples_to_spare_uses_each_once_whatever_the_loader_processes(
+        shard_dir: Path, tmp_path: Path) -> None:
+    samples = list(raw_samples(list_shards(shard_dir, "train")))
+    urls = write_shard_folder(tmp_path / "uneven", samples, [1, 1, 1, 1, 20])
+    rich = next(rank for rank in (0, 1) if urls[4] in rank_shards(urls, rank, 2, epoch=0, seed=0))  # 20 samples
+    for loader_workers in (0, 2, 3):
+        keys = keys_of(rank_batches(urls, rich, 2, batch_size=3, epoch=0, seed=0, loader_workers=loader_workers))
+        assert len(keys) == len(set(keys)) == 4 * 3
+
+
+@MORE_PROCESSES_THAN_CORES
+def test_the_same_seed_gives_the_same_batches_and_one_loader_process_matches_none(shard_dir: Path) -> None:
+    urls = list_shards(shard_dir, "train")
+
+    def epoch(loader_workers: int, epoch: int = 0) -> list[list[str]]:
+        return [b["key"] for b in rank_batches(urls, 0, 2, batch_size=2, epoch=epoch, seed=3, shuffle_buffer=4,
+                                               loader_workers=loader_workers)]
+
+    assert epoch(2) == epoch(2) and epoch(4) == epoch(4)
+    assert epoch(0) == epoch(1)
+    assert epoch(0, epoch=1) != epoch(0) and epoch(2, epoch=1) != epoch(2)
+
+
+def test_loader_processes_take_contiguous_runs_of_batches_the_first_ones_longer() -> None:
+    for batches, workers in itertools.product(range(8), range(1, 5)):
+        runs = [worker_batches(batches, w, workers) for w in range(workers)]
+        assert [i for run in runs for i in run] == list(range(batches))
+        lengths = [len(run) for run in runs]
+        assert lengths == sorted(lengths, reverse=True) and lengths[0] - lengths[-1] <= 1
+
+
+def test_a_capped_epoch_yields_its_cap_and_reading_batches_leaves_the_training_random_state_alone(
+        shard_dir: Path) -> None:
+    urls = list_shards(shard_dir, "train")
+    torch.manual_seed(0)
+    state = torch.get_rng_state()
+    capped = list(rank_batches(urls, 0, 2, batch_size=2, epoch=0, seed=0, loader_workers=2, max_batches=2))
+    assert len(capped) == 2 and len(list(rank_batches(urls, 0, 1, batch_size=1, epoch=0, seed=0,
+                                                      loader_workers=2, max_batches=100))) == 12
+    assert torch.equal(torch.get_rng_state(), state)
+
+
+@pytest.mark.parametrize("damage", ["bytes after the tar end", "a changed sample"])
+def test_a_damaged_shard_read_in_a_loader_process_fails_naming_it(shard_dir: Path, tmp_path: Path,
+                                                                 damage: str) -> None:
+    folder = tmp_path / "copy"
+    shutil.copytree(shard_dir, folder)
+    urls = list_shards(folder, "train")
+    shard = Path(urls[3])
+    if damage == "bytes after the tar end":
+        with open(shard, "ab") as f:
+            f.write(b"\0" * 1024)
+    else:
+        data = bytearray(shard.read_bytes())
+        at = data.index(b'"frame": ') + len(b'"frame": ')
+        data[at:at + 1] = b"9" if data[at:at + 1] != b"9" else b"8"
+        shard.write_bytes(bytes(data))
+    with pytest.raises(DataFormatError, match="SHA-256") as caught:
+        list(rank_batches(urls, 0, 1, batch_size=1, epoch=0, seed=0, loader_workers=2))  # every sample of one rank
+    assert caught.value.path == shard
+
+
+def test_batches_come_in_pinned_memory_when_asked(shard_dir: Path) -> None:
+    epoch_data = rank_epoch(list_shards(shard_dir, "train"), 0, 2, batch_size=2, epoch=0, seed=0)
+    loader = epoch_loader(epoch_data, loader_workers=2, pin_memory=True)
+    assert loader.pin_memory and loader.num_workers == 2 and loader.prefetch_factor == PREFETCH_BATCHES
+    assert not epoch_loader(epoch_data, loader_workers=0, pin_memory=False).pin_memory
+    if torch.cuda.is_available():  # pinning needs a CUDA device
+        assert all(batch["cur"].is_pinned() for batch in loader)
+
+
+def test_loader_processes_must_fit_the_workers_cpus_and_shape_the_training_fingerprint(shard_dir: Path) -> None:
+    with pytest.raises(ConfigError, match=r"train\.loader_workers \(2\) \+ 1 .* ray\.cpus_per_worker = 2"):
+        params_from_dict(defaults_with({"train.loader_workers": 2, "ray.cpus_per_worker": 2.0}))
+    with pytest.raises(ConfigError, match=r"train\.loader_workers must be >= 0"):
+        params_from_dict(defaults_with({"train.loader_workers": -1}))
+    fits = params_from_dict(defaults_with({"train.loader_workers": 2, "ray.cpus_per_worker": 3.0}))
+    in_process = params_from_dict(defaults_with({"train.loader_workers": 0, "ray.cpus_per_worker": 3.0}))
+    assert training_fingerprint(fits, str(shard_dir), None) != training_fingerprint(in_process, str(shard_dir), None)

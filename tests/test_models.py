@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
 
 from endoflow.cli import main as cli_main
-from endoflow.config import Params
+from endoflow.config import Params, load_params
 from endoflow.data.base import DataFormatError
 from endoflow.geometry.pose import invert_pose, pose_vec_to_matrix
 from endoflow.models.critic import Critic
@@ -22,10 +23,11 @@ from endoflow.models.latent_bank import (
     load_generator,
 )
 from endoflow.models.resnet_encoder import ResNetEncoder
-from endoflow.models.summary import model_summary
+from endoflow.models.summary import RELEASED_CODE_MILLIONS, model_summary
 from endoflow.training import objective
 from endoflow.training.objective import training_step_losses
 
+PAPER_PRESET = Path(__file__).resolve().parents[1] / "presets" / "paper.yaml"
 SPEC = GeneratorSpec(resolution=32, start_resolution=4, latent_dim=16, style_dim=16, mapping_layers=2,
                      channel_base=128, channel_max=32, conv_init_scale=1.0)
 
@@ -334,7 +336,8 @@ def test_summary_counts_frozen_bank_and_new_adapters_separately():
     plain = model_summary(small_params(latent_bank=False))
     assert full["latent_bank"]["trainable"] == 0 and full["latent_bank"]["frozen"] > 0
     assert full["bank_adapters"]["trainable"] > 0
-    assert plain["latent_bank"] == {"trainable": 0, "frozen": 0} == plain["bank_adapters"]
+    for component in ("latent_bank", "bank_adapters"):
+        assert (plain[component]["trainable"], plain[component]["frozen"]) == (0, 0)
     assert full["encoder"] == plain["encoder"] and full["pose_net"] == plain["pose_net"]
     assert full["decoder"]["trainable"] > plain["decoder"]["trainable"]  # extra [h, a] input channels
     assert full["total"]["frozen"] == full["latent_bank"]["frozen"]
@@ -345,5 +348,39 @@ def test_model_summary_cli_prints_json(tmp_path, capsys, monkeypatch):
     (tmp_path / "params.yaml").write_text("model:\n  latent_bank: false\n")
     assert cli_main(["model", "summary", "--set", "model.pose_vae=false", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert set(report["pose_net"]) == {"trainable", "frozen"}
+    assert set(report["pose_net"]) == {"trainable", "frozen", "released_code_millions"}
     assert report["latent_bank"]["frozen"] == 0
+    assert report["latent_bank"]["released_code_millions"] == 75.8  # the released code's bank is there anyway
+    assert report["bank_adapters"]["released_code_millions"] is None  # no figure: none is made up
+
+
+def test_model_summary_text_puts_the_released_code_beside_ours(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "params.yaml").write_text("model:\n  latent_bank: false\n")
+    assert cli_main(["model", "summary"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split()[-3:] == ["released", "code", "(M)"]
+    rows = {line.split()[0]: line.split()[1:] for line in lines[1:7]}
+    assert rows["pose_net"][-1] == f"{RELEASED_CODE_MILLIONS['pose_net']:.1f}"
+    assert rows["latent_bank"][-2:] == ["0.0", "75.8"]
+    assert rows["bank_adapters"][-1] == "-"
+    assert "released code" in lines[-1]  # the figures' source
+
+
+# ------------------------------------------------------------------------------------------ paper preset
+def test_the_paper_preset_bank_has_the_released_codes_scale_and_works_at_480():
+    """The shapes and the bank scale the paper preset claims, on the model it builds, at the paper's 480x480.
+
+    On the meta device (shapes without arithmetic, about 2 s): a real 480-px pass costs 513 GFLOP, several seconds
+    on 2 cores. tests/test_paper_dry_run.py trains and evaluates the same model for real."""
+    params = load_params(PAPER_PRESET)
+    with torch.device("meta"):
+        model = build_model(params, latent_bank_path=None).eval()
+        bank_maps = []
+        for block in model.depth_net.bank.blocks:
+            block.register_forward_hook(lambda module, inputs, output: bank_maps.append(tuple(output.shape)))
+        disps = model.depth_net(torch.rand(1, 3, 480, 480))
+        frozen = model_summary(params)["latent_bank"]["frozen"]
+    assert [tuple(d.shape) for d in disps] == [(1, 1, 480 // 2**s, 480 // 2**s) for s in range(4)]
+    assert bank_maps == [(1, c, 15 * 2**k, 15 * 2**k) for k, c in enumerate((1024, 1024, 1024, 512, 256))]
+    assert abs(frozen / (RELEASED_CODE_MILLIONS["latent_bank"] * 1e6) - 1) < 0.1  # 79.8 M against 75.8 M

@@ -131,8 +131,9 @@ def test_tiny_pretraining_writes_a_loadable_bank_metrics_and_plots(tmp_path, cap
     assert run.data.metrics["swd_final"] == pytest.approx(written["swd_final"])
     assert run.data.params["latent_bank.resolution"] == "16"
     printed = capsys.readouterr().out.splitlines()
+    device = "cuda" if torch.cuda.is_available() else "cpu"  # latent_bank.device: auto
     assert printed[0] == ("[pretrain] 40 training depth maps, 16 held out for the SWD; generator steps per "
-                          "resolution: 4 px x4, 8 px x4, 16 px x4")
+                          f"resolution: 4 px x4, 8 px x4, 16 px x4; on {device} in float32")
     assert printed[-2].startswith("[pretrain] trained 12 generator steps over 3 resolutions (4, 8, 16 px) in ")
     assert printed[-1].startswith("[pretrain] done in ") and printed[-1].endswith(f"latent bank written to {out}")
 

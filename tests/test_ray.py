@@ -42,7 +42,7 @@ def project(tmp_path: Path, **train_overrides) -> Params:
     params.model = replace(params.model, latent_bank=False)
     tiny = {"batch_size": 2, "steps_per_epoch": 1, "val_batches": 1, "log_every": 1, "image_examples": 1}
     params.train = replace(params.train, **{**tiny, **train_overrides})
-    params.ray = replace(params.ray, num_workers=1, num_cpus=2)
+    params.ray = replace(params.ray, num_workers=1, num_cpus=2, max_failures=0)  # an error ends the run at once
     return params
 
 
@@ -108,7 +108,9 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
     assert run.info.status == "FINISHED"
     assert run.data.params["ray.num_workers"] == "2"
     history = tracking.client(uri).get_metric_history(run.info.run_id, "val_abs_rel")
-    assert sorted(m.step for m in history) == [0, 1]
+    # Both epochs are logged; the killed run's workers may have logged epoch 1 too before they died (they run
+    # in Ray's own process groups, so the kill reaches them a moment later), which MLflow keeps as a second value.
+    assert sorted({m.step for m in history}) == [0, 1]
     assert "loss/total" in run.data.metrics
     artifacts = {a.path for folder in ("val_depth", "model")
                  for a in tracking.client(uri).list_artifacts(run.info.run_id, folder)}

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Optional
 
 import cv2
+import fsspec
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
@@ -25,12 +26,15 @@ from endoflow.config import Params
 from endoflow.data.base import DataFormatError, Sequence
 from endoflow.data.shards import (
     DEPTH_UNIT_CM,
+    ShardProgress,
+    ShardResult,
+    check_shards_arrived,
     pool_context,
     preprocess_dataset,
     stored_intrinsics,
     write_dataset_shards,
 )
-from endoflow.data.shard_format import MANIFEST, SHARD_TABLE_KEY, shard_digests
+from endoflow.data.shard_format import MANIFEST, SHARD_TABLE_KEY, ShardEntry, shard_digests
 from tests.samples import SIMCOL_SAMPLE
 
 NATIVE_K = np.array([[40.0, 0.0, 31.0], [0.0, 42.0, 22.5], [0.0, 0.0, 1.0]])
@@ -289,6 +293,52 @@ def test_a_failing_or_killed_worker_process_leaves_output_untouched(
     marker.unlink()
     write_dataset_shards(source, "simcol", small_params(workers=2), out_dir)
     assert_same_files(shards[0], out_dir)
+
+
+def test_on_an_object_store_shards_are_written_in_place_and_the_manifest_last(
+    tmp_path: Path, shards: tuple[Path, dict]
+) -> None:
+    # fsspec's in-memory filesystem stands for s3:// and the like: no rename, objects appear whole on upload
+    fs, out = fsspec.filesystem("memory"), f"memory://{tmp_path.name}/simcol"
+    write_dataset_shards(SyntheticSource(), "simcol", small_params(size=16), out)
+    marker = tmp_path / "broken"
+    marker.touch()
+    try:
+        with pytest.raises(DataFormatError, match="unreadable image"):
+            write_dataset_shards(SyntheticSource(broken=str(marker)), "simcol", small_params(), out)
+        left = sorted(path.rsplit("/", 1)[1] for path in fs.ls(f"/{tmp_path.name}/simcol", detail=False))
+        # the old manifest went first: a reader finds none rather than one listing shards of the old run
+        assert left == ["plan.json", *(f"train-00000{i}.tar" for i in range(4)), "val-000000.tar", "val-000001.tar"]
+        marker.unlink()
+        summary = write_dataset_shards(SyntheticSource(broken=str(marker)), "simcol", small_params(), out)
+        assert summary["shards_reused"] == 6
+        written = {path.rsplit("/", 1)[1]: fs.cat(path) for path in fs.ls(f"/{tmp_path.name}/simcol", detail=False)}
+        assert written == {p.name: p.read_bytes() for p in shards[0].iterdir()}
+    finally:
+        fs.rm(f"/{tmp_path.name}", recursive=True)
+
+
+def test_progress_lines_give_the_pace_and_the_time_left_at_most_every_interval() -> None:
+    now, lines = [0.0], []
+    progress = ShardProgress("simcol", total=4, kept=2, interval=10.0, clock=lambda: now[0], write=lines.append)
+    shard = ShardResult(ShardEntry("train-000000.tar", 3, "0" * 64), frames_decoded=30, depth_out_of_range=0)
+    for now[0] in (5.0, 12.0, 15.0, 40.0):
+        progress.shard_done(shard)
+    assert lines == [
+        "[preprocess] simcol: 2/4 shards written (2 kept from an interrupted run) | 60 frames, 5.0 frames/s | "
+        "~0m12s left",
+        "[preprocess] simcol: 4/4 shards written (2 kept from an interrupted run) | 120 frames, 3.0 frames/s | "
+        "done in 0m40s",
+    ]
+
+
+def test_shards_that_ray_tasks_wrote_out_of_sight_are_an_error_naming_preprocess_out(tmp_path: Path) -> None:
+    # a local output folder not shared with the other nodes: their shards landed on their own disks
+    (tmp_path / "train-000000.tar").write_bytes(b"")
+    results = [ShardResult(ShardEntry(name, 1, "0" * 64), 3, 0) for name in ("train-000000.tar", "val-000000.tar")]
+    with pytest.raises(DataFormatError, match=r"\['val-000000.tar'\]... \(1 in all\) .* preprocess.out must be"):
+        check_shards_arrived(str(tmp_path), results)
+    check_shards_arrived(str(tmp_path), results[:1])
 
 
 def test_depth_only_dataset_stores_every_frame_as_depth_and_meta(tmp_path: Path) -> None:

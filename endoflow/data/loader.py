@@ -11,18 +11,27 @@ drawn from ``(seed, epoch)``, so ranks read disjoint shards and each sees differ
 Uneven shard counts or sizes would let one rank finish early and leave the others waiting forever in DDP's
 all-reduce; instead every rank yields exactly :func:`batches_per_epoch` batches, the even share of the
 epoch's samples, cycling through its own shards when they hold fewer samples than that.
+
+Loader processes (``train.loader_workers``): a rank's batches can be read, checked, decoded and collated by
+worker processes of a torch ``DataLoader`` (:class:`RankEpoch`), so that the training thread only moves
+finished batches to its device. The rank's epoch is a run of samples of its own shards; each loader process
+takes a contiguous part of whole batches (:func:`worker_batches`) and reads only the shards that part lies in.
 """
 
 from __future__ import annotations
 
 import itertools
 import random
+from dataclasses import dataclass
 from functools import partial
-from typing import Iterable, Iterator, Mapping, Optional
+from typing import Iterable, Iterator, Mapping, Optional, Union
 
 import numpy as np
+import torch
 import webdataset as wds
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
+from endoflow.data.base import DataFormatError
 from endoflow.data.shard_format import (
     ShardEntry,
     collate_samples,
@@ -31,6 +40,10 @@ from endoflow.data.shard_format import (
     shard_entries,
     split_shards,
 )
+
+# Batches each loader process keeps ready ahead of the training loop (DataLoader's prefetch_factor): with W
+# processes up to 2 W collated batches wait in shared memory (/dev/shm; containers may need --shm-size).
+PREFETCH_BATCHES = 2
 
 
 # --------------------------------------------------------------------------------------------- listing
@@ -105,31 +118,155 @@ def rank_batches(
     seed: int,
     shuffle_buffer: int = 256,
     entries: Optional[Mapping[str, ShardEntry]] = None,
+    loader_workers: int = 0,
+    pin_memory: bool = False,
+    max_batches: Optional[int] = None,
 ) -> Iterator[dict]:
-    """Collated training batches of ``rank`` for ``epoch``: exactly :func:`batches_per_epoch` of them.
+    """Collated training batches of ``rank`` for ``epoch``: exactly :func:`batches_per_epoch` of them, or
+    ``max_batches`` if fewer (a capped epoch; the loader processes then read no further).
 
     Call with the same ``urls``, ``seed`` and ``epoch`` on every rank. A rank dealt more than the even
     share leaves the rest of its samples for another epoch (the deal changes every epoch); one dealt less
-    reads its own shards again. Samples are shuffled within the rank through a ``shuffle_buffer``.
-    ``entries`` (URL -> manifest entry) defaults to the manifests beside the shards.
+    reads its own shards again, every sample as often as another give or take one. ``entries`` (URL ->
+    manifest entry) defaults to the manifests beside the shards.
+
+    ``loader_workers`` processes read, check, decode and collate (0: this process does). The order of the
+    batches is fixed by ``(seed, epoch, rank, loader_workers)`` and depends on ``loader_workers`` (0 and 1
+    give the same batches): each process shuffles its own part through a buffer of ``shuffle_buffer /
+    loader_workers`` samples (the rank's memory for it stays that of one buffer) and the parts interleave
+    batch by batch. A run resumes exactly only with the value it started with. ``pin_memory``: batches come
+    in page-locked memory, for fast copies to a CUDA device. A damaged shard raises
+    :class:`~endoflow.data.base.DataFormatError` naming it, as it does when this process reads it.
     """
+    epoch_data = rank_epoch(urls, rank, world_size, batch_size, epoch, seed, shuffle_buffer, entries, max_batches)
+    return _raising_failures(epoch_loader(epoch_data, loader_workers, pin_memory))
+
+
+def rank_epoch(
+    urls: list[str],
+    rank: int,
+    world_size: int,
+    batch_size: int,
+    epoch: int,
+    seed: int,
+    shuffle_buffer: int = 256,
+    entries: Optional[Mapping[str, ShardEntry]] = None,
+    max_batches: Optional[int] = None,
+) -> RankEpoch:
+    """What ``rank`` reads in ``epoch`` (see :func:`rank_batches`), checked here rather than in a loader process."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be positive, got {batch_size}")
     entries = entries if entries is not None else shard_entries(urls)
     own = rank_shards(urls, rank, world_size, epoch, seed)
     count = batches_per_epoch(urls, world_size, batch_size, entries)
+    if max_batches is not None:
+        count = min(count, max_batches)
     if count and sum(entries[url].samples for url in own) == 0:
         raise ValueError(f"rank {rank} was dealt only empty shards this epoch; use fewer ranks or more data")
-    rng = random.Random(f"{seed}-{epoch}-{rank}")
-    samples = wds.shuffle(shuffle_buffer, shuffle_buffer, rng=rng)(_cycle(own, entries))
-    batches = (collate_samples([decode_sample(s) for s in group]) for group in _groups(samples, batch_size))
-    return itertools.islice(batches, count)
+    return RankEpoch(own, {url: entries[url] for url in own}, batch_size, count, seed, epoch, rank, shuffle_buffer)
 
 
-def _cycle(urls: list[str], entries: Mapping[str, ShardEntry]) -> Iterator[dict]:
-    """Samples of ``urls`` over and over (a rank short of its share re-reads its own shards)."""
-    while True:
-        yield from raw_samples(urls, entries)
+def epoch_loader(epoch_data: RankEpoch, loader_workers: int, pin_memory: bool) -> DataLoader:
+    """A ``DataLoader`` over ready batches (``batch_size=None``), with ``loader_workers`` processes.
+
+    It gets its own random generator: starting it then draws nothing from this process's torch random state,
+    which a resumed run restores and so must not depend on how data is loaded.
+    """
+    return DataLoader(epoch_data, batch_size=None, num_workers=loader_workers, pin_memory=pin_memory,
+                      prefetch_factor=PREFETCH_BATCHES if loader_workers else None,
+                      generator=torch.Generator().manual_seed(epoch_data.seed))
+
+
+@dataclass(frozen=True)
+class ShardFailure:
+    """A damaged shard met in a loader process, passed on as a batch would be: torch re-raises a worker's
+    error as a ``RuntimeError`` when its type takes more than a message, as ``DataFormatError`` does."""
+
+    error: DataFormatError
+
+
+@dataclass(frozen=True)
+class RankEpoch(IterableDataset):
+    """One rank's collated batches of one epoch: ``batches`` of ``batch_size`` samples.
+
+    The epoch's samples are the rank's ``shards`` read one after another, over and over if they hold too few:
+    samples ``0 .. batches * batch_size - 1`` of that run. In a ``DataLoader`` with W processes, process ``w``
+    collates the batches :func:`worker_batches` gives it, from just the samples they hold, shuffled through its
+    own seeded buffer; the ``DataLoader`` takes one batch from each process in turn. ``entries`` holds the
+    manifest entries of ``shards``.
+    """
+
+    shards: list[str]
+    entries: dict[str, ShardEntry]
+    batch_size: int
+    batches: int
+    seed: int
+    epoch: int
+    rank: int
+    shuffle_buffer: int
+
+    def __len__(self) -> int:
+        return self.batches
+
+    def __iter__(self) -> Iterator[Union[dict, ShardFailure]]:
+        info = get_worker_info()
+        worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+        share = worker_batches(self.batches, worker, workers)
+        samples = _sample_run(self.shards, self.entries, share.start * self.batch_size, share.stop * self.batch_size)
+        buffer = max(1, self.shuffle_buffer // workers)
+        rng = random.Random(f"{self.seed}-{self.epoch}-{self.rank}-{worker}")
+        shuffled = wds.shuffle(buffer, buffer, rng=rng)(samples)
+        try:
+            for group in _groups(shuffled, self.batch_size):
+                yield collate_samples([decode_sample(sample) for sample in group])
+        except DataFormatError as error:
+            if info is None:
+                raise
+            yield ShardFailure(error)
+
+
+def worker_batches(batches: int, worker: int, workers: int) -> range:
+    """The batches (positions in the rank's epoch) that loader process ``worker`` of ``workers`` collates.
+
+    A contiguous run per process, so each reads only the shards its run lies in; runs differ in length by at
+    most one, the first processes taking the longer ones, so the ``DataLoader``'s turn-taking yields every
+    batch and meets an exhausted process only in the last round.
+    """
+    base, extra = divmod(batches, workers)
+    start = worker * base + min(worker, extra)
+    return range(start, start + base + (worker < extra))
+
+
+def _sample_run(urls: list[str], entries: Mapping[str, ShardEntry], start: int, stop: int) -> Iterator[dict]:
+    """Samples ``start .. stop - 1`` of ``urls`` read one after another, over and over; only the shards
+    holding them are read."""
+    if start >= stop:
+        return
+    total = sum(entries[url].samples for url in urls)
+    offset = start - start % total  # where the pass holding sample `start` begins
+    while offset < stop:
+        for url in urls:
+            size = entries[url].samples
+            begin, end = max(start - offset, 0), min(stop - offset, size)
+            if begin < end:
+                yield from _shard_part(url, entries[url], begin, end)
+            offset += size
+
+
+def _shard_part(url: str, entry: ShardEntry, begin: int, end: int) -> Iterator[dict]:
+    """Samples ``begin .. end - 1`` of a shard. Read to its end, the shard's count and SHA-256 are checked as
+    well; stopping earlier, every sample read has been checked."""
+    samples = read_shard(url, entry)
+    if end < entry.samples:
+        samples = itertools.islice(samples, end)
+    yield from itertools.islice(samples, begin, None)
+
+
+def _raising_failures(batches: Iterable[Union[dict, ShardFailure]]) -> Iterator[dict]:
+    for batch in batches:
+        if isinstance(batch, ShardFailure):
+            raise batch.error
+        yield batch
 
 
 def _groups(items: Iterator[dict], size: int) -> Iterator[list[dict]]:

@@ -19,14 +19,24 @@ Shards: each split's samples, in sequence order, are spread evenly (sizes differ
 shard count that is a multiple of ``preprocess.shard_multiple``, so whole shards divide evenly over that
 many training workers. Keys (``<dataset>-<sequence>-<frame>``) depend only on the data, never on the run.
 
-Runs are atomic and resumable: everything is written into ``.<out_dir name>.partial/`` beside ``out_dir``
+Runs are atomic and resumable: everything is written into a staging folder (:class:`OutputFolder`)
 together with a plan file holding each shard's key (:func:`shard_keys`: its samples, settings, poses, K and
-the size and mtime of every source file it reads); each shard is written under a temporary name and renamed
-when complete. A rerun keeps a finished shard only if its key is unchanged (``shards_reused`` in the
-summary) and writes the rest, so a shard is never reused after an input it was built from changed; only a
-complete result replaces ``out_dir``, so an interrupted run never leaves half shards there. Shards are
-written by a pool of ``preprocess.workers`` processes; each decodes and resizes a frame once even though three
-samples use it.
+the size and mtime of every source file it reads); each shard appears whole under its name or not at all
+(:func:`endoflow.io.atomic_location`). A rerun keeps a finished shard only if its key is unchanged
+(``shards_reused`` in the summary) and writes the rest, so a shard is never reused after an input it was
+built from changed. The output is a local path or an fsspec URL. On a filesystem (a path, ``file://``, a
+shared mount) the staging folder is ``.<out name>.partial/`` beside the output and only a complete result
+replaces the output, so an interrupted run never leaves half shards there. An object store (``s3://``) has no
+rename: the shards are written in place, the old manifest removed first and the new one written last, so a
+reader finds either no manifest (and says to run the preprocess stage) or the complete new output.
+
+Engines (``preprocess.engine``): ``local`` writes shards in this process or a pool of ``preprocess.workers``
+processes; ``ray`` runs one Ray task per shard on the cluster at ``ray.address`` (a local Ray when it is null,
+:func:`endoflow.ray_runtime.connect_ray`), each task writing its shard to the output location and returning
+its typed :class:`ShardResult`. Shards of equal size make equal tasks, however long a sequence is. Either
+way this process plans the shards, keeps the resume keys, reports progress with the time left as shards
+complete, and writes the manifest, so both engines write the same bytes. Each shard decodes and resizes a
+frame once even though three samples use it.
 """
 
 from __future__ import annotations
@@ -35,21 +45,23 @@ import hashlib
 import json
 import math
 import multiprocessing
-import shutil
+import posixpath
 import sys
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Optional
+from typing import Any, Callable, Iterable, Iterator, Optional
 
 import cv2
+import fsspec
 import numpy as np
 import webdataset as wds
+from fsspec.implementations.local import LocalFileSystem
 
-from endoflow.config import Params, params_to_dict
+from endoflow.config import Params, RayConfig, params_to_dict
 from endoflow.data.base import DATASETS, DEPTH_ONLY_DATASETS, DataFormatError, Sequence, slug
 from endoflow.data.registry import open_reader
 from endoflow.data.shard_format import (
@@ -67,7 +79,10 @@ from endoflow.data.shard_format import (
     shard_name,
 )
 from endoflow.geometry.camera import scale_intrinsics
-from endoflow.io import atomic_path, replace_directory, write_bytes
+from endoflow.io import atomic_location, replace_directory
+from endoflow.locations import absolute_location
+from endoflow.progress import format_duration
+from endoflow.ray_runtime import connect_ray
 
 # cm per stored depth count: colon data up to 65.535 cm at 10 um steps (finer than SimCol3D's own 0.078 cm);
 # indoor scenes up to 65.5 m at 1 mm.
@@ -75,6 +90,11 @@ DEPTH_UNIT_CM = {"simcol": 0.001, "endoslam": 0.001, "scenenet": 0.1}
 PLAN_FILE = "plan.json"
 # TarWriter streams 10 KiB tar records; a large file buffer makes them few large writes (bench_tar_writer.py).
 WRITE_BUFFER = 8 << 20
+# Seconds between progress lines while shards are written (the last shard always gets one).
+PROGRESS_INTERVAL_S = 10.0
+# Ray tasks queued per cluster CPU: enough that no CPU waits for the driver, few enough that the object
+# store holds only the sequences of shards in flight (SceneNet has millions of frames).
+RAY_TASKS_PER_CPU = 2
 
 
 @dataclass(frozen=True)
@@ -130,10 +150,11 @@ class ReaderSequences:
 
 
 # ------------------------------------------------------------------------------------------ entry points
-def preprocess_dataset(dataset: str, params: Params, out_dir: Path) -> dict:
+def preprocess_dataset(dataset: str, params: Params, out_dir: str | Path) -> dict:
     """Write the shards and manifest of ``dataset`` (``simcol``, ``endoslam``, ``scenenet``) into ``out_dir``.
 
-    Reads ``params.data.<dataset>.root`` through :func:`endoflow.data.registry.open_reader`.
+    Reads ``params.data.<dataset>.root`` (made absolute against the working folder: Ray tasks run in their
+    own folders) through :func:`endoflow.data.registry.open_reader`. ``out_dir`` is a path or an fsspec URL.
 
     Returns:
         Summary: samples and shards per split, shards reused from an interrupted run, samples written with
@@ -142,33 +163,36 @@ def preprocess_dataset(dataset: str, params: Params, out_dir: Path) -> dict:
     """
     if dataset not in DATASETS:
         raise ValueError(f"unknown dataset {dataset!r}; expected one of {', '.join(DATASETS)}")
-    root = getattr(params.data, dataset).root
+    root = absolute_location(getattr(params.data, dataset).root, Path.cwd())
     return write_dataset_shards(ReaderSequences(root, dataset, params), dataset, params, out_dir)
 
 
 def write_dataset_shards(
-    load_sequences: Callable[[], list[Sequence]], dataset: str, params: Params, out_dir: Path
+    load_sequences: Callable[[], list[Sequence]], dataset: str, params: Params, out_dir: str | Path
 ) -> dict:
     """:func:`preprocess_dataset` for any source of sequences.
 
-    ``load_sequences`` is called once here and once in every worker process, so with
-    ``preprocess.workers > 1`` it must be picklable (a module-level function or a dataclass instance) and
-    return the same sequences each time.
+    ``load_sequences`` is called once here and, with the local engine and ``preprocess.workers > 1``, once in
+    every worker process, so it must then be picklable (a module-level function or a dataclass instance) and
+    return the same sequences each time. The Ray engine sends each task the sequences its shard reads.
     """
     started = time.perf_counter()
     settings = encode_settings(dataset, params)
     sequences = load_sequences()
     shards = plan_shards(sequences, settings, params.preprocess.samples_per_shard, params.preprocess.shard_multiple)
-    out_dir = Path(out_dir)
-    staging = out_dir.parent / f".{out_dir.name}.partial"
-    reused = prepare_staging(staging, shard_keys(shards, settings, sequences))
+    output = OutputFolder.of(str(out_dir))
+    reused = prepare_staging(output.staging, shard_keys(shards, settings, sequences))
     todo = [shard for shard in shards if shard.name not in reused]
-    results = run_shard_writers(todo, staging, settings, sequences, load_sequences, params.preprocess.workers)
+    progress = ShardProgress(dataset, total=len(todo), kept=len(reused))
+    if params.preprocess.engine == "ray":
+        results = run_shard_tasks_on_ray(todo, output.staging, settings, sequences, params.ray, progress)
+    else:
+        results = run_shard_writers(todo, output.staging, settings, sequences, load_sequences,
+                                    params.preprocess.workers, progress)
     entries = {r.entry.name: r.entry for r in results}
-    entries.update({shard.name: kept_shard_entry(staging, shard) for shard in shards if shard.name in reused})
-    write_manifest(staging, shards, dataset, entries)
-    (staging / PLAN_FILE).unlink()
-    replace_directory(staging, out_dir)
+    entries.update({s.name: kept_shard_entry(output.staging, s) for s in shards if s.name in reused})
+    write_manifest(output.staging, shards, dataset, entries)
+    output.publish()
     seconds = time.perf_counter() - started
     frames = sum(r.frames_decoded for r in results)
     return {
@@ -362,52 +386,100 @@ def file_state(path: Path) -> list:
 
 
 # ------------------------------------------------------------------------------------ staging and output
-def prepare_staging(staging: Path, keys: dict[str, str]) -> set[str]:
+@dataclass(frozen=True)
+class OutputFolder:
+    """Where a run writes (``staging``, a path or an fsspec URL) and where its complete result goes (``final``).
+
+    On a filesystem (a path or ``file://``, local or a shared mount) staging is ``.<name>.partial/`` beside
+    the output, swapped in whole by :func:`endoflow.io.replace_directory`. An object store has no rename, so
+    staging is the output itself: :func:`prepare_staging` removes the old manifest first, and
+    :meth:`publish` leaves the manifest, written last, as the point where the new output is complete.
+    """
+
+    final: str
+    staging: str
+
+    @classmethod
+    def of(cls, out: str) -> "OutputFolder":
+        fs, path = fsspec.core.url_to_fs(out)
+        if isinstance(fs, LocalFileSystem):
+            final = Path(path)
+            return cls(str(final), str(final.parent / f".{final.name}.partial"))
+        url = out.rstrip("/")
+        return cls(url, url)
+
+    def publish(self) -> None:
+        """The plan file removed; the staging folder put in place of the output unless it is the output."""
+        fs, path = fsspec.core.url_to_fs(posixpath.join(self.staging, PLAN_FILE))
+        fs.rm(path)
+        if self.staging != self.final:
+            replace_directory(self.staging, self.final)
+
+
+def prepare_staging(staging: str, keys: dict[str, str]) -> set[str]:
     """Make ``staging`` ready for a plan whose shards have ``keys``; returns the names of shards kept.
 
     A finished shard is kept only when the key recorded for it in the staging folder's plan file equals
     its key now. Everything else (stale shards, temporaries, leftovers of another plan) is removed before
     the new keys are recorded, so a recorded key always describes the shard file of that name, or one not
-    written yet.
+    written yet. A manifest goes first: where staging is the output itself (an object store), readers then
+    never pair it with shards that are going away.
     """
-    staging.mkdir(parents=True, exist_ok=True)
-    recorded = recorded_keys(staging / PLAN_FILE)
-    kept = {name for name, key in keys.items() if recorded.get(name) == key and (staging / name).is_file()}
-    for path in staging.iterdir():
-        if path.name in kept or path.name == PLAN_FILE:
-            continue
-        if path.is_dir():
-            shutil.rmtree(path)
-        else:
-            path.unlink()
-    write_bytes(staging / PLAN_FILE, json.dumps({"shard_keys": keys}, indent=1, sort_keys=True).encode())
+    fs, folder = fsspec.core.url_to_fs(staging)
+    fs.makedirs(folder, exist_ok=True)
+    recorded = recorded_keys(posixpath.join(staging, PLAN_FILE))
+    present = folder_entries(fs, folder)
+    kept = {name for name, key in keys.items() if recorded.get(name) == key and name in present
+            and fs.isfile(present[name])}
+    for name in sorted(present, key=lambda name: name != MANIFEST):
+        if name not in kept and name != PLAN_FILE:
+            fs.rm(present[name], recursive=True)
+    plan = json.dumps({"shard_keys": keys}, indent=1, sort_keys=True).encode()
+    write_location(posixpath.join(staging, PLAN_FILE), plan)
     return kept
 
 
-def recorded_keys(plan_path: Path) -> dict[str, str]:
+def folder_entries(fs: fsspec.AbstractFileSystem, folder: str) -> dict[str, str]:
+    """Name -> path of what ``folder`` holds; nothing when it does not exist (an object store's empty prefix)."""
+    try:
+        paths = fs.ls(folder, detail=False)
+    except FileNotFoundError:
+        return {}
+    return {posixpath.basename(path.rstrip("/")): path for path in paths}
+
+
+def recorded_keys(plan_location: str) -> dict[str, str]:
     """The shard keys in a staging folder's plan file; none when it is absent or from an older format.
 
     An unreadable plan file also gives none: then every shard is rebuilt, which is always correct.
     """
     try:
-        plan = json.loads(plan_path.read_text())
+        with fsspec.open(plan_location, "rb") as stream:
+            plan = json.loads(stream.read())
     except (OSError, ValueError):
         return {}
     keys = plan.get("shard_keys") if isinstance(plan, dict) else None
     return keys if isinstance(keys, dict) else {}
 
 
-def kept_shard_entry(staging: Path, shard: ShardSpec) -> ShardEntry:
+def write_location(location: str, data: bytes) -> None:
+    """``data`` to a path or fsspec URL, appearing whole or not at all (:func:`endoflow.io.atomic_location`)."""
+    with atomic_location(location) as temporary:
+        temporary.write_bytes(data)
+
+
+def kept_shard_entry(staging: str, shard: ShardSpec) -> ShardEntry:
     """The manifest entry of a shard kept from an interrupted run, read back from its file."""
-    file_digest, samples = shard_digests(str(staging / shard.name))
+    location = posixpath.join(staging, shard.name)
+    file_digest, samples = shard_digests(location)
     planned = [sample.key for sample in shard.samples]
     if [key for key, _ in samples] != planned:
-        raise DataFormatError(staging / shard.name, f"holds samples {[key for key, _ in samples][:3]}..., the "
-                                                    f"plan has {planned[:3]}...")
+        raise DataFormatError(location, f"holds samples {[key for key, _ in samples][:3]}..., the "
+                                        f"plan has {planned[:3]}...")
     return ShardEntry(shard.name, len(samples), file_digest, tuple(samples))
 
 
-def write_manifest(staging: Path, shards: list[ShardSpec], dataset: str, entries: dict[str, ShardEntry]) -> None:
+def write_manifest(staging: str, shards: list[ShardSpec], dataset: str, entries: dict[str, ShardEntry]) -> None:
     """The manifest of the shards in ``staging``: one row per sample, and each shard's count and SHA-256."""
     rows = [(shard.name, sample) for shard in shards for sample in shard.samples]
     columns = {
@@ -420,26 +492,68 @@ def write_manifest(staging: Path, shards: list[ShardSpec], dataset: str, entries
         "split": [s.split for _, s in rows],
         "sha256": [digest for shard in shards for _, digest in entries[shard.name].sample_sha256],
     }
-    write_bytes(staging / MANIFEST, manifest_bytes(columns, [entries[shard.name] for shard in shards]))
+    manifest = manifest_bytes(columns, [entries[shard.name] for shard in shards])
+    write_location(posixpath.join(staging, MANIFEST), manifest)
 
 
 # ------------------------------------------------------------------------------------------- shard writing
 _WORKER_SEQUENCES: dict[str, Sequence] = {}
 
 
+class ShardProgress:
+    """What the driver tells a person while shards are written: shards done, frames per second, time left.
+
+    A line at most every ``interval`` seconds as shards complete, and one when the last is done. Shards hold
+    equal numbers of samples, so the time left is the pace so far times the shards still to write.
+    """
+
+    def __init__(
+        self,
+        dataset: str,
+        total: int,
+        kept: int,
+        interval: float = PROGRESS_INTERVAL_S,
+        clock: Callable[[], float] = time.perf_counter,
+        write: Callable[[str], Any] = lambda line: print(line, flush=True),
+    ) -> None:
+        self.dataset, self.total, self.kept, self.interval = dataset, total, kept, interval
+        self.clock, self.write = clock, write
+        self.started = self.last_line = clock()
+        self.done = self.frames = 0
+
+    def shard_done(self, result: ShardResult) -> None:
+        self.done += 1
+        self.frames += result.frames_decoded
+        now = self.clock()
+        if self.done < self.total and now - self.last_line < self.interval:
+            return
+        self.last_line = now
+        elapsed = max(now - self.started, 1e-9)
+        left = self.total - self.done
+        when = (f"~{format_duration(elapsed / self.done * left)} left" if left
+                else f"done in {format_duration(elapsed)}")
+        self.write(f"[preprocess] {self.dataset}: {self.done}/{self.total} shards written ({self.kept} kept from "
+                   f"an interrupted run) | {self.frames} frames, {self.frames / elapsed:.1f} frames/s | {when}")
+
+
 def run_shard_writers(
     shards: list[ShardSpec],
-    staging: Path,
+    staging: str,
     settings: EncodeSettings,
     sequences: list[Sequence],
     load_sequences: Callable[[], list[Sequence]],
     workers: int,
+    progress: ShardProgress,
 ) -> list[ShardResult]:
     """Write ``shards`` into ``staging``, in this process (``workers <= 1``) or a process pool."""
     if workers <= 1 or len(shards) <= 1:
         by_name = {s.name: s for s in sequences}
+        results = []
         with single_threaded_opencv():
-            return [write_shard(shard, staging, settings, by_name) for shard in shards]
+            for shard in shards:
+                results.append(write_shard(shard, staging, settings, by_name))
+                progress.shard_done(results[-1])
+        return results
     with ProcessPoolExecutor(
         max_workers=min(workers, len(shards)),
         mp_context=pool_context(),
@@ -447,11 +561,15 @@ def run_shard_writers(
         initargs=(load_sequences,),
     ) as pool:
         futures = [pool.submit(_write_shard_in_worker, shard, staging, settings) for shard in shards]
+        results = []
         try:
-            return [future.result() for future in futures]
+            for future in as_completed(futures):
+                results.append(future.result())
+                progress.shard_done(results[-1])
         except BaseException:
             pool.shutdown(wait=True, cancel_futures=True)
             raise
+        return results
 
 
 def pool_context() -> multiprocessing.context.BaseContext:
@@ -479,8 +597,117 @@ def _init_worker(load_sequences: Callable[[], list[Sequence]]) -> None:
     _WORKER_SEQUENCES.update({s.name: s for s in load_sequences()})
 
 
-def _write_shard_in_worker(shard: ShardSpec, staging: Path, settings: EncodeSettings) -> ShardResult:
+def _write_shard_in_worker(shard: ShardSpec, staging: str, settings: EncodeSettings) -> ShardResult:
     return write_shard(shard, staging, settings, _WORKER_SEQUENCES)
+
+
+def run_shard_tasks_on_ray(
+    shards: list[ShardSpec],
+    staging: str,
+    settings: EncodeSettings,
+    sequences: list[Sequence],
+    cluster: RayConfig,
+    progress: ShardProgress,
+) -> list[ShardResult]:
+    """Write ``shards`` into ``staging`` as Ray tasks, one per shard, on the cluster of ``cluster``.
+
+    Each task gets its shard's plan, the settings and the sequences it reads (put into the object store once
+    each, and only while a queued shard still needs them), writes the shard and returns its
+    :class:`ShardResult`. A task's error is raised here as the task raised it (a damaged frame's
+    :class:`DataFormatError` names the file); the remaining tasks are cancelled. Ray is shut down again
+    only if this call started it (or joined the cluster).
+    """
+    import ray
+
+    if not shards:
+        return []
+    joined = connect_ray(cluster)
+    try:
+        results = _shard_tasks(shards, staging, settings, {s.name: s for s in sequences}, progress)
+    finally:
+        if joined:
+            ray.shutdown()
+    check_shards_arrived(staging, results)
+    return results
+
+
+def check_shards_arrived(staging: str, results: list[ShardResult]) -> None:
+    """Every shard a task wrote must be in ``staging`` as this process sees it.
+
+    A local output folder that is not shared with the other nodes gets their shards written to their own
+    disks; without this check the manifest would list shards that are not there.
+    """
+    fs, folder = fsspec.core.url_to_fs(staging)
+    missing = sorted({r.entry.name for r in results} - set(folder_entries(fs, folder)))
+    if missing:
+        raise DataFormatError(staging, f"shards {missing[:3]}... ({len(missing)} in all) written by Ray tasks are "
+                                       f"not here: preprocess.out must be a shared filesystem or an fsspec URL "
+                                       f"that every node of the cluster writes to")
+
+
+def _shard_tasks(
+    shards: list[ShardSpec],
+    staging: str,
+    settings: EncodeSettings,
+    sequences: dict[str, Sequence],
+    progress: ShardProgress,
+) -> list[ShardResult]:
+    import ray
+
+    task = ray.remote(num_cpus=1)(_write_shard_task)
+    window = RAY_TASKS_PER_CPU * max(1, int(ray.cluster_resources().get("CPU", 1)))
+    last_use = {name: index for index, shard in enumerate(shards) for name in shard_sequences(shard)}
+    stored: dict[str, Any] = {}  # sequence name -> object ref, while a shard not yet submitted reads it
+    pending: list = []
+    results = []
+    try:
+        for index, shard in enumerate(shards):
+            if len(pending) >= window:
+                results.append(_next_task_result(pending, progress))
+            names = shard_sequences(shard)
+            for name in names:
+                if name not in stored:
+                    stored[name] = ray.put(sequences[name])
+            pending.append(task.remote(shard, staging, settings, *(stored[name] for name in names)))
+            for name in names:
+                if last_use[name] == index:
+                    del stored[name]  # the queued tasks hold their own references
+        while pending:
+            results.append(_next_task_result(pending, progress))
+    except BaseException:
+        for ref in pending:
+            ray.cancel(ref)
+        raise
+    return results
+
+
+def shard_sequences(shard: ShardSpec) -> list[str]:
+    """Names of the sequences a shard's samples come from, in order."""
+    return list(dict.fromkeys(spec.sequence for spec in shard.samples))
+
+
+def _next_task_result(pending: list, progress: ShardProgress) -> ShardResult:
+    """The result of the next task to finish (removed from ``pending``); its error raised as the task raised it."""
+    import ray
+
+    [done], _ = ray.wait(pending, num_returns=1)
+    pending.remove(done)
+    try:
+        result = ray.get(done)
+    except ray.exceptions.RayTaskError as error:
+        if isinstance(error.cause, Exception):
+            raise error.cause from error
+        raise
+    progress.shard_done(result)
+    return result
+
+
+def _write_shard_task(
+    shard: ShardSpec, staging: str, settings: EncodeSettings, *sequences: Sequence
+) -> ShardResult:
+    """A Ray task: one shard, written to ``staging`` (a path every node sees, or an fsspec URL)."""
+    with single_threaded_opencv():
+        return write_shard(shard, staging, settings, {s.name: s for s in sequences})
 
 
 @contextmanager
@@ -495,16 +722,18 @@ def single_threaded_opencv() -> Iterator[None]:
 
 
 def write_shard(
-    shard: ShardSpec, staging: Path, settings: EncodeSettings, sequences: dict[str, Sequence]
+    shard: ShardSpec, staging: str, settings: EncodeSettings, sequences: dict[str, Sequence]
 ) -> ShardResult:
-    """Encode the samples of ``shard`` and write them as one tar, atomically.
+    """Encode the samples of ``shard`` and write them as one tar into ``staging`` (a path or URL), atomically.
 
-    Members have fixed metadata (mtime 0, sorted member order), so the same samples give identical bytes.
+    Members have fixed metadata (mtime 0, owner and group empty, sorted member order), so the same samples
+    give identical bytes on any machine.
     """
     cache = FrameCache(settings)
     out_of_range = 0
     digests = []
-    with atomic_path(staging / shard.name) as temporary, open(temporary, "wb", buffering=WRITE_BUFFER) as stream:
+    location = posixpath.join(staging, shard.name)
+    with atomic_location(location) as temporary, open(temporary, "wb", buffering=WRITE_BUFFER) as stream:
         hashing = HashingWriter(stream)
         with wds.TarWriter(hashing, encoder=False, mtime=0, user="", group="") as tar:
             for spec in shard.samples:

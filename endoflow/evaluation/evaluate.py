@@ -12,7 +12,9 @@ cover the whole sequence as the SimCol3D challenge expects. Per sequence:
   ``endoslam`` protocols for the model and ``constant_velocity`` (every step is the training set's mean
   relative pose).
 
-Metrics are computed at the stored shard size. The protocols aggregate as they are defined: the paper's
+The networks run on ``eval.device`` under ``eval.precision`` (:mod:`endoflow.devices`); their depth and pose
+leave them as float32 (float64 for poses), and everything after (challenge files, metrics) is computed from
+those. Metrics are computed at the stored shard size. The protocols aggregate as they are defined: the paper's
 depth errors are averaged over all images of the test set; the challenge's depth and pose figures are
 computed per sequence and then averaged over the sequences.
 
@@ -38,11 +40,12 @@ import pandas as pd
 import torch
 
 from endoflow import tracking
-from endoflow.config import Params, EvalSetConfig
+from endoflow.config import Params, EvalSetConfig, Precision
 from endoflow.evaluation import metrics, plots
 from endoflow.io import save_figure, staged_directory, write_csv, write_json
 from endoflow.data.base import slug
 from endoflow.data.shard_format import read_manifest
+from endoflow.devices import autocast, images_to_device, resolve_device, to_compute_layout
 from endoflow.locations import absolute_location
 from endoflow.models.model_file import TrainingBaselines, load_trained_model
 
@@ -199,12 +202,13 @@ class SequenceEvaluator:
     """Runs the model over ordered frames, writes challenge predictions and gathers per-sequence results."""
 
     def __init__(self, model: torch.nn.Module, baselines: TrainingBaselines, predictions_dir: Path,
-                 device: torch.device, max_examples: int) -> None:
+                 device: torch.device, precision: Precision, max_examples: int) -> None:
         self.model = model
         self.max_examples = max_examples
         self.baselines = baselines
         self.predictions_dir = predictions_dir
         self.device = device
+        self.precision = precision
         self.sequences: list[SequenceResult] = []
         self.examples: list[dict] = []
         self._carry: Optional[FrameRecord] = None
@@ -214,15 +218,18 @@ class SequenceEvaluator:
     def process(self, batch: list[FrameRecord]) -> None:
         """One batch of consecutive frames of one sequence."""
         result = self._sequence_for(batch[0])
-        rgb = torch.stack([f.rgb for f in batch]).to(self.device)
-        depth = self.model.predict_depth(rgb)[:, 0].float().cpu().numpy()
+        rgb = self._images(batch)
+        with autocast(self.device, self.precision):
+            depth = self.model.predict_depth(rgb)
+        depth = depth[:, 0].float().cpu().numpy()
         earlier = [self._carry] + batch[:-1] if self._carry is not None else batch[:-1]
         later = batch if self._carry is not None else batch[1:]
         if later:
-            source = torch.stack([f.rgb for f in earlier]).to(self.device)
-            target = torch.stack([f.rgb for f in later]).to(self.device)
+            source, target = self._images(earlier), self._images(later)
             # T_earlier_later = inv(P_earlier) @ P_later: the challenge's relative pose
-            relative = self.model.predict_pose(target, source, source_is_next=False).double().cpu().numpy()
+            with autocast(self.device, self.precision):
+                relative = self.model.predict_pose(target, source, source_is_next=False)
+            relative = relative.double().cpu().numpy()
             for first, second, pose in zip(earlier, later, relative):
                 if not second.after_gap:  # no challenge pose across missing frames; never scored either
                     self._write_pose(first, second, pose)
@@ -231,6 +238,9 @@ class SequenceEvaluator:
             self._add_frame(result, frame, prediction)
         self._carry = batch[-1]
         self.frames_done += len(batch)
+
+    def _images(self, frames: list[FrameRecord]) -> torch.Tensor:
+        return images_to_device(torch.stack([f.rgb for f in frames]), self.device, self.precision)
 
     def _sequence_for(self, frame: FrameRecord) -> SequenceResult:
         if not self.sequences or self.sequences[-1].name != frame.sequence:
@@ -371,12 +381,14 @@ def evaluate_test_set(params: Params, name: str, samples: Iterable[dict], model_
     Returns the metrics written to ``out_metrics`` (with ``mlflow_run_id`` of the training run).
     """
     test_set = eval_set(params, name)
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = resolve_device(params.eval.device, "eval.device")
     model, record = load_trained_model(model_path, device)
+    model = to_compute_layout(model, device, params.eval.precision)
     selected = (s for s in samples if belongs_to(s["meta"], test_set))
     started = time.perf_counter()
     with staged_directory(out_predictions) as predictions_dir:
-        evaluator = SequenceEvaluator(model, record.baselines, predictions_dir, device, params.eval.depth_examples)
+        evaluator = SequenceEvaluator(model, record.baselines, predictions_dir, device, params.eval.precision,
+                                      params.eval.depth_examples)
         frames = frames_in_order(selected, params.eval.max_frames_per_sequence)
         for batch in batches_within_sequences(frames, params.eval.batch_size):
             evaluator.process(batch)

@@ -51,9 +51,10 @@ class EndoflowModel(nn.Module):
         self.pose_net = PoseNet(model_cfg.pose_vae, model_cfg.encoder_weights, model_cfg.pose_logvar_init)
 
     def disp_to_depth(self, disp: torch.Tensor) -> torch.Tensor:
-        """Sigmoid disparity (any shape) -> z-depth in cm within ``[min_depth, max_depth]``."""
+        """Sigmoid disparity (any shape) -> z-depth in cm within ``[min_depth, max_depth]``, in float32 whatever
+        the network's precision (depth feeds the geometry, which stays float32)."""
         min_disp, max_disp = 1.0 / self.cfg.max_depth, 1.0 / self.cfg.min_depth
-        return 1.0 / (min_disp + (max_disp - min_disp) * disp)
+        return 1.0 / (min_disp + (max_disp - min_disp) * disp.float())
 
     def predict_depth(self, rgb: torch.Tensor) -> torch.Tensor:
         """Full-resolution z-depth ``[B, 1, H, W]`` in cm of RGB ``[B, 3, H, W]`` in [0, 1]."""
@@ -63,8 +64,10 @@ class EndoflowModel(nn.Module):
         self, earlier: torch.Tensor, later: torch.Tensor, sample: bool
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(vector used, mean, logvar) of ``T_later_earlier``; the vector is a sample when ``sample`` and the
-        network predicts a variance, else the mean."""
+        network predicts a variance, else the mean. All three are float32 whatever the network's precision:
+        the vector becomes a pose matrix for the geometry, and the KL of a bf16 log-variance would round."""
         mean, logvar = self.pose_net(earlier, later)
+        mean, logvar = mean.float(), (logvar.float() if logvar is not None else None)
         if sample and logvar is not None:
             vec = mean + torch.exp(0.5 * logvar) * torch.randn_like(mean)
         else:

@@ -350,8 +350,9 @@ def load_generator(path: str | Path) -> LatentBankGenerator:
 def check_latent_bank_file(path: str | Path) -> None:
     """Fail fast, before training starts, on a latent bank file :func:`load_generator` would reject.
 
-    It loads the file on CPU and rebuilds the generator (a bank is a few MB: well under a second), so
-    every error :func:`load_generator` can raise is raised here, with the file named.
+    It loads the file on CPU and rebuilds the generator (the default bank is a few MB; the paper preset's,
+    320 MB, takes about a second of CPU), so every error :func:`load_generator` can raise is raised here, with
+    the file named.
     """
     load_generator(path)
 

@@ -46,6 +46,7 @@ from endoflow.data.scenenet import scenenet_intrinsics
 from endoflow.data.simcol import DEPTH_COUNTS_PER_CM as SIMCOL_DEPTH_COUNTS_PER_CM
 from endoflow.data.simcol import SCENES as SIMCOL_SCENE_FOLDERS
 from endoflow.data.simcol import parse_cam_txt
+from endoflow.devices import resolve_device
 from endoflow.geometry.camera import scale_intrinsics
 from endoflow.geometry.pose import matrix_to_quaternion_xyzw, opencv_to_unity
 from endoflow.io import staged_directory, write_text
@@ -96,8 +97,9 @@ def synthesize_layout(
 
     ``None`` arguments take ``params.synth`` defaults (``Params()`` when ``params`` is None): sequences per
     scene / organ count / trajectories, frames per sequence, square image size, seed, worker processes,
-    torch device. The EndoSLAM depth scale, pose unit and frame rate come from ``params.data.endoslam``,
-    so that the reader decodes what was written. Same arguments, same bytes.
+    device name (as ``synth.device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``). The EndoSLAM depth scale,
+    pose unit and frame rate come from ``params.data.endoslam``, so that the reader decodes what was written.
+    Same arguments, same bytes.
     """
     if layout not in DATASETS:
         raise ValueError(f"unknown layout {layout!r}; expected one of {', '.join(DATASETS)}")
@@ -107,7 +109,7 @@ def synthesize_layout(
     frames = defaults.frames if frames is None else frames
     size = params.synth.size if size is None else size
     seed = params.synth.seed if seed is None else seed
-    device = params.synth.device if device is None else device
+    device = str(resolve_device(params.synth.device if device is None else device, "synth.device"))
     workers = params.synth.workers if workers is None else workers
     if sequences < 1 or frames < 2 or size < 8:
         raise ValueError(f"need sequences >= 1, frames >= 2, size >= 8; got {sequences}, {frames}, {size}")

@@ -7,8 +7,9 @@ the model that ``train.out`` is written from)::
     state.pt          rank 0: model, optimiser, scheduler, and the :class:`TrainState` (epoch, global step,
                       best epoch with its weights, history)
     rng-rank-<r>.pt   every rank: its torch (CPU and CUDA), NumPy and Python random states after the epoch
-    rank-<r>.json     every rank: the sample keys it trained on this epoch and a SHA-256 of its weights
-                      (an audit of data parallelism: weights must agree, keys must be disjoint)
+    rank-<r>.json     every rank: the sample keys it trained on this epoch, a SHA-256 of its weights, and the
+                      Ray node and process it ran in (an audit of data parallelism: weights must agree, keys
+                      must be disjoint)
 
 Every file is tensors and plain data, loaded with ``weights_only=True``
 (:func:`endoflow.models.model_file.load_plain_torch_file`): a planted file that would run code is refused with
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import random
 import zipfile
 from dataclasses import dataclass, field, fields
@@ -169,9 +171,11 @@ def weights_digest(model: torch.nn.Module) -> str:
     return digest.hexdigest()
 
 
-def write_rank_audit(directory: Path, rank: int, epoch: int, keys: list[str], digest: str) -> None:
-    write_text(Path(directory) / f"rank-{rank}.json",
-               json.dumps({"rank": rank, "epoch": epoch, "weights_sha256": digest, "keys": keys}))
+def write_rank_audit(directory: Path, rank: int, epoch: int, keys: list[str], digest: str, node_id: str) -> None:
+    """``rank-<r>.json``; ``node_id`` is the Ray node the rank ran on, ``pid`` its process on that node."""
+    audit = {"rank": rank, "epoch": epoch, "node_id": node_id, "pid": os.getpid(), "weights_sha256": digest,
+             "keys": keys}
+    write_text(Path(directory) / f"rank-{rank}.json", json.dumps(audit))
 
 
 def read_rank_audits(directory: Path) -> list[dict[str, Any]]:

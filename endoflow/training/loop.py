@@ -43,9 +43,10 @@ import torch.distributed as dist  # noqa: E402
 from torch import nn  # noqa: E402
 
 from endoflow import tracking  # noqa: E402
-from endoflow.config import Params, TrainConfig  # noqa: E402
+from endoflow.config import Params, Precision, TrainConfig  # noqa: E402
 from endoflow.data.loader import batches_per_epoch, rank_batches, triplet_dataset  # noqa: E402
 from endoflow.data.shard_format import ShardEntry, shard_entries  # noqa: E402
+from endoflow.devices import autocast, images_to_device, wants_channels_last  # noqa: E402
 from endoflow.evaluation import metrics, plots  # noqa: E402
 from endoflow.locations import local_file  # noqa: E402
 from endoflow.models.endoflow_model import EndoflowModel, build_model  # noqa: E402
@@ -109,11 +110,10 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
     context = ray.train.get_context()
     rank, world = context.get_world_rank(), context.get_world_size()
     device = ray.train.torch.get_device()
-    on_gpu = device.type == "cuda"
     torch.manual_seed(params.seed)  # identical initial weights on every rank (DDP also broadcasts them)
 
     model = build_model(params, local_file(config.latent_bank) if config.latent_bank else None)
-    if on_gpu and params.train.bf16:
+    if wants_channels_last(device, params.train.precision):
         model = model.to(memory_format=torch.channels_last)
     module = ray.train.torch.prepare_model(LossModule(model, params), move_to_device=True)
     trainable = [p for p in model.parameters() if p.requires_grad]
@@ -180,7 +180,9 @@ def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[st
     """One pass over this rank's share; returns the sample keys trained on and the mean loss."""
     cfg = ctx.params.train
     shards = list(ctx.config.train_shards)
-    batches = rank_batches(shards, ctx.rank, ctx.world, cfg.batch_size, epoch, ctx.params.seed, entries=ctx.entries)
+    batches = rank_batches(shards, ctx.rank, ctx.world, cfg.batch_size, epoch, ctx.params.seed, entries=ctx.entries,
+                           loader_workers=cfg.loader_workers, pin_memory=ctx.device.type == "cuda",
+                           max_batches=cfg.steps_per_epoch)
     total_steps = steps_in_epoch(shards, ctx.world, cfg, ctx.entries)
     ctx.module.train()
     keys: list[str] = []
@@ -190,8 +192,8 @@ def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[st
         if step >= total_steps:
             break
         keys.extend(batch["key"])
-        inputs = to_device(batch, ctx.device, channels_last=ctx.device.type == "cuda" and cfg.bf16)
-        with torch.autocast(ctx.device.type, dtype=torch.bfloat16, enabled=ctx.device.type == "cuda" and cfg.bf16):
+        inputs = to_device(batch, ctx.device, channels_last=wants_channels_last(ctx.device, cfg.precision))
+        with autocast(ctx.device, cfg.precision):
             out = ctx.module(inputs)
         reduced = mean_over_ranks(torch.stack([out[k].detach().float() for k in LOGGED_LOSSES]), ctx.world)
         if not torch.isfinite(reduced).all():
@@ -243,11 +245,14 @@ def validate(ctx: EpochContext) -> dict[str, float]:
     model.eval()
     sums = torch.zeros(3, dtype=torch.float64, device=device)  # abs_rel, rmse, images (on the backend's device)
     batches = rank_batches(list(ctx.config.val_shards), ctx.rank, world, params.train.batch_size, 0, params.seed,
-                           entries=ctx.entries)
+                           entries=ctx.entries, loader_workers=params.train.loader_workers,
+                           pin_memory=device.type == "cuda", max_batches=params.train.val_batches)
     for index, batch in enumerate(batches):
         if params.train.val_batches is not None and index >= params.train.val_batches:
             break
-        depth = model.predict_depth(batch["cur"].to(device)).float().cpu().numpy()[:, 0]
+        with autocast(device, params.train.precision):
+            depth = model.predict_depth(images_to_device(batch["cur"], device, params.train.precision))
+        depth = depth.float().cpu().numpy()[:, 0]
         for gt, pred in zip(batch["depth"][:, 0].numpy(), depth):
             if (gt > 0).any():
                 errors = metrics.paper_depth_errors(gt, pred)
@@ -269,7 +274,8 @@ def report_checkpoint(ctx: EpochContext, scheduler: Any, state: TrainState, keys
             save_training_state(Path(folder), TrainingCheckpoint(state, ctx.model.state_dict(),
                                                                  ctx.optimizer.state_dict(), scheduler.state_dict()))
         save_random_state(Path(folder), ctx.rank)
-        write_rank_audit(Path(folder), ctx.rank, state.epoch, keys, weights_digest(ctx.model))
+        write_rank_audit(Path(folder), ctx.rank, state.epoch, keys, weights_digest(ctx.model),
+                         ray.get_runtime_context().get_node_id())
         ray.train.report({k: v for k, v in record.items() if isinstance(v, (int, float))},
                          checkpoint=ray.train.Checkpoint.from_directory(folder),
                          checkpoint_dir_name=f"epoch-{state.epoch:04d}")
@@ -344,6 +350,7 @@ class RankZeroLogger:
         self.run_id = config.run_id
         self.log_every = config.params.train.log_every
         self.epochs = config.params.train.epochs
+        self.precision = config.params.train.precision
 
     def step(self, global_step: int, epoch: int, step: int, total_steps: int, losses: dict[str, float],
              samples: int, elapsed: float) -> None:
@@ -367,17 +374,21 @@ class RankZeroLogger:
                  + ", ".join(f"{k} {v:.4g}" for k, v in values.items()))
         tracking.log_metrics(self.uri, self.run_id, values, step=record["epoch"])
         if examples:
-            figure = examples_figure(model, examples, device, f"validation frames after epoch {record['epoch'] + 1}")
+            figure = examples_figure(model, examples, device, self.precision,
+                                     f"validation frames after epoch {record['epoch'] + 1}")
             tracking.log_figure(self.uri, self.run_id, figure, f"val_depth/epoch_{record['epoch']:04d}.png")
             plt.close(figure)
 
 
 @torch.no_grad()
-def examples_figure(model: EndoflowModel, examples: list[dict], device: torch.device, title: str):
+def examples_figure(model: EndoflowModel, examples: list[dict], device: torch.device, precision: Precision,
+                    title: str):
     was_training = model.training
     model.eval()
-    rgb = torch.stack([e["cur"] for e in examples]).to(device)
-    depth = model.predict_depth(rgb).float().cpu().numpy()[:, 0]
+    rgb = images_to_device(torch.stack([e["cur"] for e in examples]), device, precision)
+    with autocast(device, precision):
+        depth = model.predict_depth(rgb)
+    depth = depth.float().cpu().numpy()[:, 0]
     model.train(was_training)
     rows = [{"label": f"{e['meta']['sequence']} #{e['meta']['frame']}", "rgb": e["cur"].permute(1, 2, 0).numpy(),
              "gt": e["depth"][0].numpy(), "pred": d} for e, d in zip(examples, depth)]

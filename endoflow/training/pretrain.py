@@ -20,6 +20,12 @@ scale (they are scale-free, so the fresh generator is unchanged but they learn f
 see :class:`endoflow.models.latent_bank.InitScaled`). The saved generator is an exponential moving average
 of the trained weights (``ema_decay``, warmed up).
 
+Device and precision: networks, maps, latents, the gradient penalty and the SWD live on ``latent_bank.device``;
+the networks' forward passes run under ``latent_bank.precision`` (:mod:`endoflow.devices`), scores and maps
+leave them as float32. Every random draw but the gradient penalty's interpolation weights comes from a seeded
+CPU generator and is moved to the device, so batches and latents are the same on any device (on the CPU the
+numbers are exactly those of a CPU-only run). The bank file holds CPU tensors.
+
 Progress: a line every few seconds (stage and resolution, steps, losses, steps/s, time left for the whole
 pretraining) and a summary at the end, on stdout.
 
@@ -47,6 +53,7 @@ from endoflow.config import SWD_MIN_RESOLUTION, Params
 from endoflow.data.base import DataFormatError
 from endoflow.data.loader import list_shards, raw_samples
 from endoflow.data.shard_format import decode_sample
+from endoflow.devices import autocast, compute_dtype, resolve_device, to_compute_layout
 from endoflow.evaluation.swd import multiscale_swd
 from endoflow.io import save_figure, save_torch, staged_directory, write_json
 from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
@@ -150,10 +157,13 @@ def stage_schedule(params: Params) -> list[Stage]:
 
 
 @torch.no_grad()
-def generate(generator: LatentBankGenerator, count: int, latent_dim: int, seed: int, batch: int = 64) -> torch.Tensor:
-    """``count`` maps at the full resolution from latents drawn with ``seed``."""
+def generate(
+    generator: LatentBankGenerator, count: int, latent_dim: int, seed: int, device: torch.device, batch: int = 64
+) -> torch.Tensor:
+    """``count`` maps at the full resolution from latents drawn with ``seed`` (on the CPU, so the same latents
+    on every device), computed in float32 on ``device``: the SWD measures the weights as the bank file keeps them."""
     rng = torch.Generator().manual_seed(seed)
-    z = torch.randn(count, latent_dim, generator=rng)
+    z = torch.randn(count, latent_dim, generator=rng).to(device)
     return torch.cat([generator(z[i : i + batch]) for i in range(0, count, batch)])
 
 
@@ -165,16 +175,26 @@ def swd_against(heldout: torch.Tensor, fake: torch.Tensor, seed: int) -> dict:
 def train_gan(
     params: Params,
     train: torch.Tensor,
+    device: torch.device,
     log: Callable[[dict[str, float], int], None],
 ) -> tuple[EMA, list[dict[str, float]]]:
-    """Progressive WGAN-GP training; returns the generator's moving average and the loss history."""
+    """Progressive WGAN-GP training on ``device`` (``train`` is moved there) in ``latent_bank.precision``;
+    returns the generator's moving average and the loss history."""
     cfg = params.latent_bank
     spec = generator_spec(params)
+    # Built on the CPU from the global seed, then moved: the same initial weights on every device.
     generator, critic = LatentBankGenerator(spec), Critic(spec)
+    generator = to_compute_layout(generator, device, cfg.precision)
+    critic = to_compute_layout(critic, device, cfg.precision)
     ema = EMA(generator, cfg.ema_decay)
     opt_g = torch.optim.Adam(generator.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
     opt_c = torch.optim.Adam(critic.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
-    rng = torch.Generator().manual_seed(params.seed)
+    rng = torch.Generator().manual_seed(params.seed)  # CPU draws, moved to the device (module docstring)
+    train = train.to(device)
+
+    def latents() -> torch.Tensor:
+        return torch.randn(cfg.batch_size, spec.latent_dim, generator=rng).to(device)
+
     history: list[dict[str, float]] = []
     schedule = stage_schedule(params)
     progress = PretrainProgress(schedule)
@@ -187,15 +207,21 @@ def train_gan(
             alpha = min(1.0, i / fade_steps) if fade_steps else 1.0
 
             def score(x: torch.Tensor) -> torch.Tensor:
-                return critic(x, resolution, alpha)
+                # Only the forward pass is autocast: the penalty's gradient and every loss are float32 tensors.
+                with autocast(device, cfg.precision):
+                    return critic(x, resolution, alpha).float()
+
+            def synthesize(z: torch.Tensor) -> torch.Tensor:
+                with autocast(device, cfg.precision):
+                    return generator(z, resolution, alpha).float()
 
             for _ in range(n_critic):
-                index = torch.randint(len(reals), (cfg.batch_size,), generator=rng)
+                index = torch.randint(len(reals), (cfg.batch_size,), generator=rng).to(device)
                 real = at_resolution(reals[index], resolution, alpha)
-                flip = torch.rand(cfg.batch_size, generator=rng) < 0.5
+                flip = (torch.rand(cfg.batch_size, generator=rng) < 0.5).to(device)
                 real = torch.where(flip[:, None, None, None], real.flip(-1), real)
                 with torch.no_grad():
-                    fake = generator(torch.randn(cfg.batch_size, spec.latent_dim, generator=rng), resolution, alpha)
+                    fake = synthesize(latents())
                 real_scores, fake_scores = score(real), score(fake)
                 loss_c = (
                     critic_loss(real_scores, fake_scores)
@@ -205,7 +231,7 @@ def train_gan(
                 opt_c.zero_grad(set_to_none=True)
                 loss_c.backward()
                 opt_c.step()
-            fake = generator(torch.randn(cfg.batch_size, spec.latent_dim, generator=rng), resolution, alpha)
+            fake = synthesize(latents())
             loss_g = generator_loss(score(fake))
             opt_g.zero_grad(set_to_none=True)
             loss_g.backward()
@@ -335,7 +361,7 @@ def save_sample_grid(fake: torch.Tensor, real: torch.Tensor, path: Path, title: 
     for block, maps in enumerate((fake, real)):
         for i in range(n):
             ax = axes[i // cols, block * cols + i % cols]
-            ax.imshow(maps[i, 0].numpy(), cmap="magma_r", vmin=-1, vmax=1)
+            ax.imshow(maps[i, 0].cpu().numpy(), cmap="magma_r", vmin=-1, vmax=1)
     axes[0, 0].set_title("generated", loc="left", fontsize=9)
     axes[0, cols].set_title("real (held out)", loc="left", fontsize=9)
     fig.suptitle(title, fontsize=9)
@@ -382,28 +408,30 @@ def pretrain_latent_bank(
     cfg = params.latent_bank
     shards_dir, out_path, metrics_path, plots_dir = map(Path, (shards_dir, out_path, metrics_path, plots_dir))
     project_root = Path(project_root) if project_root is not None else Path.cwd()
-    train, heldout = train_and_heldout(shards_dir, params)
+    device = resolve_device(cfg.device, "latent_bank.device")
+    train, heldout = (maps.to(device) for maps in train_and_heldout(shards_dir, params))
     swd_count = min(cfg.swd_samples, len(heldout))
     heldout = heldout[:swd_count]
     stages = ", ".join(f"{stage.resolution} px x{stage.steps}" for stage in stage_schedule(params))
+    dtype = str(compute_dtype(device, cfg.precision)).removeprefix("torch.")
     report_line(f"[pretrain] {len(train)} training depth maps, {swd_count} held out for the SWD; "
-                f"generator steps per resolution: {stages}")
+                f"generator steps per resolution: {stages}; on {device} in {dtype}")
 
     uri = tracking.tracking_uri(params, project_root)
     run_id = tracking.start_run(params, project_root, params.tracking.latent_bank_experiment, "pretrain_latent_bank")
     try:
         spec = generator_spec(params)
-        untrained = LatentBankGenerator(spec)
-        fake_untrained = generate(untrained, swd_count, spec.latent_dim, params.seed + 1)
+        untrained = LatentBankGenerator(spec).to(device)
+        fake_untrained = generate(untrained, swd_count, spec.latent_dim, params.seed + 1, device)
         swd_untrained = swd_against(heldout, fake_untrained, params.seed)
         swd_reference = swd_against(heldout, train[:swd_count], params.seed)
         report_line(f"[pretrain] SWD to the held-out maps: untrained generator {swd_untrained['mean']:.1f}, "
                     f"real training maps {swd_reference['mean']:.1f} (the floor)")
 
         ema, history = train_gan(
-            params, train, lambda values, step: tracking.log_metrics(uri, run_id, values, step)
+            params, train, device, lambda values, step: tracking.log_metrics(uri, run_id, values, step)
         )
-        fake_final = generate(ema.model, swd_count, spec.latent_dim, params.seed + 1)
+        fake_final = generate(ema.model, swd_count, spec.latent_dim, params.seed + 1, device)
         swd_final = swd_against(heldout, fake_final, params.seed)
 
         payload = generator_payload(

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import logging
-import os
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Optional
@@ -30,7 +28,7 @@ import pandas as pd
 import torch
 
 from endoflow import tracking
-from endoflow.config import ConfigError, Params, RayConfig, flatten_params
+from endoflow.config import ConfigError, Params, flatten_params
 from endoflow.data.loader import list_shards, raw_samples
 from endoflow.data.shard_format import (
     DEPTH_MEMBER,
@@ -45,42 +43,21 @@ from endoflow.io import save_figure, staged_directory, write_csv, write_json
 from endoflow.locations import absolute_location, local_file
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from endoflow.models.latent_bank import check_latent_bank_file
+from endoflow.ray_runtime import connect_ray
 from endoflow.training.checkpoint import TrainingCheckpoint, TrainState, latest_checkpoint, load_training_state
 from endoflow.training.worker_config import WorkerConfig
 
 # Params that do not change what training computes: excluded from the fingerprint.
 NOT_FINGERPRINTED = ("train.epochs", "train.log_every", "train.image_examples", "train.keep_checkpoints",
                      "train.out", "train.metrics", "train.plots", "train.shards", "train.latent_bank",
-                     "latent_bank.out", "latent_bank.metrics", "latent_bank.plots", "tracking.",
+                     "latent_bank.out", "latent_bank.metrics", "latent_bank.plots", "latent_bank.device", "tracking.",
                      "eval.", "synth.",
                      "ray.address", "ray.storage_path", "ray.num_cpus", "ray.object_store_mb", "ray.run_name",
-                     "ray.use_gpu", "ray.cpus_per_worker")
+                     "ray.use_gpu", "ray.cpus_per_worker", "ray.placement_strategy", "ray.max_failures")
 
 
 class TrainingError(RuntimeError):
     """Training failed on the workers; the message carries the workers' own error."""
-
-
-def connect_ray(cfg: RayConfig) -> bool:
-    """Join ``ray.address`` or start a small local Ray; returns whether this call started Ray."""
-    import ray
-
-    if ray.is_initialized():
-        return False
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    if cfg.address:
-        ray.init(address=cfg.address, log_to_driver=True)
-    else:
-        ray.init(num_cpus=cfg.num_cpus or os.cpu_count(), include_dashboard=False,
-                 object_store_memory=cfg.object_store_mb * 2**20, log_to_driver=True,
-                 runtime_env={"worker_process_setup_hook": "endoflow.training.ray_trainer.quiet_worker_logs"})
-    return True
-
-
-def quiet_worker_logs() -> None:
-    """Ray worker setup: without the dashboard, Ray Train's placement-group cleaner cannot reach the state
-    API and warns about it every second; its job (cleaning up after a crashed controller) is unaffected."""
-    logging.getLogger("ray.train.v2._internal.execution.controller.placement_group_cleaner").setLevel(logging.ERROR)
 
 
 def training_fingerprint(params: Params, train_shards: str, latent_bank: Optional[str]) -> str:
@@ -177,7 +154,10 @@ def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: 
 def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str) -> TrainingCheckpoint:
     """Train with Ray Train's ``TorchTrainer`` (DDP); returns the final training state.
 
-    Ray keeps the newest ``train.keep_checkpoints`` checkpoints (each carries the best epoch's weights).
+    Ray keeps the newest ``train.keep_checkpoints`` checkpoints (each carries the best epoch's weights). When a
+    worker fails (its process or node lost, or an error), Ray Train restarts every worker, up to
+    ``ray.max_failures`` times, and they continue after the newest checkpoint it recorded (see
+    :func:`endoflow.training.loop.restored_checkpoint`).
     """
     from ray.train import CheckpointConfig, FailureConfig, RunConfig
     from ray.train.torch import TorchTrainer
@@ -192,7 +172,8 @@ def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str
             train_loop_per_worker,
             train_loop_config=config,
             scaling_config=scaling_config(params.ray),
-            run_config=RunConfig(name=run_name, storage_path=storage, failure_config=FailureConfig(max_failures=0),
+            run_config=RunConfig(name=run_name, storage_path=storage,
+                                 failure_config=FailureConfig(max_failures=params.ray.max_failures),
                                  checkpoint_config=CheckpointConfig(num_to_keep=params.train.keep_checkpoints)),
         )
         result = trainer.fit()

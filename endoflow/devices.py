@@ -1,0 +1,82 @@
+"""Where a stage computes and in what precision: the one home of both choices.
+
+Device names (``synth.device``, ``latent_bank.device``, ``eval.device``; training takes its device from Ray,
+``ray.use_gpu``): ``auto`` is the first CUDA GPU when torch sees one, else the CPU; ``cpu``, ``cuda`` and
+``cuda:N`` ask for that device, and a device this machine lacks fails naming the key that asked for it.
+
+Precision (``train.precision``, ``latent_bank.precision``, ``eval.precision``): ``float32``, ``bf16`` (bf16
+autocast: convolutions and matrix products in bfloat16, ops that autocast does not list in their inputs'
+dtype; weights, gradients and the optimiser stay float32), or ``auto``: bf16 on a CUDA GPU that computes bf16
+natively (compute capability 8.0, Ampere, or newer), float32 elsewhere. bf16 on the CPU is allowed (it is how
+the tests run the bf16 code path) but no faster there. Geometry stays float32 whatever the precision:
+:mod:`endoflow.geometry.warp` turns autocast off inside the warp.
+
+Channels-last memory layout goes with bf16 on CUDA only, where tensor-core convolutions want it; elsewhere
+tensors keep the default layout, so CPU numbers stay what they were.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from endoflow.config import DEVICE_NAME, ConfigError, Precision
+
+# The first CUDA compute capability with native bf16 arithmetic (Ampere); older GPUs emulate it slowly.
+NATIVE_BF16_CAPABILITY = (8, 0)
+
+
+def resolve_device(name: str, key: str) -> torch.device:
+    """The torch device that the value ``name`` of parameter ``key`` asks for (see the module docstring).
+
+    Raises:
+        ConfigError: naming ``key`` when ``name`` is no device name, or asks for a device this machine lacks.
+    """
+    if DEVICE_NAME.fullmatch(name) is None:
+        raise ConfigError(f"{key} must be auto, cpu, cuda or cuda:N, got {name!r}")
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if (device.index or 0) >= count:
+            raise ConfigError(f"{key} is {name!r} but torch sees {count} CUDA device(s) on this machine; "
+                              f"set {key} to auto or cpu")
+    return device
+
+
+def compute_dtype(device: torch.device, precision: Precision) -> torch.dtype:
+    """``torch.bfloat16`` when ``precision`` means bf16 autocast on ``device``, else ``torch.float32``."""
+    if precision == "bf16":
+        return torch.bfloat16
+    if precision == "auto" and device.type == "cuda":
+        native = torch.cuda.get_device_capability(device) >= NATIVE_BF16_CAPABILITY
+        return torch.bfloat16 if native else torch.float32
+    return torch.float32
+
+
+def autocast(device: torch.device, precision: Precision) -> torch.autocast:
+    """The autocast context for ``precision`` on ``device``: bf16 autocast, or autocast off (float32)."""
+    dtype = compute_dtype(device, precision)
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=dtype == torch.bfloat16)
+
+
+def wants_channels_last(device: torch.device, precision: Precision) -> bool:
+    """Channels-last helps bf16 convolutions on CUDA (tensor cores) and nothing else."""
+    return device.type == "cuda" and compute_dtype(device, precision) == torch.bfloat16
+
+
+def to_compute_layout(module: nn.Module, device: torch.device, precision: Precision) -> nn.Module:
+    """``module`` on ``device``, its 4-d weights channels-last where :func:`wants_channels_last` says so."""
+    module = module.to(device)
+    if wants_channels_last(device, precision):
+        module = module.to(memory_format=torch.channels_last)
+    return module
+
+
+def images_to_device(images: torch.Tensor, device: torch.device, precision: Precision) -> torch.Tensor:
+    """Images ``[B, C, H, W]`` on ``device``, channels-last where the weights are (:func:`to_compute_layout`)."""
+    images = images.to(device, non_blocking=True)
+    if wants_channels_last(device, precision):
+        images = images.contiguous(memory_format=torch.channels_last)
+    return images

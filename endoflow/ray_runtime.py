@@ -1,0 +1,156 @@
+"""The one home of connecting to Ray, for training (``endoflow.training``) and preprocessing (``endoflow.data``).
+
+It imports only ``endoflow.config`` and the package's ``__version__`` (and Ray), so every layer that runs work on
+Ray can use it.
+
+A local Ray (``ray.address`` null) listens on loopback only: GCS, raylet, object manager and workers (and
+the gloo connections of DDP, which follow the node address). Ray binds its servers to the node's address, and
+for a local instance it takes the machine's routable one (it even rewrites ``_node_ip_address="127.0.0.1"``
+to it), except where it treats multi-node Ray as off (Windows and macOS: ``ray_constants.ENABLE_RAY_CLUSTER``).
+:func:`connect_ray` turns that off while it starts the local instance, so Ray gives every process it spawns
+127.0.0.1 as the node address; ``tests/test_ray_cluster.py`` checks what listens. One socket stays open to
+every interface while training runs: the rendezvous store (``TCPStore``) that torch opens in rank 0 binds all
+interfaces whatever address it is given, and Ray Train offers no way to hand it a bound socket.
+
+Joining a cluster (``ray.address`` set) ships this tree's ``endoflow`` package to every node through the job's
+``runtime_env`` (``py_modules``), then runs one small task on every live node that reports the endoflow it
+imports: its version and a SHA-256 of its source files. A node that differs from the driver stops the start
+with :class:`ClusterMismatchError` naming it. That happens when the driver's working directory also exists on
+a node with another endoflow checkout in it: Ray puts that directory first on its workers' ``sys.path``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import endoflow
+from endoflow.config import ConfigError, RayConfig
+
+# How long every node gets to start a worker (with the shipped package) and report its endoflow.
+NODE_CHECK_TIMEOUT_S = 120.0
+
+
+class ClusterMismatchError(ConfigError):
+    """A node of the Ray cluster at ``ray.address`` imports another endoflow than the driver; rerunning does
+    not help until every node has the driver's."""
+
+
+@dataclass(frozen=True)
+class EndoflowBuild:
+    """The endoflow a process imports: version, SHA-256 of its ``*.py`` files (by relative path), and folder."""
+
+    version: str
+    sha256: str
+    location: str
+
+    def same_code(self, other: EndoflowBuild) -> bool:
+        return (self.version, self.sha256) == (other.version, other.sha256)
+
+    def __str__(self) -> str:
+        return f"endoflow {self.version} (sources sha256 {self.sha256[:16]}) from {self.location}"
+
+
+def connect_ray(cfg: RayConfig) -> bool:
+    """Join ``ray.address`` or start a small local Ray on loopback; returns whether this call connected.
+
+    Joining checks that every node imports the driver's endoflow (see the module docstring).
+
+    Raises:
+        ClusterMismatchError: naming each node whose endoflow differs; the connection is closed again.
+    """
+    import ray
+
+    if ray.is_initialized():
+        return False
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    if cfg.address:
+        ray.init(address=cfg.address, log_to_driver=True, runtime_env=shipped_runtime_env())
+        try:
+            check_same_endoflow_on_every_node(endoflow_build())
+        except BaseException:
+            ray.shutdown()
+            raise
+    else:
+        with multi_node_ray_off():  # "local": a new instance even where `ray start` left one running
+            ray.init(address="local", num_cpus=cfg.num_cpus or os.cpu_count(), include_dashboard=False,
+                     object_store_memory=cfg.object_store_mb * 2**20, log_to_driver=True,
+                     runtime_env={"worker_process_setup_hook": "endoflow.ray_runtime.quiet_worker_logs"})
+    return True
+
+
+def quiet_worker_logs() -> None:
+    """Ray worker setup: without the dashboard, Ray Train's placement-group cleaner cannot reach the state
+    API and warns about it every second; its job (cleaning up after a crashed controller) is unaffected."""
+    logging.getLogger("ray.train.v2._internal.execution.controller.placement_group_cleaner").setLevel(logging.ERROR)
+
+
+def shipped_runtime_env() -> dict[str, Any]:
+    """The job's ``runtime_env`` on a cluster: this tree's endoflow package on every node (Ray uploads it once
+    per content, without bytecode caches), and the worker log setup."""
+    return {"py_modules": [str(package_folder())], "excludes": ["__pycache__"],
+            "worker_process_setup_hook": "endoflow.ray_runtime.quiet_worker_logs"}
+
+
+@contextmanager
+def multi_node_ray_off() -> Iterator[None]:
+    """Within: Ray takes 127.0.0.1 as this machine's node address, as on Windows and macOS (a local Ray
+    started inside gives it to every process it spawns). Ray reads the switch when it needs the address."""
+    from ray._private import ray_constants
+
+    before = ray_constants.ENABLE_RAY_CLUSTER
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        yield
+    finally:
+        ray_constants.ENABLE_RAY_CLUSTER = before
+
+
+# ------------------------------------------------------------------------------ the same endoflow everywhere
+def package_folder() -> Path:
+    """The folder of the endoflow package this process imports."""
+    return Path(endoflow.__file__).resolve().parent
+
+
+def endoflow_build() -> EndoflowBuild:
+    """The endoflow this process imports (runs on the driver and, as a Ray task, on every node)."""
+    folder = package_folder()
+    digest = hashlib.sha256()
+    for path in sorted(folder.rglob("*.py"), key=lambda p: p.relative_to(folder).as_posix()):
+        digest.update(path.relative_to(folder).as_posix().encode() + b"\0")
+        digest.update(hashlib.sha256(path.read_bytes()).digest())
+    return EndoflowBuild(endoflow.__version__, digest.hexdigest(), str(folder))
+
+
+def check_same_endoflow_on_every_node(expected: EndoflowBuild) -> None:
+    """Raise :class:`ClusterMismatchError` naming every live node of the connected cluster whose workers
+    import another endoflow than ``expected`` (or none at all)."""
+    import ray
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    report = ray.remote(num_cpus=0, max_retries=0)(endoflow_build)
+    nodes = [node for node in ray.nodes() if node["Alive"]]
+    pending = [report.options(scheduling_strategy=NodeAffinitySchedulingStrategy(node["NodeID"], soft=False))
+               .remote() for node in nodes]
+    problems = []
+    for node, ref in zip(nodes, pending):
+        name = f"node {node['NodeID'][:12]} ({node['NodeManagerAddress']})"
+        try:
+            found = ray.get(ref, timeout=NODE_CHECK_TIMEOUT_S)
+        except (ray.exceptions.RayError, ImportError) as exc:
+            problems.append(f"{name}: cannot report its endoflow ({type(exc).__name__}: {exc})")
+            continue
+        if not found.same_code(expected):
+            problems.append(f"{name} imports {found}")
+    if problems:
+        raise ClusterMismatchError(
+            f"the Ray cluster at ray.address runs another endoflow than this driver's {expected}: "
+            + "; ".join(problems)
+            + ". Every node must import the driver's endoflow: its workers get this tree's package through "
+              "runtime_env py_modules, unless the driver's working directory holds another endoflow on that node "
+              "(update that checkout, or start the stage from a folder that does not exist there)")

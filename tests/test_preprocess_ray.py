@@ -1,0 +1,115 @@
+"""Preprocessing on a Ray cluster (``preprocess.engine: ray``): the shards and manifest are the local engine's,
+byte for byte, and a damaged source frame fails the run with the file named, from inside the Ray task.
+
+The cluster is two Ray nodes of one CPU each on this machine (``ray.cluster_utils.Cluster``, what
+``ray start --head`` and ``ray start --address`` make on real machines); the output is a ``file://`` URL.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+import yaml
+from ray.cluster_utils import Cluster
+
+from endoflow.config import Params, params_to_dict
+from endoflow.data.base import DataFormatError
+from endoflow.data.shards import preprocess_dataset
+from tests.fixtures_native import write_simcol
+
+pytestmark = pytest.mark.slow
+
+PROJECT = Path(__file__).resolve().parents[1]
+NODE = {"num_cpus": 1, "object_store_memory": 80 * 2**20}
+# The last frame of the test sequence O1: only the last test shard reads it (as the next frame of O1's last
+# target), so every other shard can be finished when the run fails.
+DAMAGED_FRAME = ("SyntheticColon_III", "O1", 7)
+
+
+@pytest.fixture(scope="module")
+def cluster() -> Iterator[Cluster]:
+    """A head node and a second node, one CPU each, shared by this module's tests (starting them takes ~5 s)."""
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("RAY_USAGE_STATS_ENABLED", "0")
+        cluster = Cluster(initialize_head=True, head_node_args={**NODE, "include_dashboard": False})
+        cluster.add_node(**NODE)
+        cluster.wait_for_nodes()
+        yield cluster
+        cluster.shutdown()
+
+
+@pytest.fixture(scope="module")
+def simcol(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A SimCol root (S1 train, S4 val, O1 test; 8 frames) and its shards written by the local engine."""
+    root = tmp_path_factory.mktemp("raw") / "simcol"
+    write_simcol(root, frames=8, size=40)
+    local = tmp_path_factory.mktemp("local") / "simcol"
+    preprocess_dataset("simcol", small_params(root, "local", address=None, out=str(local.parent)), local)
+    return root, local
+
+
+def small_params(root: Path, engine: str, address: str | None, out: str) -> Params:
+    """12 shards of 1 or 2 samples (4 per split), 32 px."""
+    params = Params()
+    params.data.simcol.root = str(root)
+    params.data.size = 32
+    params.preprocess = replace(params.preprocess, out=out, engine=engine, workers=1, samples_per_shard=2,
+                                shard_multiple=2)
+    params.train = replace(params.train, batch_size=2)  # data.size 32 needs two samples per batch
+    params.ray = replace(params.ray, address=address)
+    return params
+
+
+def same_files(a: Path, b: Path) -> dict[str, bool]:
+    """Per file name in either folder: whether both hold it with the same bytes."""
+    names = sorted({p.name for p in a.iterdir()} | {p.name for p in b.iterdir()})
+    return {name: (a / name).is_file() and (b / name).is_file()
+            and (a / name).read_bytes() == (b / name).read_bytes() for name in names}
+
+
+def test_the_stage_on_a_cluster_writes_the_local_engines_bytes_to_a_file_url(
+    cluster: Cluster, simcol: tuple[Path, Path], tmp_path: Path
+) -> None:
+    root, local = simcol
+    params_file = tmp_path / "params.yaml"
+    params = small_params(root, "ray", address=cluster.address, out=(tmp_path / "shards").as_uri())
+    params_file.write_text(yaml.safe_dump(params_to_dict(params)))
+    run = subprocess.run([sys.executable, "stages/preprocess.py", "simcol", "--params", str(params_file)],
+                         cwd=PROJECT, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert cluster.address in run.stderr  # the driver joined the cluster rather than starting a Ray of its own
+    progress = [line for line in run.stdout.splitlines() if line.startswith("[preprocess]")]
+    assert progress[-1].startswith("[preprocess] simcol: 12/12 shards written") and "done in" in progress[-1]
+    assert json.loads(run.stdout[run.stdout.index("{\n"):])["shards"] == {"train": 4, "val": 4, "test": 4}
+    files = same_files(local, tmp_path / "shards" / "simcol")
+    assert len(files) == 13 and all(files.values()), files  # 12 shards and the manifest
+    assert [p.name for p in (tmp_path / "shards").iterdir()] == ["simcol"]  # no staging folder left
+
+
+def test_a_damaged_frame_fails_naming_the_file_and_a_rerun_keeps_the_finished_shards(
+    cluster: Cluster, simcol: tuple[Path, Path], tmp_path: Path
+) -> None:
+    root, local = simcol
+    scene, name, number = DAMAGED_FRAME
+    frame = root / scene / f"Frames_{name}" / f"FrameBuffer_{number:04d}.png"
+    intact = frame.read_bytes()
+    out = (tmp_path / "shards").as_uri()
+    params = small_params(root, "ray", address=cluster.address, out=out)
+    frame.write_bytes(intact[: len(intact) // 2])
+    try:
+        with pytest.raises(DataFormatError, match=frame.name):
+            preprocess_dataset("simcol", params, f"{out}/simcol")
+    finally:
+        frame.write_bytes(intact)
+    assert not (tmp_path / "shards" / "simcol").exists()
+    finished = {p.name for p in (tmp_path / "shards" / ".simcol.partial").glob("*.tar")}
+    assert finished and "test-000003.tar" not in finished
+    summary = preprocess_dataset("simcol", params, f"{out}/simcol")
+    assert summary["shards_reused"] == len(finished)
+    assert all(same_files(local, tmp_path / "shards" / "simcol").values())
