@@ -8,7 +8,7 @@ model's training step at 480 x 480, in one run.
 Shards: ``sample`` (default) repeats the real SimCol3D sample's frames (475 x 475) into a SimCol3D layout,
 ``synthetic`` renders one with the built-in renderer at 480 px (minutes on 2 cores); either is preprocessed by
 the real ``preprocess_dataset`` to 480 x 480 shards, all in the train split (``--sequences`` x (``--frames``
-- 2) samples, default 96). Loader: one rank reads every train shard through ``rank_batches`` in batches of
+- 2) samples, default 96; ``synthetic`` renders ``--sequences`` per scene, of three). Loader: one rank reads every train shard through ``rank_batches`` in batches of
 the preset's ``train.batch_size``, as training does (manifest checks, PNG decoding, collation); a whole epoch
 is timed, best of ``--repeats`` with the three settings interleaved. Two rates: over the whole epoch, and after
 the first round (every loader process has delivered its first batch): the start-up (forking, filling the shuffle
@@ -51,7 +51,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from bench_preprocess import SAMPLE, repeated_sample_layout
 from bench_train_step import make_batch, make_step
 from endoflow.config import Params, load_params
-from endoflow.data.loader import list_shards, rank_batches
+from endoflow.data.loader import batches_per_epoch, list_shards, rank_batches
 from endoflow.data.shards import preprocess_dataset
 from endoflow.models.endoflow_model import build_model
 from endoflow.synth.writers import synthesize_layout
@@ -64,7 +64,7 @@ TARGET_SPEEDUP = 1.8
 def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--source", choices=("sample", "synthetic"), default="sample")
-    parser.add_argument("--sequences", type=int, default=3, help="SimCol3D sequences (all in the train split)")
+    parser.add_argument("--sequences", type=int, default=3, help="SimCol3D sequences (synthetic: per scene)")
     parser.add_argument("--frames", type=int, default=34, help="frames per sequence (samples: frames - 2)")
     parser.add_argument("--repeats", type=int, default=3, help="loader epochs per setting (best is reported)")
     parser.add_argument("--preset", default="presets/paper.yaml", help="params whose model and batch size to use")
@@ -187,6 +187,9 @@ def main() -> None:
     hashing: dict[int, list[float]] = {1: [], 2: []}
     with tempfile.TemporaryDirectory(prefix="bench_loader_") as tmp:
         urls = write_shards(Path(tmp), args.source, args.sequences, args.frames)
+        if batches_per_epoch(urls, 1, batch_size) <= max(LOADER_WORKERS):
+            raise SystemExit(f"fewer than {max(LOADER_WORKERS) + 1} batches of {batch_size}: every loader process "
+                             f"needs a batch after its first; raise --sequences or --frames")
         shard_bytes = sum(Path(url).stat().st_size for url in urls)
         for _ in range(args.repeats):  # interleaved: load from other processes hits every setting alike
             for workers in LOADER_WORKERS:

@@ -14,7 +14,6 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -27,9 +26,8 @@ import yaml
 from endoflow.config import load_params, params_from_dict, params_to_dict
 from endoflow.models.endoflow_model import generator_spec
 from endoflow.models.model_file import load_model_file, load_plain_torch_file
+from tests.project_clone import PROJECT, clone_project, pipeline_env
 
-PROJECT = Path(__file__).resolve().parents[1]
-VENV_BIN = Path(sys.executable).parent
 PAPER = PROJECT / "presets" / "paper.yaml"
 
 # Everything the dry run changes in presets/paper.yaml, and nothing else.
@@ -83,21 +81,6 @@ def flat(tree: dict, prefix: str = "") -> dict:
         else:
             out[f"{prefix}{key}"] = value
     return out
-
-
-def project_files() -> list[str]:
-    """What a clean clone holds: tracked files plus untracked ones git does not ignore."""
-    listing = subprocess.run(
-        ["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"],
-        cwd=PROJECT, capture_output=True, text=True, check=True,
-    ).stdout
-    return [name for name in listing.split("\0") if name and (PROJECT / name).is_file()]
-
-
-def run(args: list[str], cwd: Path, env: dict[str, str], timeout: int = 300) -> subprocess.CompletedProcess:
-    result = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
-    assert result.returncode == 0, f"{' '.join(args)} failed:\n{result.stdout[-6000:]}\n{result.stderr[-6000:]}"
-    return result
 
 
 class StageMonitor:
@@ -182,21 +165,8 @@ class StageMonitor:
 
 def run_paper_dry_run(clone: Path) -> dict:
     """Copy the project to ``clone`` with the cut paper params, run `dvc repro` there; returns its resources."""
-    for name in project_files():
-        (clone / name).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(PROJECT / name, clone / name)
-    (clone / "params.yaml").write_text(yaml.safe_dump(paper_dry_run_params(), sort_keys=False))
-    env = {
-        **os.environ,
-        "PATH": f"{VENV_BIN}{os.pathsep}{os.environ['PATH']}",
-        "DVC_NO_ANALYTICS": "1",
-        "RAY_USAGE_STATS_ENABLED": "0",
-        "GIT_AUTHOR_NAME": "dry-run", "GIT_AUTHOR_EMAIL": "dry-run@example.invalid",
-        "GIT_COMMITTER_NAME": "dry-run", "GIT_COMMITTER_EMAIL": "dry-run@example.invalid",
-    }
-    run(["git", "init", "-q"], clone, env)
-    run(["git", "add", "-A"], clone, env)
-    run(["git", "commit", "-q", "-m", "paper dry run"], clone, env)
+    env = pipeline_env("dry-run")
+    clone_project(clone, yaml.safe_dump(paper_dry_run_params(), sort_keys=False), env)
     started = time.monotonic()
     log = clone / "dvc_repro.log"
     with log.open("w") as out:

@@ -7,56 +7,23 @@ module-scoped fixture.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 from mlflow import MlflowClient
 
 from endoflow.config import load_params
+from tests.project_clone import PROJECT, clone_project, pipeline_env, run
 
-PROJECT = Path(__file__).resolve().parents[1]
-VENV_BIN = Path(sys.executable).parent
 
 pytestmark = pytest.mark.slow
-
-
-def project_files() -> list[str]:
-    """What a clean clone holds: tracked files plus untracked ones git does not ignore."""
-    listing = subprocess.run(
-        ["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"],
-        cwd=PROJECT, capture_output=True, text=True, check=True,
-    ).stdout
-    return [name for name in listing.split("\0") if name and (PROJECT / name).is_file()]
-
-
-def run(args: list[str], cwd: Path, env: dict[str, str], timeout: int = 900) -> subprocess.CompletedProcess:
-    result = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
-    assert result.returncode == 0, f"{' '.join(args)} failed:\n{result.stdout[-4000:]}\n{result.stderr[-4000:]}"
-    return result
 
 
 @pytest.fixture(scope="module")
 def smoke_repro(tmp_path_factory) -> Path:
     clone = tmp_path_factory.mktemp("e2e") / "endoflow"
-    for name in project_files():
-        (clone / name).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(PROJECT / name, clone / name)
-    shutil.copy2(PROJECT / "presets" / "smoke.yaml", clone / "params.yaml")
-    env = {
-        **os.environ,
-        "PATH": f"{VENV_BIN}{os.pathsep}{os.environ['PATH']}",
-        "DVC_NO_ANALYTICS": "1",
-        "RAY_USAGE_STATS_ENABLED": "0",
-        "GIT_AUTHOR_NAME": "e2e", "GIT_AUTHOR_EMAIL": "e2e@example.invalid",
-        "GIT_COMMITTER_NAME": "e2e", "GIT_COMMITTER_EMAIL": "e2e@example.invalid",
-    }
-    run(["git", "init", "-q"], clone, env)
-    run(["git", "add", "-A"], clone, env)
-    run(["git", "commit", "-q", "-m", "smoke"], clone, env)
+    env = pipeline_env("e2e")
+    clone_project(clone, (PROJECT / "presets" / "smoke.yaml").read_text(), env)
     run(["dvc", "repro"], clone, env)
     return clone
 
@@ -76,7 +43,7 @@ def test_every_stage_output_exists(smoke_repro):
 
 
 def test_dvc_metrics_show_lists_training_and_evaluation(smoke_repro):
-    env = {**os.environ, "PATH": f"{VENV_BIN}{os.pathsep}{os.environ['PATH']}", "DVC_NO_ANALYTICS": "1"}
+    env = pipeline_env("e2e")
     shown = json.loads(run(["dvc", "metrics", "show", "--json"], smoke_repro, env).stdout)
     files = {name for workspace in shown.values() for name in workspace.get("data", {})}
     params = load_params(smoke_repro / "params.yaml")
