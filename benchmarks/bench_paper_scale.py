@@ -39,7 +39,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from bench_loader import write_shards
 from endoflow.config import Params, Precision, load_params
 from endoflow.data.loader import rank_batches
-from endoflow.devices import autocast, compute_dtype, images_to_device, resolve_device, to_compute_layout
+from endoflow.devices import autocast, batch_to_device, compute_dtype, resolve_device, to_compute_layout
 from endoflow.models.endoflow_model import EndoflowModel, build_model
 from endoflow.training.objective import training_step_losses
 from endoflow.training.pretrain import train_gan
@@ -98,11 +98,6 @@ class TrainingFigures:
     tflops: float
 
 
-def batch_on_device(batch: dict, device: torch.device, precision: Precision) -> dict:
-    return {key: images_to_device(value, device, precision) if isinstance(value, torch.Tensor) and value.dim() == 4
-            else value.to(device) if isinstance(value, torch.Tensor) else value for key, value in batch.items()}
-
-
 def step_flops(model: EndoflowModel, params: Params, batch: dict) -> int:
     """FLOPs of one forward and backward pass, as ``torch.utils.flop_counter`` counts them."""
     counter = FlopCounterMode(display=False)
@@ -125,7 +120,7 @@ def measure_training(params: Params, urls: list[str], device: torch.device, prec
     reset_peak_memory(device)
     for step in range(steps + 1):
         started = time.perf_counter()
-        batch = batch_on_device(next(batches), device, precision)
+        batch = batch_to_device(next(batches), device, precision)
         synchronise(device)
         loaded = time.perf_counter()
         with autocast(device, precision):
@@ -168,7 +163,7 @@ def evaluation_frames_per_second(params: Params, urls: list[str], device: torch.
     loader = rank_batches(urls, 0, 1, batch_size, epoch=0, seed=params.seed)
     frames, seconds = 0, 0.0
     for index in range(batches + 1):
-        batch = batch_on_device(next(loader), device, precision)
+        batch = batch_to_device(next(loader), device, precision)
         synchronise(device)
         started = time.perf_counter()
         with autocast(device, precision):

@@ -80,3 +80,11 @@ def images_to_device(images: torch.Tensor, device: torch.device, precision: Prec
     if wants_channels_last(device, precision):
         images = images.contiguous(memory_format=torch.channels_last)
     return images
+
+
+def batch_to_device(batch: dict, device: torch.device, precision: Precision) -> dict:
+    """A loader batch on ``device``: its images as :func:`images_to_device` puts them, other tensors moved,
+    everything else (keys, metadata) as it is."""
+    return {key: images_to_device(value, device, precision) if isinstance(value, torch.Tensor) and value.dim() == 4
+            else value.to(device, non_blocking=True) if isinstance(value, torch.Tensor) else value
+            for key, value in batch.items()}

@@ -84,6 +84,10 @@ def atomic_location(location: str | Path, durable: bool = True) -> Iterator[Path
     temporary is uploaded with one ``put`` when the block succeeds, and an object store shows an object only
     once its upload is complete; on failure nothing is uploaded.
     """
+    if "://" not in str(location):  # a plain path, taken as it is (fsspec would read "::" in it as a chain)
+        with atomic_path(location, durable) as temporary:
+            yield temporary
+        return
     fs, path = fsspec.core.url_to_fs(str(location))
     if isinstance(fs, LocalFileSystem):
         with atomic_path(path, durable) as temporary:
@@ -96,8 +100,8 @@ def atomic_location(location: str | Path, durable: bool = True) -> Iterator[Path
 
 
 def write_bytes(path: str | Path, data: bytes, durable: bool = True) -> None:
-    """Write ``data`` to ``path`` atomically."""
-    with atomic_path(path, durable) as temporary:
+    """Write ``data`` to ``path`` (a local path or an fsspec URL) atomically (:func:`atomic_location`)."""
+    with atomic_location(path, durable) as temporary:
         temporary.write_bytes(data)
 
 

@@ -79,7 +79,7 @@ from endoflow.data.shard_format import (
     shard_name,
 )
 from endoflow.geometry.camera import scale_intrinsics
-from endoflow.io import atomic_location, replace_directory
+from endoflow.io import atomic_location, replace_directory, write_bytes
 from endoflow.locations import absolute_location
 from endoflow.progress import format_duration
 from endoflow.ray_runtime import connect_ray
@@ -435,7 +435,7 @@ def prepare_staging(staging: str, keys: dict[str, str]) -> set[str]:
         if name not in kept and name != PLAN_FILE:
             fs.rm(present[name], recursive=True)
     plan = json.dumps({"shard_keys": keys}, indent=1, sort_keys=True).encode()
-    write_location(posixpath.join(staging, PLAN_FILE), plan)
+    write_bytes(posixpath.join(staging, PLAN_FILE), plan)
     return kept
 
 
@@ -460,12 +460,6 @@ def recorded_keys(plan_location: str) -> dict[str, str]:
         return {}
     keys = plan.get("shard_keys") if isinstance(plan, dict) else None
     return keys if isinstance(keys, dict) else {}
-
-
-def write_location(location: str, data: bytes) -> None:
-    """``data`` to a path or fsspec URL, appearing whole or not at all (:func:`endoflow.io.atomic_location`)."""
-    with atomic_location(location) as temporary:
-        temporary.write_bytes(data)
 
 
 def kept_shard_entry(staging: str, shard: ShardSpec) -> ShardEntry:
@@ -493,7 +487,7 @@ def write_manifest(staging: str, shards: list[ShardSpec], dataset: str, entries:
         "sha256": [digest for shard in shards for _, digest in entries[shard.name].sample_sha256],
     }
     manifest = manifest_bytes(columns, [entries[shard.name] for shard in shards])
-    write_location(posixpath.join(staging, MANIFEST), manifest)
+    write_bytes(posixpath.join(staging, MANIFEST), manifest)
 
 
 # ------------------------------------------------------------------------------------------- shard writing

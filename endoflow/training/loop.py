@@ -46,7 +46,7 @@ from endoflow import tracking  # noqa: E402
 from endoflow.config import Params, Precision, TrainConfig  # noqa: E402
 from endoflow.data.loader import batches_per_epoch, rank_batches, triplet_dataset  # noqa: E402
 from endoflow.data.shard_format import ShardEntry, shard_entries  # noqa: E402
-from endoflow.devices import autocast, images_to_device, wants_channels_last  # noqa: E402
+from endoflow.devices import autocast, batch_to_device, images_to_device, wants_channels_last  # noqa: E402
 from endoflow.evaluation import metrics, plots  # noqa: E402
 from endoflow.locations import local_file  # noqa: E402
 from endoflow.models.endoflow_model import EndoflowModel, build_model  # noqa: E402
@@ -192,7 +192,7 @@ def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[st
         if step >= total_steps:
             break
         keys.extend(batch["key"])
-        inputs = to_device(batch, ctx.device, channels_last=wants_channels_last(ctx.device, cfg.precision))
+        inputs = batch_to_device(batch, ctx.device, cfg.precision)
         with autocast(ctx.device, cfg.precision):
             out = ctx.module(inputs)
         reduced = mean_over_ranks(torch.stack([out[k].detach().float() for k in LOGGED_LOSSES]), ctx.world)
@@ -314,17 +314,6 @@ def mean_over_ranks(values: torch.Tensor, world: int) -> torch.Tensor:
     if world > 1:
         dist.all_reduce(values)
     return values.cpu() / world
-
-
-def to_device(batch: dict, device: torch.device, channels_last: bool) -> dict:
-    moved = {}
-    for key, value in batch.items():
-        if isinstance(value, torch.Tensor):
-            value = value.to(device, non_blocking=True)
-            if channels_last and value.dim() == 4:
-                value = value.contiguous(memory_format=torch.channels_last)
-        moved[key] = value
-    return moved
 
 
 def cpu_copy(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
