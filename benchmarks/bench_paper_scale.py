@@ -61,6 +61,10 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--loader-workers", type=int, default=None,
                         help="loader processes (default: train.loader_workers on a GPU, 1 on a CPU)")
     parser.add_argument("--peak-tflops", type=float, default=None, help="the device's bf16 peak (default: known GPUs)")
+    parser.add_argument("--cudnn-benchmark", action="store_true",
+                        help="let cuDNN time its convolution algorithms for these shapes first")
+    parser.add_argument("--profile", type=int, default=0, metavar="N",
+                        help="also profile a bf16 training step: the N operators of most device time")
     return parser.parse_args()
 
 
@@ -105,6 +109,30 @@ def step_flops(model: EndoflowModel, params: Params, batch: dict) -> int:
         training_step_losses(model, batch, params.loss)["total"].backward()
     model.zero_grad(set_to_none=True)
     return counter.get_total_flops()
+
+
+def profile_training_step(params: Params, urls: list[str], device: torch.device, batch_size: int, rows: int) -> str:
+    """torch.profiler's table of the ``rows`` operators taking most device (else CPU) time in one bf16 training
+    step, after two warm-up steps."""
+    torch.manual_seed(params.seed)
+    model = to_compute_layout(build_model(params, None), device, "bf16").train()
+    batches = rank_batches(urls, 0, 1, batch_size, epoch=0, seed=params.seed)
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if device.type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    def step() -> None:
+        batch = batch_to_device(next(batches), device, "bf16")
+        with autocast(device, "bf16"):
+            losses = training_step_losses(model, batch, params.loss)
+        losses["total"].backward()
+        synchronise(device)
+        model.zero_grad(set_to_none=True)
+
+    step(), step()
+    with torch.profiler.profile(activities=activities) as profiler:
+        step()
+    key = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    return profiler.key_averages().table(sort_by=key, row_limit=rows)
 
 
 def measure_training(params: Params, urls: list[str], device: torch.device, precision: Precision, batch_size: int,
@@ -180,6 +208,7 @@ def main() -> None:
     args = parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    torch.backends.cudnn.benchmark = args.cudnn_benchmark
     params = load_params(args.preset)
     device = resolve_device(args.device, "--device")
     on_gpu = device.type == "cuda"
@@ -193,13 +222,16 @@ def main() -> None:
     peak = device_peak_tflops(device, args.peak_tflops)
     name = torch.cuda.get_device_name(device) if on_gpu else f"CPU, {torch.get_num_threads()} threads"
     print(f"{args.preset} on {device} ({name}); 480 x 480, training batch {batch}, "
-          f"{loader_workers} loader processes, {steps} timed steps per precision")
+          f"{loader_workers} loader processes, {steps} timed steps per precision, "
+          f"cuDNN benchmark {'on' if args.cudnn_benchmark else 'off'}")
     with tempfile.TemporaryDirectory(prefix="bench_paper_scale_") as tmp:
         frames = max(34, (steps + 2) * batch + 2)
         urls = write_shards(Path(tmp), "sample", sequences=1, frames=frames)
         figures = [measure_training(params, urls, device, precision, batch, steps, loader_workers)
                    for precision in ("float32", "bf16")]
         eval_fps = evaluation_frames_per_second(params, urls, device, eval_batch, eval_batches)
+        if args.profile:
+            print(profile_training_step(params, urls, device, batch, args.profile))
     gan_rate, gan_total, gan_resolutions = pretraining_steps_per_second(params, device, gan_steps)
 
     print(f"{'training':10s} {'samples/s':>10s} {'data wait':>10s} {'peak GiB':>9s} {'TFLOP/s':>8s} {'of peak':>8s}")

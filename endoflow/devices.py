@@ -13,6 +13,10 @@ the tests run the bf16 code path) but no faster there. Geometry stays float32 wh
 
 Channels-last memory layout goes with bf16 on CUDA only, where tensor-core convolutions want it; elsewhere
 tensors keep the default layout, so CPU numbers stay what they were.
+
+Images travel as 8-bit colour (``uint8``, a quarter of float32's bytes through loader processes' shared memory
+and the host-to-device copy) and become float32 in [0, 1] on their device (:func:`unit_float_images`, the one
+definition of that scaling).
 """
 
 from __future__ import annotations
@@ -74,9 +78,19 @@ def to_compute_layout(module: nn.Module, device: torch.device, precision: Precis
     return module
 
 
+def unit_float_images(images: torch.Tensor) -> torch.Tensor:
+    """8-bit colour (``uint8``, 0..255) as float32 in [0, 1]; float images are returned as they are."""
+    if images.dtype == torch.uint8:
+        return images.float() / 255.0
+    if not images.is_floating_point():
+        raise TypeError(f"images must be uint8 (8-bit colour) or floating point, got {images.dtype}")
+    return images
+
+
 def images_to_device(images: torch.Tensor, device: torch.device, precision: Precision) -> torch.Tensor:
-    """Images ``[B, C, H, W]`` on ``device``, channels-last where the weights are (:func:`to_compute_layout`)."""
-    images = images.to(device, non_blocking=True)
+    """Images ``[B, C, H, W]`` (8-bit or float) on ``device`` as float in [0, 1] (:func:`unit_float_images`, after
+    the copy), channels-last where the weights are (:func:`to_compute_layout`)."""
+    images = unit_float_images(images.to(device, non_blocking=True))
     if wants_channels_last(device, precision):
         images = images.contiguous(memory_format=torch.channels_last)
     return images

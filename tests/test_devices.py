@@ -17,7 +17,16 @@ import torch.nn.functional as F
 
 import endoflow.geometry.warp as warp
 from endoflow.config import ConfigError, Params
-from endoflow.devices import autocast, compute_dtype, resolve_device, to_compute_layout, wants_channels_last
+from endoflow.devices import (
+    autocast,
+    batch_to_device,
+    compute_dtype,
+    images_to_device,
+    resolve_device,
+    to_compute_layout,
+    unit_float_images,
+    wants_channels_last,
+)
 from endoflow.evaluation.evaluate import FrameRecord, SequenceEvaluator, evaluate_test_set
 from endoflow.models.endoflow_model import build_model
 from endoflow.models.model_file import TrainingBaselines
@@ -114,6 +123,19 @@ def test_the_cpu_layout_is_left_as_it_is() -> None:
     conv = torch.nn.Conv2d(3, 8, 3)
     moved = to_compute_layout(conv, CPU, "bf16")
     assert moved.weight.is_contiguous() and moved.weight.dtype == torch.float32
+
+
+def test_8_bit_images_become_float_in_the_unit_range_on_their_device_and_float_images_stay() -> None:
+    colours = torch.arange(256, dtype=torch.uint8).reshape(1, 1, 16, 16).expand(2, 3, 16, 16)
+    moved = images_to_device(colours, CPU, "float32")
+    assert moved.dtype == torch.float32 and moved.min() == 0.0 and moved.max() == 1.0
+    assert torch.equal(moved, colours.float() / 255.0)
+    floats = torch.rand(2, 3, 4, 4)
+    assert unit_float_images(floats) is floats
+    with pytest.raises(TypeError, match="uint8 .* or floating point, got torch.int32"):
+        unit_float_images(colours.int())
+    batch = batch_to_device({"cur": colours, "depth": torch.ones(2, 1, 16, 16), "key": ["a", "b"]}, CPU, "float32")
+    assert torch.equal(batch["cur"], moved) and batch["depth"].dtype == torch.float32 and batch["key"] == ["a", "b"]
 
 
 # ------------------------------------------------------------------------------------------ training

@@ -172,6 +172,13 @@ def test_every_code_dep_of_a_stage_is_a_file_not_a_directory(stage: tuple) -> No
                             f"instead: {directories}"
 
 
+def test_no_code_dep_of_a_stage_is_an_empty_file(stage: tuple) -> None:
+    """DVC prints a warning for every empty dep on every `dvc repro` (an empty package `__init__.py`, say)."""
+    name, body, _ = stage
+    empty = [dep for dep in code_deps(body) if (PROJECT / dep).is_file() and (PROJECT / dep).stat().st_size == 0]
+    assert not empty, f"stage {name}: dvc.yaml deps name empty files, which DVC warns about: {empty}"
+
+
 def test_no_code_dep_of_a_stage_is_a_module_it_never_runs(stage: tuple) -> None:
     """A dep the stage never imports makes DVC rerun it needlessly when that module changes."""
     name, body, closure = stage

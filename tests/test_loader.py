@@ -46,6 +46,7 @@ from endoflow.data.shard_format import (
     shard_name,
 )
 from endoflow.data.shards import write_dataset_shards
+from endoflow.devices import batch_to_device
 from endoflow.training.ray_trainer import training_fingerprint
 from tests.test_config import defaults_with
 from tests.test_shards import SyntheticSource, native_pose, small_params
@@ -106,6 +107,19 @@ def test_decoded_sample_has_float_tensors_in_the_documented_units(shard_dir: Pat
     assert 5.0 + 0.5 * position <= valid.min() and valid.max() < 5.0 + 0.5 * position + 2.0  # cm
     assert torch.equal(sample["K"], torch.tensor(meta["K"], dtype=torch.float32))
     assert sample["key"] == f"simcol-{meta['sequence']}-{meta['frame']:06d}"
+
+
+def test_training_batches_hand_over_8_bit_images_that_scale_to_the_decoded_floats(shard_dir: Path) -> None:
+    urls = list_shards(shard_dir, "val")
+    decoded = {s["key"]: s for s in triplet_dataset(urls)}
+    for loader_workers in (0, 2):
+        for batch in rank_batches(urls, 0, 1, batch_size=2, epoch=0, seed=0, loader_workers=loader_workers):
+            on_device = batch_to_device(batch, torch.device("cpu"), "float32")
+            for name in ("prev", "cur", "next"):
+                assert batch[name].dtype == torch.uint8
+                expected = torch.stack([decoded[key][name] for key in batch["key"]])
+                assert torch.equal(on_device[name], expected)
+            assert batch["depth"].dtype == torch.float32
 
 
 def test_unknown_poses_decode_as_nan_and_depth_only_samples_have_no_images(tmp_path: Path) -> None:

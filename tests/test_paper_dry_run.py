@@ -60,10 +60,10 @@ DRY_RUN_CUTS = {
 }
 
 
-def paper_dry_run_params() -> dict:
-    """presets/paper.yaml with :data:`DRY_RUN_CUTS` applied; every cut key must exist in the preset."""
+def paper_dry_run_params(cuts: dict = DRY_RUN_CUTS) -> dict:
+    """presets/paper.yaml with ``cuts`` (dotted key -> value) applied; every cut key must exist in the preset."""
     raw = yaml.safe_load(PAPER.read_text())
-    for key, value in DRY_RUN_CUTS.items():
+    for key, value in cuts.items():
         *parents, leaf = key.split(".")
         section = raw
         for name in parents:
@@ -163,10 +163,11 @@ class StageMonitor:
             return []
 
 
-def run_paper_dry_run(clone: Path) -> dict:
-    """Copy the project to ``clone`` with the cut paper params, run `dvc repro` there; returns its resources."""
+def run_paper_dry_run(clone: Path, cuts: dict = DRY_RUN_CUTS) -> dict:
+    """Copy the project to ``clone`` with the paper params cut by ``cuts``, run `dvc repro` there; returns its
+    resources."""
     env = pipeline_env("dry-run")
-    clone_project(clone, yaml.safe_dump(paper_dry_run_params(), sort_keys=False), env)
+    clone_project(clone, yaml.safe_dump(paper_dry_run_params(cuts), sort_keys=False), env)
     started = time.monotonic()
     log = clone / "dvc_repro.log"
     with log.open("w") as out:

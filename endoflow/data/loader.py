@@ -14,7 +14,7 @@ epoch's samples, cycling through its own shards when they hold fewer samples tha
 
 Loader processes (``train.loader_workers``): a rank's batches can be read, checked, decoded and collated by
 worker processes of a torch ``DataLoader`` (:class:`RankEpoch`), so that the training thread only moves
-finished batches to its device. The rank's epoch is a run of samples of its own shards; each loader process
+finished batches to its device; their images stay 8-bit until there. The rank's epoch is a run of samples of its own shards; each loader process
 takes a contiguous part of whole batches (:func:`worker_batches`) and reads only the shards that part lies in.
 """
 
@@ -130,6 +130,8 @@ def rank_batches(
     reads its own shards again, every sample as often as another give or take one. ``entries`` (URL ->
     manifest entry) defaults to the manifests beside the shards.
 
+    Images come as ``uint8`` (8-bit RGB as stored: a quarter of float32's bytes to hand over from a loader
+    process and to copy to the device); :func:`endoflow.devices.batch_to_device` makes them float in [0, 1].
     ``loader_workers`` processes read, check, decode and collate (0: this process does). The order of the
     batches is fixed by ``(seed, epoch, rank, loader_workers)`` and depends on ``loader_workers`` (0 and 1
     give the same batches): each process shuffles its own part through a buffer of ``shuffle_buffer /
@@ -218,7 +220,7 @@ class RankEpoch(IterableDataset):
         shuffled = wds.shuffle(buffer, buffer, rng=rng)(samples)
         try:
             for group in _groups(shuffled, self.batch_size):
-                yield collate_samples([decode_sample(sample) for sample in group])
+                yield collate_samples([decode_sample(sample, rgb8=True) for sample in group])
         except DataFormatError as error:
             if info is None:
                 raise

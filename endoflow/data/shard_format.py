@@ -45,6 +45,7 @@ import torch
 from webdataset.tariterators import group_by_keys, tar_file_iterator
 
 from endoflow.data.base import DataFormatError
+from endoflow.devices import unit_float_images
 
 SPLITS = ("train", "val", "test")
 MANIFEST = "manifest.parquet"
@@ -322,10 +323,12 @@ def check_complete(sample: Mapping[str, object], url: str) -> None:
 
 
 # -------------------------------------------------------------------------------------- decoding
-def decode_sample(sample: Mapping[str, object]) -> dict:
+def decode_sample(sample: Mapping[str, object], rgb8: bool = False) -> dict:
     """A raw sample to tensors (shapes per sample; a batch adds a leading ``B``):
 
-    - ``prev``, ``cur``, ``next``: ``[3, H, W]`` float32 RGB in [0, 1] (absent for depth-only samples);
+    - ``prev``, ``cur``, ``next``: ``[3, H, W]`` float32 RGB in [0, 1] (absent for depth-only samples); with
+      ``rgb8``, ``uint8`` RGB 0..255 as stored, for :func:`endoflow.devices.images_to_device` to scale on the
+      device (:func:`endoflow.devices.unit_float_images`);
     - ``depth``: ``[1, H, W]`` float32 z-depth of ``cur`` in cm, 0 where unknown;
     - ``K``: ``[3, 3]`` float32 pixel intrinsics of the stored size;
     - ``T_prev``, ``T_cur``, ``T_next``: ``[4, 4]`` float32 camera-to-world ``T_world_cam`` in cm, all NaN
@@ -340,7 +343,8 @@ def decode_sample(sample: Mapping[str, object]) -> dict:
     out: dict = {"key": str(sample.get("__key__", "?")), "meta": meta}
     for name in IMAGE_NAMES:
         if f"{name}.png" in sample:
-            out[name] = decode_rgb(sample[f"{name}.png"], f"{source}: {name}.png")
+            rgb = decode_rgb8(sample[f"{name}.png"], f"{source}: {name}.png")
+            out[name] = rgb if rgb8 else unit_float_images(rgb)
     out["depth"] = torch.from_numpy(decode_depth(sample[DEPTH_MEMBER], meta["depth_unit"], source))[None]
     out["K"] = torch.tensor(meta["K"], dtype=torch.float32)
     for name in IMAGE_NAMES:
@@ -362,12 +366,12 @@ def decode_meta(data: bytes, source: str) -> dict:
     return meta
 
 
-def decode_rgb(data: bytes, source: str) -> torch.Tensor:
-    """``[3, H, W]`` float32 RGB in [0, 1] from an 8-bit RGB PNG."""
+def decode_rgb8(data: bytes, source: str) -> torch.Tensor:
+    """``[3, H, W]`` uint8 RGB from an 8-bit RGB PNG."""
     image = _decode_png(data, source)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise DataFormatError(source, f"expected 8-bit RGB, found {image.dtype} {image.shape}")
-    return torch.from_numpy(np.ascontiguousarray(image[..., ::-1].transpose(2, 0, 1))).float() / 255.0
+    return torch.from_numpy(np.ascontiguousarray(image[..., ::-1].transpose(2, 0, 1)))
 
 
 def decode_depth(data: bytes, depth_unit: float, source: str) -> np.ndarray:

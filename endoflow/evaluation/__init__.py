@@ -1,0 +1,1 @@
+"""Test-set evaluation (depth and pose metrics, the latent bank's SWD, plots); never imports training."""
