@@ -59,6 +59,33 @@ def build_parser() -> argparse.ArgumentParser:
     summary.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     summary.add_argument("--json", action="store_true")
     summary.set_defaults(handler=_model_summary)
+    export = model.add_parser("export", help="DepthNet and PoseNet as ONNX graphs, checked with onnxruntime")
+    export.add_argument("--model", type=Path, default=None, help="model file (default: params' train.out)")
+    export.add_argument("--format", choices=["onnx"], default="onnx")
+    export.add_argument("--out", type=Path, required=True, help="folder for the graphs and export.json")
+    export.set_defaults(handler=_model_export)
+
+    rec = commands.add_parser("reconstruct", help="depth, camera path and fused surface of a video, an image "
+                                                  "folder or a dataset sequence, from a trained model")
+    rec.add_argument("input", type=Path, help="video file, folder of images, or dataset root (with --sequence)")
+    rec.add_argument("--model", type=Path, default=Path("models/endoflow.pt"), help="model file of the train stage")
+    rec.add_argument("--out", type=Path, required=True, help="output folder (replaced when the run completes)")
+    rec.add_argument("--sequence", default=None, help="a sequence of the dataset at INPUT (ground truth comes along)")
+    rec.add_argument("--intrinsics", default=None,
+                     help="cam.txt, YAML/JSON with fx, fy, cx, cy, width, height, or fx,fy,cx,cy in pixels of "
+                          "the input frames (a dataset sequence brings its own)")
+    rec.add_argument("--size", type=int, default=None, help="square model input in px (default: the model's)")
+    rec.add_argument("--start", type=int, default=0, help="first frame (position in the input)")
+    rec.add_argument("--stop", type=int, default=None, help="stop before this frame")
+    rec.add_argument("--stride", type=int, default=1, help="use every K-th frame")
+    rec.add_argument("--scale", type=float, default=1.0,
+                     help="known factor on depth and path (e.g. from an instrument of known size)")
+    rec.add_argument("--voxel-cm", type=float, default=None, help="TSDF voxel edge in cm (default: from K and depth)")
+    rec.add_argument("--trunc-cm", type=float, default=None, help="TSDF truncation in cm (default: 4 voxels)")
+    rec.add_argument("--npy", action="store_true", help="also write float32 depth in cm as .npy")
+    rec.add_argument("--no-fusion", dest="fuse", action="store_false", help="skip the TSDF surface")
+    rec.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    rec.set_defaults(handler=_reconstruct)
 
     report = commands.add_parser("report", help="Markdown tables (paper Tables 1-3) of workspace + DVC experiments")
     report.add_argument("--no-experiments", action="store_true", help="only the workspace's metrics")
@@ -116,6 +143,40 @@ def _model_summary(args: argparse.Namespace) -> int:
     params = load_params(args.params, overrides=args.overrides)
     report = model_summary(params)
     _print(report, args.json, format_summary(report))
+    return 0
+
+
+def _reconstruct(args: argparse.Namespace) -> int:
+    from endoflow.models.model_file import load_model_file
+    from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
+    from endoflow.reconstruction.reconstruct import ReconstructOptions, reconstruct
+
+    try:
+        options = ReconstructOptions(FrameRange(args.start, args.stop, args.stride), args.size, args.scale,
+                                     args.voxel_cm, args.trunc_cm, args.npy, args.fuse, args.device)
+    except ValueError as exc:
+        print(f"endoflow reconstruct: error: {exc}", file=sys.stderr)
+        return 2
+    params = load_model_file(args.model).params if args.sequence is not None else None
+    frames = open_frames(args.input, args.sequence, params)
+    summary = reconstruct(frames, intrinsics_for(args.intrinsics, frames), args.model, args.out, options)
+    scale = summary.get("ground_truth_scale")
+    fitted = f"; ground truth fits the model's depth x {scale['median']:.3f}" if scale else ""
+    print(f"{summary['frames']} frames at {summary['size']} px, {summary['frames_per_second']:.1f} frames/s"
+          f"{fitted}; outputs in {args.out}")
+    return 0
+
+
+def _model_export(args: argparse.Namespace) -> int:
+    from endoflow.models.export import ExportVerificationError, export_onnx, format_export
+
+    model_path = args.model or Path(_params_if_present(args.params).train.out)
+    try:
+        report = export_onnx(model_path, args.out)
+    except ExportVerificationError as exc:  # the graphs are not trustworthy: nothing was replaced
+        print(f"endoflow: error: {exc}", file=sys.stderr)
+        return 1
+    print(format_export(report))
     return 0
 
 

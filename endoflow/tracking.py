@@ -14,18 +14,23 @@ Browse with ``mlflow ui --backend-store-uri sqlite:///$PWD/mlflow.db`` from the 
 from __future__ import annotations
 
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
 from mlflow import MlflowClient
 from mlflow.entities import Metric, Param, RunStatus
+from mlflow.exceptions import MlflowException
+from mlflow.protos.databricks_pb2 import RESOURCE_DOES_NOT_EXIST, ErrorCode
 
 from endoflow.config import Params, flatten_params
 
 MLFLOW_PARAM_LIMIT = 6000  # characters MLflow accepts in one param value
 FINGERPRINT_TAG = "endoflow.fingerprint"
 GIT_COMMIT_TAG = "mlflow.source.git.commit"
+# on a run opened for a model whose own training run is not in this store (a model file copied between machines)
+MODEL_RUN_TAG = "endoflow.model_run_id"
 
 
 def tracking_uri(params: Params, project_root: str | Path) -> str:
@@ -102,6 +107,41 @@ def start_run(params: Params, project_root: str | Path, experiment: str, run_nam
         tags[FINGERPRINT_TAG] = fingerprint
     run = mlflow_client.create_run(experiment_id, tags=tags, run_name=run_name)
     log_params(uri, run.info.run_id, flat_params(params))
+    return run.info.run_id
+
+
+def run_exists(uri: str, run_id: str) -> bool:
+    """Whether the store at ``uri`` holds the run ``run_id`` (other store errors propagate)."""
+    try:
+        client(uri).get_run(run_id)
+    except MlflowException as exc:
+        if exc.error_code == ErrorCode.Name(RESOURCE_DOES_NOT_EXIST):
+            return False
+        raise
+    return True
+
+
+def run_for_model(params: Params, project_root: str | Path, model_run_id: Optional[str], run_name: str) -> str:
+    """The run to log a model's results into: its training run ``model_run_id`` when this store holds it.
+
+    Otherwise (a model trained elsewhere, or a fresh store) a run of ``tracking.experiment`` tagged with the
+    missing id (:data:`MODEL_RUN_TAG`), opened once and found again by every later caller for the same model,
+    with a warning on stderr naming the missing run and the store.
+    """
+    uri = tracking_uri(params, project_root)
+    if model_run_id and run_exists(uri, model_run_id):
+        return model_run_id
+    experiment_id = ensure_experiment(params, project_root, params.tracking.experiment)
+    marker = model_run_id or "none"
+    found = client(uri).search_runs([experiment_id], filter_string=f"tags.`{MODEL_RUN_TAG}` = '{marker}'",
+                                    order_by=["attributes.start_time DESC"], max_results=1)
+    if found:
+        return found[0].info.run_id
+    missing = f"its training run {model_run_id} is not in {uri}" if model_run_id else "it names no training run"
+    print(f"warning: the model's results go to a new MLflow run ({run_name}): {missing} "
+          f"(a model file copied from another machine?)", file=sys.stderr)
+    run = client(uri).create_run(experiment_id, tags={"mlflow.runName": run_name, MODEL_RUN_TAG: marker},
+                                 run_name=run_name)
     return run.info.run_id
 
 

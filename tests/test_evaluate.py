@@ -224,6 +224,32 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     assert "eval/simcol_3/trajectory_O1.png" in artifacts
 
 
+def test_a_model_whose_training_run_is_not_in_the_store_logs_into_one_new_run_with_a_warning(
+        oracle_shards: Path, tmp_path: Path, capsys: pytest.CaptureFixture):
+    """A model file copied from another machine names a run this store lacks: evaluating it used to fail with
+    MLflow's "Run with id ... not found"."""
+    from endoflow.evaluation.evaluate import log_evaluation
+
+    params = shard_params(oracle_shards)
+    params.model = replace(params.model, latent_bank=False)
+    write_untrained_model(tmp_path / "endoflow.pt", params, "0123456789abcdef0123456789abcdef")
+    samples = triplet_dataset(eval_set_shards(str(oracle_shards), params.eval.test_sets["simcol_3"]))
+    result = evaluate_test_set(params, "simcol_3", samples, tmp_path / "endoflow.pt", tmp_path / "m.json",
+                               tmp_path / "plots", tmp_path / "predictions")
+    log_evaluation(params, tmp_path, result, tmp_path / "plots")
+    assert "0123456789abcdef0123456789abcdef is not in sqlite:///" in capsys.readouterr().err
+    log_evaluation(params, tmp_path, result | {"test_set": "again"}, tmp_path / "plots")  # a second test set
+    assert "warning" not in capsys.readouterr().err
+
+    uri = tracking.tracking_uri(params, tmp_path)
+    experiment = tracking.client(uri).get_experiment_by_name(params.tracking.experiment)
+    runs = tracking.client(uri).search_runs([experiment.experiment_id])
+    assert len(runs) == 1
+    assert runs[0].data.tags[tracking.MODEL_RUN_TAG] == "0123456789abcdef0123456789abcdef"
+    assert {"eval/simcol_3/depth_paper/model/abs_rel", "eval/again/depth_paper/model/abs_rel"} <= set(
+        runs[0].data.metrics)
+
+
 def target_sample(frame: int, sequence: str = "S1") -> dict:
     """A decoded triplet sample of ``frame`` with neighbours frame -/+ 1 and identity poses."""
     pose = np.eye(4).tolist()

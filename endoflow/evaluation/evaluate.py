@@ -44,6 +44,7 @@ from endoflow.config import Params, EvalSetConfig, Precision
 from endoflow.evaluation import metrics, plots
 from endoflow.io import save_figure, staged_directory, write_csv, write_json
 from endoflow.data.base import slug
+from endoflow.data.trajectory_files import write_simcol_relative_pose
 from endoflow.data.shard_format import read_manifest
 from endoflow.devices import autocast, images_to_device, resolve_device, to_compute_layout
 from endoflow.locations import absolute_location
@@ -287,12 +288,9 @@ class SequenceEvaluator:
         np.save(path, metrics.depth_to_simcol_unit(native).astype(np.float16))
 
     def _write_pose(self, earlier: FrameRecord, later: FrameRecord, relative: np.ndarray) -> None:
-        path = (self._frame_folder(earlier) / "pose"
-                / f"FrameBuffer_{earlier.frame:04d}_to_FrameBuffer_{later.frame:04d}.txt")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        exact = np.array(relative, dtype=np.float64)
-        exact[3] = (0.0, 0.0, 0.0, 1.0)
-        path.write_text(" ".join(f"{v:.9g}" for v in exact.reshape(-1)) + "\n")
+        # inside the staged predictions folder: its swap makes the files visible, no fsync per file
+        write_simcol_relative_pose(self._frame_folder(earlier), earlier.frame, later.frame, relative,
+                                   durable=False)
 
 
 # -------------------------------------------------------------------------------------- scoring
@@ -441,10 +439,9 @@ def write_plots(name: str, out_plots: Path, evaluator: SequenceEvaluator, frames
 
 
 def log_evaluation(params: Params, project_root: str | Path, result: dict, plots_dir: Path) -> None:
-    """Log the metrics (``eval/<test set>/<protocol>/<method>/<metric>``) and plots into the training run."""
-    run_id = result.get("mlflow_run_id")
-    if not run_id:
-        return
+    """Log the metrics (``eval/<test set>/<protocol>/<method>/<metric>``) and plots into the training run, or
+    into a run opened for the model when the store lacks its training run (:func:`tracking.run_for_model`)."""
+    run_id = tracking.run_for_model(params, project_root, result.get("mlflow_run_id"), "evaluate")
     uri = tracking.tracking_uri(params, project_root)
     prefix = f"eval/{result['test_set']}"
     values = {f"{prefix}/{protocol}/{method}/{key}": value

@@ -1,0 +1,212 @@
+"""``endoflow reconstruct``: depth per frame, the camera path and a fused surface from a trained model.
+
+Frames stream through the model one at a time: each frame's depth, and the pose between it and the previous
+selected frame, chained into camera-to-world poses from the identity at the first frame:
+``T_world_cur = T_world_prev @ inv(T_cur_prev)`` (``predict_pose(prev, cur)`` returns ``T_cur_prev``, mapping
+the previous frame's points into the current one). Depth and path share one scale, the model's (cm on the data it
+was trained on); ``scale`` multiplies both. Frames are centre-cropped to a square and resized as preprocessing
+does for training, and K follows (:func:`endoflow.data.shards.stored_intrinsics`).
+
+Everything is written into a staged folder that replaces ``out_dir`` only when the run completes:
+
+- ``depth/NNNNNN.png`` 16-bit z-depth in counts of ``depth/depth.json``'s ``unit_cm`` (0: unknown), with
+  ``.npy`` float32 cm on request; ``preview/NNNNNN.png`` colour-mapped inverse depth;
+- ``trajectory.tum``, ``trajectory.kitti`` and ``simcol/pose/`` (see :mod:`endoflow.data.trajectory_files`);
+- ``mesh.ply`` and ``points.ply`` (TSDF fusion, :mod:`endoflow.reconstruction.fusion`), in cm;
+- ``reconstruction.json``: what ran (input, frames, size, K, scale, speed) and, with ground truth, the scale
+  that fits the model's depth to it.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import numpy as np
+import torch
+
+from endoflow.data.shards import depth_to_counts, encode_png, resize_rgb, stored_intrinsics
+from endoflow.devices import images_to_device, resolve_device
+from endoflow.geometry.pose import invert_pose
+from endoflow.io import staged_directory, write_bytes, write_json
+from endoflow.models.model_file import load_trained_model
+from endoflow.progress import format_duration
+from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
+from endoflow.reconstruction.fusion import TSDFVolume, write_ply
+
+DEPTH_UNIT_CM = 0.001  # 16-bit counts of 10 micrometres: up to 65.5 cm
+NETWORK_STRIDE = 32  # the encoders halve the image five times
+
+
+@dataclass(frozen=True)
+class ReconstructOptions:
+    """``size``: square model input in px (None: the model's ``data.size``); ``scale``: factor on depth and path;
+    ``voxel_cm``/``trunc_cm``: TSDF voxel and truncation (None: from the model's depth range and ``size``);
+    ``npy``: also write float32 depth; ``fuse``: build the surface; ``device``: ``auto``, ``cpu`` or ``cuda``."""
+
+    frames: FrameRange = field(default_factory=FrameRange)
+    size: Optional[int] = None
+    scale: float = 1.0
+    voxel_cm: Optional[float] = None
+    trunc_cm: Optional[float] = None
+    npy: bool = False
+    fuse: bool = True
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.size is not None and (self.size < NETWORK_STRIDE or self.size % NETWORK_STRIDE):
+            raise ValueError(f"--size must be a positive multiple of {NETWORK_STRIDE}, got {self.size}")
+        if not (self.scale > 0 and math.isfinite(self.scale)):
+            raise ValueError(f"--scale must be a positive number, got {self.scale}")
+
+
+def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out_dir: Path,
+                options: ReconstructOptions) -> dict:
+    """Run the model over ``source`` and write the outputs listed in the module docstring; returns the summary
+    written to ``reconstruction.json``."""
+    device = resolve_device(options.device, "--device")
+    model, record = load_trained_model(model_path, device)
+    size = options.size or record.params.data.size
+    K = stored_intrinsics(K_native, source.native_size, size)
+    max_depth = record.params.model.max_depth * options.scale
+    unit = DEPTH_UNIT_CM * max(1, math.ceil(max_depth / (DEPTH_UNIT_CM * np.iinfo(np.uint16).max)))
+    voxel = options.voxel_cm or default_voxel_cm(K, record.params.model.max_depth * options.scale, size)
+    volume = TSDFVolume(voxel, options.trunc_cm or 4 * voxel) if options.fuse else None
+    path = CameraPath()
+    started = time.perf_counter()
+    with staged_directory(out_dir) as stage, torch.no_grad():
+        previous: Optional[torch.Tensor] = None
+        for frame in source.frames(options.frames):
+            rgb = resize_rgb(frame.rgb, size)
+            image = images_to_device(torch.from_numpy(rgb).permute(2, 0, 1)[None].contiguous(), device, "float32")
+            depth = model.predict_depth(image)[0, 0].float().cpu().numpy() * options.scale
+            T_cur_prev = None if previous is None else model.predict_pose(previous, image)[0].cpu().double().numpy()
+            pose = path.add(frame, T_cur_prev, options.scale, depth, size)
+            write_depth(stage, frame.index, depth, unit, options.npy, record.params.model, options.scale)
+            if volume is not None:
+                volume.integrate(depth, rgb, K, pose)
+            previous = image
+            report_progress(path.count, started, source, options.frames)
+        if path.count == 0:
+            raise ValueError(f"{source.description}: no frames in the range {asdict(options.frames)}")
+        write_json(stage / "depth" / "depth.json", {
+            "unit_cm": unit, "meaning": "z-depth along the optical axis (OpenCV camera), in counts of unit_cm",
+            "unknown": 0, "scale_applied": options.scale})
+        path.write(stage)
+        surface = write_surface(stage, volume) if volume is not None else {}
+        seconds = time.perf_counter() - started
+        summary = {
+            "input": source.description, "model": str(model_path), "frames": path.count,
+            "frame_range": asdict(options.frames), "native_size": list(source.native_size), "size": size,
+            "K": K.tolist(), "scale": options.scale, "depth_unit_cm": unit,
+            "seconds": seconds, "frames_per_second": path.count / seconds, "device": str(device),
+            "tsdf": {"voxel_cm": voxel, "trunc_cm": volume.trunc_cm} if volume is not None else None,
+            **surface, **path.ground_truth_scale(),
+        }
+        write_json(stage / "reconstruction.json", summary)
+    print(f"[reconstruct] {path.count} frames in {format_duration(seconds)} ({path.count / seconds:.1f} frames/s) "
+          f"-> {out_dir}", file=sys.stderr)
+    return summary
+
+
+def default_voxel_cm(K: np.ndarray, max_depth_cm: float, size: int) -> float:
+    """A voxel about the footprint of one pixel at a quarter of the depth range: finer wastes memory on noise."""
+    return float(max_depth_cm / 4 / K[0, 0])
+
+
+@dataclass
+class CameraPath:
+    """The chained camera-to-world poses, their timestamps and frame indices; with ground truth where known."""
+
+    poses: list[np.ndarray] = field(default_factory=list)
+    timestamps: list[float] = field(default_factory=list)
+    indices: list[int] = field(default_factory=list)
+    gt_poses: list[Optional[np.ndarray]] = field(default_factory=list)
+    depth_ratios: list[float] = field(default_factory=list)
+
+    @property
+    def count(self) -> int:
+        return len(self.poses)
+
+    def add(self, frame: InputFrame, T_cur_prev: Optional[np.ndarray], scale: float, depth: np.ndarray,
+            size: int) -> np.ndarray:
+        """Append the frame's pose (identity for the first) and return it."""
+        if T_cur_prev is None:
+            pose = np.eye(4)
+        else:
+            step = np.array(T_cur_prev)
+            step[:3, 3] *= scale
+            pose = self.poses[-1] @ invert_pose(step)
+        self.poses.append(pose)
+        self.timestamps.append(frame.timestamp)
+        self.indices.append(frame.index)
+        self.gt_poses.append(frame.T_world_cam)
+        if frame.depth_cm is not None:
+            gt = cv2.resize(np.ascontiguousarray(frame.depth_cm, np.float32), (size, size),
+                            interpolation=cv2.INTER_NEAREST_EXACT) if frame.depth_cm.shape != depth.shape else \
+                frame.depth_cm
+            valid = gt > 0
+            if valid.any():
+                self.depth_ratios.append(float(np.median(gt[valid]) / np.median(depth[valid])))
+        return pose
+
+    def write(self, stage: Path) -> None:
+        from endoflow.data.trajectory_files import write_kitti, write_simcol_relative_poses, write_tum
+
+        poses = np.stack(self.poses)
+        write_tum(stage / "trajectory.tum", np.array(self.timestamps), poses)
+        write_kitti(stage / "trajectory.kitti", poses)
+        if len(poses) > 1:
+            write_simcol_relative_poses(stage / "simcol", self.indices, poses)
+
+    def ground_truth_scale(self) -> dict:
+        """The factor that brings the model's depth to the ground truth's (median over frames of the per-frame
+        median ratio, as the paper's protocol scales), where the input has ground-truth depth."""
+        if not self.depth_ratios:
+            return {}
+        return {"ground_truth_scale": {"median": float(np.median(self.depth_ratios)),
+                                       "spread": float(np.std(self.depth_ratios)), "frames": len(self.depth_ratios)}}
+
+
+def write_depth(stage: Path, index: int, depth: np.ndarray, unit: float, npy: bool, model_cfg, scale: float) -> None:
+    counts, _ = depth_to_counts(depth, unit)
+    write_bytes(stage / "depth" / f"{index:06d}.png", encode_png(counts), durable=False)
+    if npy:
+        with (stage / "depth" / f"{index:06d}.npy").open("wb") as out:
+            np.save(out, depth.astype(np.float32))
+    inverse = (1.0 / depth - 1.0 / (model_cfg.max_depth * scale)) / (1.0 / (model_cfg.min_depth * scale)
+                                                                      - 1.0 / (model_cfg.max_depth * scale))
+    colours = cv2.applyColorMap(np.clip(inverse * 255, 0, 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    write_bytes(stage / "preview" / f"{index:06d}.png", encode_png(colours[..., ::-1].copy()), durable=False)
+
+
+def write_surface(stage: Path, volume: TSDFVolume) -> dict:
+    mesh = volume.extract_mesh()
+    write_ply(stage / "mesh.ply", mesh.vertices, mesh.colours, mesh.triangles)
+    write_ply(stage / "points.ply", mesh.vertices, mesh.colours)
+    return {"mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles), "blocks": len(volume.blocks)}}
+
+
+def report_progress(done: int, started: float, source: FrameSource, frames: FrameRange) -> None:
+    total = source_frame_count(source, frames)
+    elapsed = time.perf_counter() - started
+    if done % 25 and done != total:
+        return
+    rate = done / max(elapsed, 1e-9)
+    left = f" | ~{format_duration((total - done) / rate)} left" if total else ""
+    of = f"/{total}" if total else ""
+    print(f"[reconstruct] frame {done}{of} | {rate:.1f} frames/s{left}", file=sys.stderr)
+
+
+def source_frame_count(source: FrameSource, frames: FrameRange) -> Optional[int]:
+    """Frames the range selects, where the source knows its length (a video may not)."""
+    length = source.length
+    if length is None:
+        return None
+    stop = min(length, frames.stop) if frames.stop is not None else length
+    return max(0, math.ceil((stop - frames.start) / frames.stride))

@@ -1,0 +1,282 @@
+"""`endoflow reconstruct`: the three input kinds give the same depth for the same frames, every output is
+written (atomically, as one folder), bad input fails saying what to provide, and the fusion reconstructs the
+renderer's exact surface from ground-truth depth and poses to within about a voxel."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import yaml
+from scipy.ndimage import map_coordinates
+
+from endoflow.cli import main as cli
+from endoflow.config import Params
+from endoflow.data.base import DataFormatError
+from endoflow.data.imageio import read_png16
+from endoflow.data.registry import open_reader
+from endoflow.data.shards import resize_depth, stored_intrinsics
+from endoflow.models.endoflow_model import build_model
+from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
+from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
+from endoflow.reconstruction.fusion import TSDFVolume, read_ply_vertices
+from endoflow.reconstruction.reconstruct import ReconstructOptions, default_voxel_cm, reconstruct
+from endoflow.synth.writers import synthesize_layout
+
+SIZE = 64
+FRAMES = 8
+
+
+@pytest.fixture(scope="module")
+def params() -> Params:
+    params = Params()
+    params.data.size = SIZE
+    params.model = replace(params.model, latent_bank=False)
+    return params
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory, params: Params) -> Path:
+    root = tmp_path_factory.mktemp("scene") / "SimCol3D"
+    synthesize_layout("simcol", root, sequences=1, frames=FRAMES, size=SIZE, seed=0, params=params, workers=1,
+                      device="cpu")
+    return root
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory: pytest.TempPathFactory, params: Params) -> Path:
+    path = tmp_path_factory.mktemp("model") / "endoflow.pt"
+    torch.manual_seed(0)
+    model = build_model(params, latent_bank_path=None)
+
+
+    save_model_file(path, ModelRecord(params=params, state=model.state_dict(), epoch=0, val={}, mlflow_run_id=None,
+                                      baselines=default_baselines()))
+    return path
+
+
+def default_baselines() -> TrainingBaselines:
+    from tests.test_evaluate import oracle_baselines
+
+    return oracle_baselines()
+
+
+def sequence(scene: Path, params: Params, name: str = "S1"):
+    return next(s for s in open_reader(scene, None, params).sequences() if s.name == name)
+
+
+def image_folder(scene: Path, params: Params, folder: Path) -> Path:
+    folder.mkdir()
+    seq = sequence(scene, params)
+    for i in range(len(seq)):
+        cv2.imwrite(str(folder / f"frame_{i}.png"), seq.load_rgb(i)[..., ::-1])
+    return folder
+
+
+def lossless_video(scene: Path, params: Params, path: Path) -> Path:
+    import av
+
+    seq = sequence(scene, params)
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("png", rate=30)
+        stream.width, stream.height, stream.pix_fmt = SIZE, SIZE, "rgb24"
+        for i in range(len(seq)):
+            for packet in stream.encode(av.VideoFrame.from_ndarray(seq.load_rgb(i), format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path
+
+
+def k_numbers(scene: Path, params: Params) -> str:
+    K = sequence(scene, params).K
+    return f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}"
+
+
+def run(source_path: Path, model_file: Path, out: Path, params: Params, sequence_name=None, intrinsics=None,
+        **options) -> dict:
+    frames = open_frames(source_path, sequence_name, params)
+    return reconstruct(frames, intrinsics_for(intrinsics, frames), model_file, out,
+                       ReconstructOptions(**options))
+
+
+def depth_of(out: Path, index: int) -> np.ndarray:
+    unit = json.loads((out / "depth" / "depth.json").read_text())["unit_cm"]
+    return read_png16(out / "depth" / f"{index:06d}.png").astype(np.float64) * unit
+
+
+# ----------------------------------------------------------------------------------------------- outputs
+def test_a_dataset_sequence_gives_depth_path_surface_and_the_scale_that_fits_its_ground_truth(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    summary = run(scene, model_file, out, params, "S1", npy=True)
+    assert summary["frames"] == FRAMES and summary["size"] == SIZE
+    for i in range(FRAMES):
+        exact = np.load(out / "depth" / f"{i:06d}.npy")
+        assert exact.shape == (SIZE, SIZE) and exact.dtype == np.float32
+        np.testing.assert_allclose(depth_of(out, i), exact, atol=summary["depth_unit_cm"] / 2 + 1e-6)
+        assert cv2.imread(str(out / "preview" / f"{i:06d}.png")).shape == (SIZE, SIZE, 3)
+    tum = [line for line in (out / "trajectory.tum").read_text().splitlines() if not line.startswith("#")]
+    assert len(tum) == FRAMES and np.allclose([float(v) for v in tum[0].split()[1:]], [0, 0, 0, 0, 0, 0, 1])
+    assert len((out / "trajectory.kitti").read_text().splitlines()) == FRAMES
+    assert len(list((out / "simcol" / "pose").glob("FrameBuffer_*_to_FrameBuffer_*.txt"))) == FRAMES - 1
+    assert len(read_ply_vertices(out / "points.ply")) == summary["mesh"]["vertices"] > 0
+    assert summary["ground_truth_scale"]["frames"] == FRAMES and summary["ground_truth_scale"]["median"] > 0
+    assert json.loads((out / "reconstruction.json").read_text())["frames"] == FRAMES
+
+
+def test_a_folder_and_a_lossless_video_of_the_same_frames_give_the_dataset_sequences_depth(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
+    run(scene, model_file, tmp_path / "dataset", params, "S1", fuse=False)
+    folder = image_folder(scene, params, tmp_path / "frames")
+    run(folder, model_file, tmp_path / "folder", params, intrinsics=k_numbers(scene, params), fuse=False)
+    video = lossless_video(scene, params, tmp_path / "clip.mov")
+    summary = run(video, model_file, tmp_path / "video", params, intrinsics=k_numbers(scene, params), fuse=False)
+    assert summary["frames"] == FRAMES
+    for kind in ("folder", "video"):
+        for i in range(FRAMES):
+            np.testing.assert_array_equal(depth_of(tmp_path / kind, i), depth_of(tmp_path / "dataset", i))
+    stamps = [float(line.split()[0]) for line in (tmp_path / "video" / "trajectory.tum").read_text().splitlines()
+              if not line.startswith("#")]
+    np.testing.assert_allclose(stamps, np.arange(FRAMES) / 30, atol=1e-6)
+
+
+def test_start_stop_and_stride_pick_frames_and_name_outputs_by_input_position(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
+    summary = run(scene, model_file, tmp_path / "out", params, "S1", frames=FrameRange(1, 7, 2), fuse=False)
+    assert summary["frames"] == 3
+    assert sorted(p.name for p in (tmp_path / "out" / "depth").glob("*.png")) == \
+        ["000001.png", "000003.png", "000005.png"]
+
+
+def test_a_known_scale_multiplies_depth_and_path_alike(scene: Path, model_file: Path, params: Params,
+                                                       tmp_path: Path) -> None:
+    run(scene, model_file, tmp_path / "one", params, "S1", fuse=False, npy=True)
+    run(scene, model_file, tmp_path / "two", params, "S1", fuse=False, npy=True, scale=2.0)
+    np.testing.assert_allclose(np.load(tmp_path / "two" / "depth" / "000003.npy"),
+                               2 * np.load(tmp_path / "one" / "depth" / "000003.npy"), rtol=1e-6)
+    one, two = (np.loadtxt(tmp_path / name / "trajectory.kitti") for name in ("one", "two"))
+    np.testing.assert_allclose(two[:, [3, 7, 11]], 2 * one[:, [3, 7, 11]], rtol=1e-6, atol=1e-9)
+
+
+def test_an_interrupted_run_leaves_the_previous_output_folder_whole(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
+    folder = image_folder(scene, params, tmp_path / "frames")
+    cv2.imwrite(str(folder / "frame_5.png"), np.zeros((SIZE // 2, SIZE, 3), np.uint8))  # damaged mid-way
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "earlier.txt").write_text("kept")
+    with pytest.raises(DataFormatError, match=r"frame_5\.png: image of 64x32 px, expected 64x64"):
+        run(folder, model_file, out, params, intrinsics=k_numbers(scene, params))
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    assert sorted(p.name for p in out.iterdir()) == ["earlier.txt"]
+
+
+# --------------------------------------------------------------------------------------------- bad input
+def test_frames_without_intrinsics_ask_for_them(scene: Path, params: Params, tmp_path: Path) -> None:
+    folder = image_folder(scene, params, tmp_path / "frames")
+    with pytest.raises(DataFormatError, match="no intrinsics: pass --intrinsics"):
+        intrinsics_for(None, open_frames(folder, None, params))
+
+
+@pytest.mark.parametrize("content, message", [
+    ({"fx": 50, "fy": 50, "cx": 32, "cy": 32, "width": 128, "height": 128},
+     "intrinsics for 128x128 px, but the frames are 64x64"),
+    ({"fx": 50, "fy": 50, "cx": 32}, "expected fx, fy, cx, cy .* and the width and height"),
+    ({"fx": -5, "fy": 50, "cx": 32, "cy": 32, "width": 64, "height": 64}, "do not fit 64x64 px frames"),
+])
+def test_an_intrinsics_file_that_does_not_fit_the_frames_says_why(
+        scene: Path, params: Params, tmp_path: Path, content: dict, message: str) -> None:
+    folder = image_folder(scene, params, tmp_path / "frames")
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump(content))
+    with pytest.raises(DataFormatError, match=message):
+        intrinsics_for(str(path), open_frames(folder, None, params))
+
+
+def test_intrinsics_from_a_json_file_and_a_simcol_cam_txt_are_read(scene: Path, params: Params,
+                                                                   tmp_path: Path) -> None:
+    frames = open_frames(image_folder(scene, params, tmp_path / "frames"), None, params)
+    (tmp_path / "k.json").write_text(json.dumps({"fx": 40, "fy": 41, "cx": 31.5, "cy": 30, "width": 64,
+                                                 "height": 64}))
+    np.testing.assert_array_equal(intrinsics_for(str(tmp_path / "k.json"), frames),
+                                  [[40, 0, 31.5], [0, 41, 30], [0, 0, 1]])
+    (tmp_path / "cam.txt").write_text("40 0 31.5\n0 41 30\n0 0 1\n")
+    np.testing.assert_array_equal(intrinsics_for(str(tmp_path / "cam.txt"), frames),
+                                  [[40, 0, 31.5], [0, 41, 30], [0, 0, 1]])
+    with pytest.raises(DataFormatError, match="four numbers fx,fy,cx,cy"):
+        intrinsics_for("40,41,31.5", frames)
+
+
+def test_bad_inputs_fail_saying_what_to_provide(scene: Path, params: Params, tmp_path: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataFormatError, match="no images found"):
+        open_frames(tmp_path / "empty", None, params)
+    (tmp_path / "broken.mp4").write_bytes(b"not a video at all" * 100)
+    with pytest.raises(DataFormatError, match=r"broken\.mp4: cannot be read as a video"):
+        open_frames(tmp_path / "broken.mp4", None, params)
+    with pytest.raises(FileNotFoundError, match="no such video, image folder or dataset root"):
+        open_frames(tmp_path / "missing.mp4", None, params)
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(DataFormatError, match="neither a folder of images nor a video"):
+        open_frames(tmp_path / "notes.txt", None, params)
+    with pytest.raises(DataFormatError, match="no sequence 'S9'; it has 3: B1, O1, S1"):
+        open_frames(scene, "S9", params)
+    with pytest.raises(ValueError, match="multiple of 32"):
+        ReconstructOptions(size=50)
+    with pytest.raises(ValueError, match="start < stop"):
+        FrameRange(4, 2)
+
+
+def test_the_command_line_reports_a_model_file_of_another_format(scene: Path, params: Params, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture) -> None:
+    torch.save({"format": 99}, tmp_path / "other.pt")
+    code = cli(["reconstruct", str(scene), "--sequence", "S1", "--model", str(tmp_path / "other.pt"),
+                "--out", str(tmp_path / "out")])
+    assert code == 2 and "model file format 99, expected" in capsys.readouterr().err
+    assert cli(["reconstruct", str(scene), "--sequence", "S1", "--out", str(tmp_path / "o"), "--size", "50"]) == 2
+
+
+def test_the_command_line_runs_a_dataset_sequence(scene: Path, model_file: Path, tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture) -> None:
+    assert cli(["reconstruct", str(scene), "--sequence", "S1", "--model", str(model_file), "--out",
+                str(tmp_path / "out"), "--stop", "4", "--no-fusion"]) == 0
+    assert "4 frames at 64 px" in capsys.readouterr().out
+    assert not (tmp_path / "out" / "mesh.ply").exists()
+
+
+# ----------------------------------------------------------------------------------------------- fusion
+def test_ground_truth_depth_along_ground_truth_poses_fuses_to_the_exact_surface_within_a_voxel(
+        scene: Path, params: Params) -> None:
+    seq = sequence(scene, params)
+    K = stored_intrinsics(seq.K, seq.image_size, SIZE)
+    voxel = default_voxel_cm(K, params.model.max_depth, SIZE)
+    volume = TSDFVolume(voxel, 4 * voxel)
+    frames = [seq.frame(i) for i in range(len(seq))]
+    depths = [resize_depth(f.depth_cm, SIZE) for f in frames]
+    for frame, depth in zip(frames, depths):
+        volume.integrate(depth, cv2.resize(frame.rgb, (SIZE, SIZE)), K, frame.T_world_cam)
+    mesh = volume.extract_mesh()
+    assert len(mesh.vertices) > 1000
+    # a vertex lies on the true surface if some frame sees it there (other frames may see a nearer wall in front);
+    # GT depth is read between pixel centres (bilinear, inside the valid area): the colon wall is seen at grazing
+    # angles, where depth changes by more than a voxel from one pixel to the next
+    errors = np.full(len(mesh.vertices), np.inf)
+    for frame, depth in zip(frames, depths):
+        cam = (mesh.vertices - frame.T_world_cam[:3, 3]) @ frame.T_world_cam[:3, :3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2]
+            v = K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]
+        seen = (cam[:, 2] > 0) & (u >= 0) & (u <= SIZE - 1) & (v >= 0) & (v <= SIZE - 1)
+        gt = np.zeros(len(cam))
+        gt[seen] = map_coordinates(depth.astype(np.float64), [v[seen], u[seen]], order=1)
+        seen &= gt > 0
+        errors[seen] = np.minimum(errors[seen], np.abs(cam[seen, 2] - gt[seen]))
+    assert np.isfinite(errors).mean() > 0.95  # the surface lies where the frames looked
+    median = np.median(errors[np.isfinite(errors)])
+    assert median < voxel, (median, voxel)
