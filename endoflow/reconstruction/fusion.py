@@ -35,14 +35,15 @@ class SurfaceMesh:
 
 @dataclass
 class TSDFVolume:
-    """``voxel_cm``: voxel edge; ``trunc_cm``: truncation distance (a few voxels)."""
+    """``voxel_cm``: voxel edge; ``trunc_cm``: truncation distance (a few voxels). ``blocks`` maps a block's
+    integer coordinates to its row in the voxel arrays (``[rows, BLOCK^3]``, grown by doubling)."""
 
     voxel_cm: float
     trunc_cm: float
     blocks: dict[tuple[int, int, int], int] = field(default_factory=dict)
-    _tsdf: list[np.ndarray] = field(default_factory=list)
-    _weight: list[np.ndarray] = field(default_factory=list)
-    _colour: list[np.ndarray] = field(default_factory=list)
+    _tsdf: np.ndarray = field(default_factory=lambda: np.ones((0, BLOCK**3), np.float32))
+    _weight: np.ndarray = field(default_factory=lambda: np.zeros((0, BLOCK**3), np.float32))
+    _colour: np.ndarray = field(default_factory=lambda: np.zeros((0, BLOCK**3, 3), np.float32))
 
     def __post_init__(self) -> None:
         if not (self.voxel_cm > 0 and self.trunc_cm >= self.voxel_cm):
@@ -51,17 +52,17 @@ class TSDFVolume:
 
     def integrate(self, depth_cm: np.ndarray, rgb: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> None:
         """Fuse one frame: ``depth_cm`` ``H x W`` z-depth (0 or non-finite: unknown), ``rgb`` ``H x W x 3``
-        uint8, ``K`` its pixel intrinsics, ``T_world_cam`` its camera-to-world pose (cm)."""
+        uint8, ``K`` its pixel intrinsics, ``T_world_cam`` its camera-to-world pose (cm). Only the blocks near
+        this frame's surface are visited, so a frame costs the same however long the video has been."""
         depth = np.where(np.isfinite(depth_cm) & (depth_cm > 0), depth_cm, 0.0).astype(np.float64)
-        for key in self._touched_blocks(depth, K, T_world_cam):
-            self._allocate(key)
-        if not self.blocks:
+        touched = sorted(self._touched_blocks(depth, K, T_world_cam))
+        if not touched:
             return
-        keys = np.array(list(self.blocks), dtype=np.int64)
-        index = np.arange(len(keys))
+        keys = np.array(touched, dtype=np.int64)
+        rows = np.array([self._row(key) for key in touched])
         T_cam_world = np.linalg.inv(T_world_cam)
         for start in range(0, len(keys), 4096):  # bounded temporaries: 4096 blocks of 512 voxels at a time
-            self._update(keys[start:start + 4096], index[start:start + 4096], depth, rgb, K, T_cam_world)
+            self._update(keys[start:start + 4096], rows[start:start + 4096], depth, rgb, K, T_cam_world)
 
     def _touched_blocks(self, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> set[tuple[int, int, int]]:
         """Blocks within ``trunc`` of a surface point of the frame: the points at depth - trunc and + trunc along
@@ -80,14 +81,18 @@ class TSDFVolume:
             touched.update(map(tuple, np.unique(np.floor(world / block_cm).astype(np.int64), axis=0)))
         return touched
 
-    def _allocate(self, key: tuple[int, int, int]) -> None:
+    def _row(self, key: tuple[int, int, int]) -> int:
+        """The block's row in the voxel arrays, allocated (unobserved: weight 0) on first use."""
         if key not in self.blocks:
-            self.blocks[key] = len(self._tsdf)
-            self._tsdf.append(np.ones(BLOCK**3, np.float32))
-            self._weight.append(np.zeros(BLOCK**3, np.float32))
-            self._colour.append(np.zeros((BLOCK**3, 3), np.float32))
+            if len(self.blocks) == len(self._tsdf):
+                grow = max(64, len(self._tsdf))
+                self._tsdf = np.concatenate([self._tsdf, np.ones((grow, BLOCK**3), np.float32)])
+                self._weight = np.concatenate([self._weight, np.zeros((grow, BLOCK**3), np.float32)])
+                self._colour = np.concatenate([self._colour, np.zeros((grow, BLOCK**3, 3), np.float32)])
+            self.blocks[key] = len(self.blocks)
+        return self.blocks[key]
 
-    def _update(self, keys: np.ndarray, slots: np.ndarray, depth: np.ndarray, rgb: np.ndarray, K: np.ndarray,
+    def _update(self, keys: np.ndarray, rows: np.ndarray, depth: np.ndarray, rgb: np.ndarray, K: np.ndarray,
                 T_cam_world: np.ndarray) -> None:
         centres = voxel_centres(keys, self.voxel_cm)  # [n, 512, 3]
         cam = centres @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
@@ -100,15 +105,14 @@ class TSDFVolume:
         ui, vi = np.where(inside, u, 0).astype(np.int64), np.where(inside, v, 0).astype(np.int64)
         observed = depth[vi, ui]
         sdf = observed - z
-        update = inside & (observed > 0) & (sdf >= -self.trunc_cm)
-        for row in np.nonzero(update.any(axis=1))[0]:
-            mask = update[row]
-            slot = slots[row]
-            tsdf, weight, colour = self._tsdf[slot], self._weight[slot], self._colour[slot]
-            w = weight[mask]
-            tsdf[mask] = (tsdf[mask] * w + np.minimum(sdf[row][mask] / self.trunc_cm, 1.0)) / (w + 1)
-            colour[mask] = (colour[mask] * w[:, None] + rgb[vi[row][mask], ui[row][mask]]) / (w + 1)[:, None]
-            weight[mask] = w + 1
+        block, voxel = np.nonzero(inside & (observed > 0) & (sdf >= -self.trunc_cm))
+        row = rows[block]
+        w = self._weight[row, voxel]
+        self._tsdf[row, voxel] = (self._tsdf[row, voxel] * w
+                                  + np.minimum(sdf[block, voxel] / self.trunc_cm, 1.0)) / (w + 1)
+        pixels = rgb[vi[block, voxel], ui[block, voxel]]
+        self._colour[row, voxel] = (self._colour[row, voxel] * w[:, None] + pixels) / (w + 1)[:, None]
+        self._weight[row, voxel] = w + 1
 
     def extract_mesh(self) -> SurfaceMesh:
         """The zero level set of the observed voxels as a triangle mesh, with colours of the nearest voxel."""
@@ -122,12 +126,12 @@ class TSDFVolume:
         tsdf = np.ones(shape, np.float32)
         weight = np.zeros(shape, np.float32)
         colour = np.zeros(shape + (3,), np.float32)
-        for key, slot in self.blocks.items():
+        for key, row in self.blocks.items():
             corner = (np.array(key) - low) * BLOCK
             region = tuple(slice(c, c + BLOCK) for c in corner)
-            tsdf[region] = self._tsdf[slot].reshape(BLOCK, BLOCK, BLOCK)
-            weight[region] = self._weight[slot].reshape(BLOCK, BLOCK, BLOCK)
-            colour[region] = self._colour[slot].reshape(BLOCK, BLOCK, BLOCK, 3)
+            tsdf[region] = self._tsdf[row].reshape(BLOCK, BLOCK, BLOCK)
+            weight[region] = self._weight[row].reshape(BLOCK, BLOCK, BLOCK)
+            colour[region] = self._colour[row].reshape(BLOCK, BLOCK, BLOCK, 3)
         observed = weight > 0
         if not (observed.any() and tsdf[observed].min() < 0 < tsdf[observed].max()):
             return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))

@@ -30,7 +30,14 @@ import cv2
 import numpy as np
 import torch
 
-from endoflow.data.shards import depth_to_counts, encode_png, resize_rgb, stored_intrinsics
+from endoflow.config import ModelConfig
+from endoflow.data.shards import (
+    depth_to_counts,
+    encode_png,
+    resize_depth,
+    resize_rgb,
+    stored_intrinsics,
+)
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.geometry.pose import invert_pose
 from endoflow.io import staged_directory, write_bytes, write_json
@@ -147,9 +154,7 @@ class CameraPath:
         self.indices.append(frame.index)
         self.gt_poses.append(frame.T_world_cam)
         if frame.depth_cm is not None:
-            gt = cv2.resize(np.ascontiguousarray(frame.depth_cm, np.float32), (size, size),
-                            interpolation=cv2.INTER_NEAREST_EXACT) if frame.depth_cm.shape != depth.shape else \
-                frame.depth_cm
+            gt = resize_depth(np.asarray(frame.depth_cm, np.float32), size)  # the crop and resize the frame had
             valid = gt > 0
             if valid.any():
                 self.depth_ratios.append(float(np.median(gt[valid]) / np.median(depth[valid])))
@@ -173,7 +178,9 @@ class CameraPath:
                                        "spread": float(np.std(self.depth_ratios)), "frames": len(self.depth_ratios)}}
 
 
-def write_depth(stage: Path, index: int, depth: np.ndarray, unit: float, npy: bool, model_cfg, scale: float) -> None:
+def write_depth(stage: Path, index: int, depth: np.ndarray, unit: float, npy: bool, model_cfg: ModelConfig,
+                scale: float) -> None:
+    """The frame's 16-bit depth PNG (and ``.npy``) and its preview: inverse depth over the model's range."""
     counts, _ = depth_to_counts(depth, unit)
     write_bytes(stage / "depth" / f"{index:06d}.png", encode_png(counts), durable=False)
     if npy:
@@ -186,6 +193,7 @@ def write_depth(stage: Path, index: int, depth: np.ndarray, unit: float, npy: bo
 
 
 def write_surface(stage: Path, volume: TSDFVolume) -> dict:
+    """``mesh.ply`` and ``points.ply`` (the mesh's coloured vertices); their counts for the summary."""
     mesh = volume.extract_mesh()
     write_ply(stage / "mesh.ply", mesh.vertices, mesh.colours, mesh.triangles)
     write_ply(stage / "points.ply", mesh.vertices, mesh.colours)
