@@ -85,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--npy", action="store_true", help="also write float32 depth in cm as .npy")
     rec.add_argument("--no-fusion", dest="fuse", action="store_false", help="skip the TSDF surface")
     rec.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    rec.add_argument("--mlflow", action="store_true",
+                     help="log the pictures, path, surface and summary into the model's MLflow run (the store of "
+                          "params.yaml's tracking.uri; a new run, with a warning, if the store lacks it)")
     rec.set_defaults(handler=_reconstruct)
 
     report = commands.add_parser("report", help="Markdown tables (paper Tables 1-3) of workspace + DVC experiments")
@@ -149,7 +152,7 @@ def _model_summary(args: argparse.Namespace) -> int:
 def _reconstruct(args: argparse.Namespace) -> int:
     from endoflow.models.model_file import load_model_file
     from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
-    from endoflow.reconstruction.reconstruct import ReconstructOptions, reconstruct
+    from endoflow.reconstruction.reconstruct import ReconstructOptions, log_reconstruction, reconstruct
 
     try:
         options = ReconstructOptions(FrameRange(args.start, args.stop, args.stride), args.size, args.scale,
@@ -157,9 +160,13 @@ def _reconstruct(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"endoflow reconstruct: error: {exc}", file=sys.stderr)
         return 2
-    params = load_model_file(args.model).params if args.sequence is not None else None
-    frames = open_frames(args.input, args.sequence, params)
+    record = load_model_file(args.model)
+    frames = open_frames(args.input, args.sequence, record.params)
     summary = reconstruct(frames, intrinsics_for(args.intrinsics, frames), args.model, args.out, options)
+    if args.mlflow:
+        run_id = log_reconstruction(_params_if_present(args.params), Path(".").resolve(), record.mlflow_run_id,
+                                    args.out.name, args.out)
+        print(f"logged to MLflow run {run_id} under reconstruct/{args.out.name}/")
     scale = summary.get("ground_truth_scale")
     fitted = f"; ground truth fits the model's depth x {scale['median']:.3f}" if scale else ""
     print(f"{summary['frames']} frames at {summary['size']} px, {summary['frames_per_second']:.1f} frames/s"

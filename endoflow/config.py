@@ -277,6 +277,40 @@ class EvalConfig:
     precision: Precision = "auto"  # as train.precision; depth and pose are scored in float32 after the network
 
 
+# ------------------------------------------------------------------------------------- reconstruction
+@dataclass
+class ReconstructSequenceConfig:
+    """One sequence the ``reconstruct`` stage reconstructs and measures: ``sequence`` of ``data.<dataset>.root``
+    (a name its reader lists), frames ``start, start + stride, ...`` below ``stop`` (null: to the end)."""
+
+    dataset: str
+    sequence: str
+    start: int = 0
+    stop: Optional[int] = None
+    stride: int = 1
+
+
+def _default_reconstructions() -> dict[str, ReconstructSequenceConfig]:
+    return {
+        "simcol_S5": ReconstructSequenceConfig("simcol", "S5"),
+        "simcol_O1": ReconstructSequenceConfig("simcol", "O1"),
+        "endoslam_colon": ReconstructSequenceConfig("endoslam", "UnityCam/Colon"),
+    }
+
+
+@dataclass
+class ReconstructConfig:
+    model: str = "models/endoflow.pt"
+    out: str = "reconstructions"  # <out>/<name>/: what `endoflow reconstruct` writes
+    metrics: str = "metrics/reconstruct"  # <metrics>/<name>.json: path and surface errors against ground truth
+    plots: str = "plots/reconstruct"  # <plots>/<name>/: the picture sheet and per-frame path errors
+    sequences: dict[str, ReconstructSequenceConfig] = field(default_factory=_default_reconstructions)
+    size: Optional[int] = None  # null: the model's data.size
+    voxel_cm: Optional[float] = None  # null: about one pixel's footprint at a quarter of the depth range
+    trunc_cm: Optional[float] = None  # null: 4 voxels
+    device: str = "auto"
+
+
 # ----------------------------------------------------------------------------------------- tracking
 @dataclass
 class TrackingConfig:
@@ -306,6 +340,7 @@ class Params:
     ray: RayConfig = field(default_factory=RayConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
 
 
 # ----------------------------------------------------------------------------------------- loading
@@ -624,8 +659,16 @@ _EVAL_RULES: tuple[tuple[str, _Check | _Each], ...] = (
     ("eval.device", _DEVICE),
 )
 
+_RECONSTRUCT_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    ("reconstruct.size", _optional(_Check(lambda v: v >= ENCODER_STRIDE and v % ENCODER_STRIDE == 0,
+                                          f"a positive multiple of {ENCODER_STRIDE}"))),
+    ("reconstruct.voxel_cm", _optional(_POSITIVE)),
+    ("reconstruct.trunc_cm", _optional(_POSITIVE)),
+    ("reconstruct.device", _DEVICE),
+)
+
 _RANGE_RULES = (_TOP_RULES + _DATA_RULES + _SYNTH_RULES + _PREPROCESS_RULES + _LATENT_BANK_RULES + _MODEL_RULES
-                + _LOSS_RULES + _TRAIN_RULES + _RAY_RULES + _EVAL_RULES)
+                + _LOSS_RULES + _TRAIN_RULES + _RAY_RULES + _EVAL_RULES + _RECONSTRUCT_RULES)
 
 
 def _check_ranges(params: Params) -> None:
@@ -746,6 +789,21 @@ def _check_test_sets(params: Params) -> None:
             raise ConfigError(f"eval.test_sets.{name}.dataset must be one of {known}, got {test_set.dataset!r}")
 
 
+def _check_reconstructions(params: Params) -> None:
+    known = [name for name in DATASETS if name not in DEPTH_ONLY_DATASETS]
+    for name, item in params.reconstruct.sequences.items():
+        key = f"reconstruct.sequences.{name}"
+        if not _is_test_set_name(name):
+            raise ConfigError(f"reconstruct.sequences: name {name!r} must be letters, digits, _ and - only (it "
+                              f"names a DVC stage and folders)")
+        if item.dataset not in known:
+            raise ConfigError(f"{key}.dataset must be one of {known} (datasets with images), got {item.dataset!r}")
+        _require(f"{key}.start", item.start, _NON_NEGATIVE)
+        _require(f"{key}.stride", item.stride, _COUNT)
+        if item.stop is not None and item.stop <= item.start:
+            raise ConfigError(f"{key}.stop must be above {key}.start ({item.start}) or null, got {item.stop}")
+
+
 _CROSS_FIELD_CHECKS: tuple[Callable[[Params], None], ...] = (
     _check_depth_range,
     _check_encoder_batch_norm,
@@ -755,4 +813,5 @@ _CROSS_FIELD_CHECKS: tuple[Callable[[Params], None], ...] = (
     _check_workers_have_shards,
     _check_loader_workers_fit_worker_cpus,
     _check_test_sets,
+    _check_reconstructions,
 )

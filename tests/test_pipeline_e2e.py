@@ -40,6 +40,12 @@ def test_every_stage_output_exists(smoke_repro):
     for test_set in params.eval.test_sets:
         assert (smoke_repro / "metrics" / "eval" / f"{test_set}.json").is_file()
         assert any((smoke_repro / "predictions" / test_set).rglob("*.npy"))
+    for name in params.reconstruct.sequences:
+        for output in ("mesh.ply", "sheet.png", "video.mp4", "trajectory.tum", "reconstruction.json"):
+            assert (smoke_repro / params.reconstruct.out / name / output).is_file(), (name, output)
+        measured = json.loads((smoke_repro / params.reconstruct.metrics / f"{name}.json").read_text())
+        assert set(measured["surface"]) >= {"ground_truth", "model", "trivial"}, name
+        assert (smoke_repro / params.reconstruct.plots / name / "sheet.png").is_file()
 
 
 def test_dvc_metrics_show_lists_training_and_evaluation(smoke_repro):
@@ -50,6 +56,7 @@ def test_dvc_metrics_show_lists_training_and_evaluation(smoke_repro):
     assert params.train.metrics in files
     assert params.latent_bank.metrics in files
     assert any(name.startswith("metrics/eval/") for name in files)
+    assert any(name.startswith(f"{params.reconstruct.metrics}/") for name in files)
 
 
 def test_one_mlflow_run_holds_training_and_evaluation(smoke_repro):
@@ -66,6 +73,7 @@ def test_one_mlflow_run_holds_training_and_evaluation(smoke_repro):
     for test_set in params.eval.test_sets:
         assert any(name.startswith(f"eval/{test_set}/") for name in metric_names), test_set
     artifacts = {item.path for item in client.list_artifacts(runs[0].info.run_id)}
-    assert {"model", "eval"} <= artifacts, artifacts
+    assert {"model", "eval", "reconstruct"} <= artifacts, artifacts
+    assert any(name.startswith("reconstruct/") for name in metric_names), metric_names
     bank = client.get_experiment_by_name(params.tracking.latent_bank_experiment)
     assert len(client.search_runs([bank.experiment_id])) == 1

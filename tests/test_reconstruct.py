@@ -250,6 +250,34 @@ def test_the_command_line_runs_a_dataset_sequence(scene: Path, model_file: Path,
     assert not (tmp_path / "out" / "mesh.ply").exists()
 
 
+def test_the_command_line_logs_a_reconstruction_into_mlflow_even_without_the_models_run(
+        scene: Path, model_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture) -> None:
+    from mlflow.tracking import MlflowClient
+
+    monkeypatch.chdir(tmp_path)  # a project folder without params.yaml: the default store, ./mlflow.db
+    assert cli(["reconstruct", str(scene), "--sequence", "S1", "--model", str(model_file), "--out", "clip",
+                "--stop", "3", "--mlflow"]) == 0
+    captured = capsys.readouterr()
+    assert "new MLflow run (reconstruct)" in captured.err and "logged to MLflow run" in captured.out
+    client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
+    run = client.search_runs([client.get_experiment_by_name("endoflow").experiment_id])[0]
+    logged = {item.path for item in client.list_artifacts(run.info.run_id, "reconstruct/clip")}
+    assert {"reconstruct/clip/sheet.png", "reconstruct/clip/video.mp4", "reconstruct/clip/mesh.ply",
+            "reconstruct/clip/trajectory.tum"} <= logged
+
+
+def test_the_pictures_show_frames_depth_path_and_surface(scene: Path, model_file: Path, params: Params,
+                                                         tmp_path: Path) -> None:
+    import av
+
+    run(scene, model_file, tmp_path / "out", params, "S1")
+    sheet = cv2.imread(str(tmp_path / "out" / "sheet.png"))
+    assert sheet is not None and sheet.shape[1] >= 1200
+    with av.open(str(tmp_path / "out" / "video.mp4")) as container:
+        assert sum(1 for _ in container.decode(video=0)) == FRAMES
+
+
 # ----------------------------------------------------------------------------------------------- fusion
 def test_ground_truth_depth_along_ground_truth_poses_fuses_to_the_exact_surface_within_a_voxel(
         scene: Path, params: Params) -> None:

@@ -64,12 +64,13 @@ class FrameRange:
 class FrameSource:
     """A streamed input: ``frames(selection)`` yields :class:`InputFrame` in temporal order; ``native_size`` is
     ``(height, width)``; ``K`` the intrinsics the input itself carries (a dataset's), else None; ``length`` its
-    number of frames where known (a video's container may not say)."""
+    number of frames where known (a video's container may not say); ``fps`` its frame rate."""
 
     description: str
     native_size: tuple[int, int]
     K: Optional[np.ndarray] = None
     length: Optional[int] = None
+    fps: float = DEFAULT_FOLDER_FPS
 
     def frames(self, selection: FrameRange) -> Iterator[InputFrame]:
         raise NotImplementedError
@@ -89,6 +90,7 @@ class VideoFrames(FrameSource):
                 stream = container.streams.video[0]
                 self.native_size = (stream.codec_context.height, stream.codec_context.width)
                 self.length = stream.frames or None
+                self.fps = float(stream.average_rate or DEFAULT_FOLDER_FPS)
         except av.FFmpegError as exc:
             raise DataFormatError(path, f"cannot be read as a video ({exc}); expected an mp4, avi or mov file "
                                         f"that ffmpeg decodes") from None

@@ -10,9 +10,12 @@ does for training, and K follows (:func:`endoflow.data.shards.stored_intrinsics`
 Everything is written into a staged folder that replaces ``out_dir`` only when the run completes:
 
 - ``depth/NNNNNN.png`` 16-bit z-depth in counts of ``depth/depth.json``'s ``unit_cm`` (0: unknown), with
-  ``.npy`` float32 cm on request; ``preview/NNNNNN.png`` colour-mapped inverse depth;
+  ``.npy`` float32 cm on request; ``preview/NNNNNN.png`` colour-mapped inverse depth over one range for the
+  whole run, set by the first frame (:func:`preview_range`, in ``depth/depth.json``);
 - ``trajectory.tum``, ``trajectory.kitti`` and ``simcol/pose/`` (see :mod:`endoflow.data.trajectory_files`);
 - ``mesh.ply`` and ``points.ply`` (TSDF fusion, :mod:`endoflow.reconstruction.fusion`), in cm;
+- ``sheet.png`` (frames beside depth, the path from the top and the side, the fused surface) and ``video.mp4``
+  (frame | depth, streamed as frames come), see :mod:`endoflow.reconstruction.pictures`;
 - ``reconstruction.json``: what ran (input, frames, size, K, scale, speed) and, with ground truth, the scale
   that fits the model's depth to it.
 """
@@ -26,11 +29,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional
 
-import cv2
 import numpy as np
 import torch
 
-from endoflow.config import ModelConfig
+from endoflow.config import ModelConfig, Params
 from endoflow.data.shards import (
     depth_to_counts,
     encode_png,
@@ -44,8 +46,12 @@ from endoflow.io import staged_directory, write_bytes, write_json
 from endoflow.models.model_file import load_trained_model
 from endoflow.progress import format_duration
 from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
-from endoflow.reconstruction.fusion import TSDFVolume, write_ply
+from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply
+from endoflow.reconstruction.pictures import FrameSampler, SideBySideVideo, depth_preview, write_contact_sheet
 
+# What MLflow gets of a reconstruction: what a person opens first, the path and the surface (not the depth maps).
+LOGGED_OUTPUTS = ("sheet.png", "video.mp4", "reconstruction.json", "trajectory.tum", "trajectory.kitti",
+                  "trajectory.kitti.json", "mesh.ply")
 DEPTH_UNIT_CM = 0.001  # 16-bit counts of 10 micrometres: up to 65.5 cm
 NETWORK_STRIDE = 32  # the encoders halve the image five times
 
@@ -86,26 +92,33 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     volume = TSDFVolume(voxel, options.trunc_cm or 4 * voxel) if options.fuse else None
     path = CameraPath()
     started = time.perf_counter()
+    sampler = FrameSampler()
     with staged_directory(out_dir) as stage, torch.no_grad():
-        previous: Optional[torch.Tensor] = None
-        for frame in source.frames(options.frames):
-            rgb = resize_rgb(frame.rgb, size)
-            image = images_to_device(torch.from_numpy(rgb).permute(2, 0, 1)[None].contiguous(), device, "float32")
-            depth = model.predict_depth(image)[0, 0].float().cpu().numpy() * options.scale
-            T_cur_prev = None if previous is None else model.predict_pose(previous, image)[0].cpu().double().numpy()
-            pose = path.add(frame, T_cur_prev, options.scale, depth, size)
-            write_depth(stage, frame.index, depth, unit, options.npy, record.params.model, options.scale)
-            if volume is not None:
-                volume.integrate(depth, rgb, K, pose)
-            previous = image
-            report_progress(path.count, started, source, options.frames)
-        if path.count == 0:
-            raise ValueError(f"{source.description}: no frames in the range {asdict(options.frames)}")
+        with SideBySideVideo(stage / "video.mp4", source.fps / options.frames.stride, size, size) as video:
+            previous: Optional[torch.Tensor] = None
+            shown: Optional[tuple[float, float]] = None
+            for frame in source.frames(options.frames):
+                rgb = resize_rgb(frame.rgb, size)
+                image = images_to_device(torch.from_numpy(rgb).permute(2, 0, 1)[None].contiguous(), device,
+                                         "float32")
+                depth = model.predict_depth(image)[0, 0].float().cpu().numpy() * options.scale
+                T_cur_prev = None if previous is None else model.predict_pose(previous, image)[0].cpu().double().numpy()
+                pose = path.add(frame, T_cur_prev, options.scale, depth, size)
+                shown = shown or preview_range(depth, record.params.model, options.scale)
+                preview = write_depth(stage, frame.index, depth, unit, options.npy, shown)
+                video.add(rgb, preview)
+                sampler.add(frame.index, rgb, preview)
+                if volume is not None:
+                    volume.integrate(depth, rgb, K, pose)
+                previous = image
+                report_progress(path.count, started, source, options.frames)
+            if path.count == 0:
+                raise ValueError(f"{source.description}: no frames in the range {asdict(options.frames)}")
         write_json(stage / "depth" / "depth.json", {
             "unit_cm": unit, "meaning": "z-depth along the optical axis (OpenCV camera), in counts of unit_cm",
-            "unknown": 0, "scale_applied": options.scale})
+            "unknown": 0, "scale_applied": options.scale, "preview_range_cm": shown})
         path.write(stage)
-        surface = write_surface(stage, volume) if volume is not None else {}
+        mesh = write_surface(stage, volume) if volume is not None else None
         seconds = time.perf_counter() - started
         summary = {
             "input": source.description, "model": str(model_path), "frames": path.count,
@@ -113,9 +126,15 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
             "K": K.tolist(), "scale": options.scale, "depth_unit_cm": unit,
             "seconds": seconds, "frames_per_second": path.count / seconds, "device": str(device),
             "tsdf": {"voxel_cm": voxel, "trunc_cm": volume.trunc_cm} if volume is not None else None,
-            **surface, **path.ground_truth_scale(),
+            "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
+                     "blocks": len(volume.blocks)} if mesh is not None else None,
+            **path.ground_truth_scale(),
         }
         write_json(stage / "reconstruction.json", summary)
+        write_contact_sheet(stage / "sheet.png", sampler.samples, np.stack(path.poses),
+                            mesh.vertices if mesh is not None else np.zeros((0, 3)),
+                            mesh.colours if mesh is not None else np.zeros((0, 3), np.uint8),
+                            sheet_title(source, summary))
     print(f"[reconstruct] {path.count} frames in {format_duration(seconds)} ({path.count / seconds:.1f} frames/s) "
           f"-> {out_dir}", file=sys.stderr)
     return summary
@@ -178,26 +197,42 @@ class CameraPath:
                                        "spread": float(np.std(self.depth_ratios)), "frames": len(self.depth_ratios)}}
 
 
-def write_depth(stage: Path, index: int, depth: np.ndarray, unit: float, npy: bool, model_cfg: ModelConfig,
-                scale: float) -> None:
-    """The frame's 16-bit depth PNG (and ``.npy``) and its preview: inverse depth over the model's range."""
+def preview_range(depth: np.ndarray, model_cfg: ModelConfig, scale: float) -> tuple[float, float]:
+    """The depth range the previews colour: the first frame's 2nd to 98th percentile widened 1.5 times each way,
+    within the model's range. The model's whole range (0.1 to 20 cm by default) would leave a colon seen at 1 to
+    5 cm in one dark colour; one range for the run keeps colours comparable between frames."""
+    low, high = np.percentile(depth, [2, 98])
+    return (float(max(low / 1.5, model_cfg.min_depth * scale)),
+            float(min(high * 1.5, model_cfg.max_depth * scale)))
+
+
+def write_depth(stage: Path, index: int, depth: np.ndarray, unit: float, npy: bool,
+                shown: tuple[float, float]) -> np.ndarray:
+    """The frame's 16-bit depth PNG (and ``.npy``) and its preview (inverse depth over ``shown``, cm), which is
+    returned."""
     counts, _ = depth_to_counts(depth, unit)
     write_bytes(stage / "depth" / f"{index:06d}.png", encode_png(counts), durable=False)
     if npy:
         with (stage / "depth" / f"{index:06d}.npy").open("wb") as out:
             np.save(out, depth.astype(np.float32))
-    inverse = (1.0 / depth - 1.0 / (model_cfg.max_depth * scale)) / (1.0 / (model_cfg.min_depth * scale)
-                                                                      - 1.0 / (model_cfg.max_depth * scale))
-    colours = cv2.applyColorMap(np.clip(inverse * 255, 0, 255).astype(np.uint8), cv2.COLORMAP_TURBO)
-    write_bytes(stage / "preview" / f"{index:06d}.png", encode_png(colours[..., ::-1].copy()), durable=False)
+    preview = depth_preview(depth, *shown)
+    write_bytes(stage / "preview" / f"{index:06d}.png", encode_png(preview), durable=False)
+    return preview
 
 
-def write_surface(stage: Path, volume: TSDFVolume) -> dict:
-    """``mesh.ply`` and ``points.ply`` (the mesh's coloured vertices); their counts for the summary."""
+def write_surface(stage: Path, volume: TSDFVolume) -> SurfaceMesh:
+    """``mesh.ply`` and ``points.ply`` (the mesh's coloured vertices); returns the mesh."""
     mesh = volume.extract_mesh()
     write_ply(stage / "mesh.ply", mesh.vertices, mesh.colours, mesh.triangles)
     write_ply(stage / "points.ply", mesh.vertices, mesh.colours)
-    return {"mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles), "blocks": len(volume.blocks)}}
+    return mesh
+
+
+def sheet_title(source: FrameSource, summary: dict) -> str:
+    fitted = summary.get("ground_truth_scale")
+    scale = f", ground truth = model depth x {fitted['median']:.3g}" if fitted else ""
+    return (f"{source.description}: {summary['frames']} frames at {summary['size']} px, "
+            f"{summary['frames_per_second']:.1f} frames/s{scale}")
 
 
 def report_progress(done: int, started: float, source: FrameSource, frames: FrameRange) -> None:
@@ -218,3 +253,20 @@ def source_frame_count(source: FrameSource, frames: FrameRange) -> Optional[int]
         return None
     stop = min(length, frames.stop) if frames.stop is not None else length
     return max(0, math.ceil((stop - frames.start) / frames.stride))
+
+
+def log_reconstruction(params: Params, project_root: Path, model_run_id: Optional[str], name: str, out_dir: Path,
+                       metrics: Optional[dict[str, float]] = None) -> str:
+    """Log a reconstruction's :data:`LOGGED_OUTPUTS` as artifacts under ``reconstruct/<name>/`` of the model's
+    MLflow run (or of the run :func:`endoflow.tracking.run_for_model` opens for a model whose run the store
+    lacks, with a warning), and ``metrics`` as ``reconstruct/<name>/<key>``; returns the run id."""
+    from endoflow import tracking  # MLflow takes seconds to import: only runs that log pay for it
+    run_id = tracking.run_for_model(params, project_root, model_run_id, "reconstruct")
+    uri = tracking.tracking_uri(params, project_root)
+    prefix = f"reconstruct/{name}"
+    for file in LOGGED_OUTPUTS:
+        if (out_dir / file).is_file():
+            tracking.log_artifact(uri, run_id, out_dir / file, prefix)
+    if metrics:
+        tracking.log_metrics(uri, run_id, {f"{prefix}/{key}": value for key, value in metrics.items()})
+    return run_id

@@ -1,0 +1,285 @@
+"""A reconstruction measured against exact ground truth: the camera path and the fused surface, beside the
+fusion's own floor and the trivial baselines, so a figure shows where the model stands between trivial and
+perfect.
+
+What is compared (all in the ground truth's world frame, cm):
+
+- **Path**: APE of positions (RMSE, mean, median) and RPE between consecutive frames (translation in cm,
+  rotation in degrees), computed with ``evo`` after aligning the path onto the ground-truth path (Umeyama on
+  positions, as ``evo``'s ``align``): Sim(3) for the model (monocular: its scale is unknown), SE(3) for the
+  constant-velocity baseline (metric: the training set's mean step).
+- **Surface**: the ground-truth surface is the renderer's exact geometry where the sequence sees it, sampled by
+  back-projecting each frame's exact depth along the exact poses and thinned to one point per half voxel. A
+  reconstruction's mesh vertices are mapped by its path's alignment; *accuracy* is the distance from each vertex
+  to the nearest ground-truth point, *completeness* from each ground-truth point to the nearest vertex (mean and
+  median, cm), and ``completeness_ratio`` the share of ground-truth points within two voxels of the mesh.
+
+Rows of the surface table, each fused with the same TSDF (voxel, truncation) as the reconstruction:
+
+- ``ground_truth``: GT depth along the GT path, the fusion's floor;
+- ``model``: the reconstruction's own mesh (model depth along the model path);
+- ``model_depth_gt_path``: model depth (times the ground truth's median depth ratio) along the GT path, the
+  depth's share of the error;
+- ``constant_depth``: the training set's mean GT depth everywhere, along the GT path;
+- ``constant_velocity``: GT depth along the training set's mean step, chained from the first frame;
+- ``trivial``: constant depth along constant velocity.
+
+Baselines with a metric scale are aligned by SE(3), the model by Sim(3): the usual monocular protocol.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import pandas as pd
+from scipy.spatial import cKDTree
+
+from endoflow.config import Params
+from endoflow.data.imageio import read_png16
+from endoflow.data.shards import resize_depth, resize_rgb
+from endoflow.data.trajectory_files import read_tum
+from endoflow.io import write_bytes, write_csv, write_json
+from endoflow.models.model_file import TrainingBaselines, load_model_file
+from endoflow.reconstruction.frames import DatasetFrames, FrameRange, FrameSource, InputFrame
+from endoflow.reconstruction.fusion import TSDFVolume, read_ply_vertices
+from endoflow.reconstruction.reconstruct import ReconstructOptions, log_reconstruction, reconstruct
+
+SURFACE_ROWS = ("ground_truth", "model", "model_depth_gt_path", "constant_depth", "constant_velocity", "trivial")
+PATH_ROWS = ("model", "constant_velocity")
+COMPLETE_WITHIN_VOXELS = 2.0  # completeness_ratio: ground-truth points this many voxels from the mesh at most
+GT_POINT_SPACING_VOXELS = 0.5  # the ground-truth surface keeps one point per half voxel
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """``p_gt = scale * R @ p + t``: maps a reconstruction's world into the ground truth's."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    scale: float
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return self.scale * points @ self.rotation.T + self.translation
+
+
+def measure_reconstruction(source: FrameSource, out_dir: Path, baselines: TrainingBaselines) -> dict:
+    """Path and surface errors of the reconstruction in ``out_dir`` (written by
+    :func:`endoflow.reconstruction.reconstruct.reconstruct` from ``source``, which must carry ground-truth depth
+    and poses), with the floor and the baselines of the module docstring; plain numbers plus ``per_frame``
+    position errors of each path row."""
+    summary = json.loads((out_dir / "reconstruction.json").read_text())
+    if summary.get("tsdf") is None:
+        raise ValueError(f"{out_dir}: the reconstruction was run without fusion; measuring needs its surface")
+    frames = FrameRange(**summary["frame_range"])
+    size, K = int(summary["size"]), np.asarray(summary["K"], np.float64)
+    voxel, trunc = float(summary["tsdf"]["voxel_cm"]), float(summary["tsdf"]["trunc_cm"])
+    depth_scale = float(summary.get("ground_truth_scale", {}).get("median", 1.0))
+    _, model_poses = read_tum(out_dir / "trajectory.tum")
+    step = np.linalg.matrix_power(np.asarray(baselines.mean_relative_pose, np.float64), frames.stride)
+    volumes = {row: TSDFVolume(voxel, trunc) for row in SURFACE_ROWS if row != "model"}
+    surface = SurfacePoints(voxel * GT_POINT_SPACING_VOXELS)
+    gt_poses, velocity_poses = [], [np.eye(4)]
+    for n, (frame, model_depth) in enumerate(_frames_with_model_depth(source, frames, out_dir, summary)):
+        gt_depth, gt_pose = _ground_truth(frame, size, source)
+        rgb = resize_rgb(frame.rgb, size)
+        if n:
+            velocity_poses.append(velocity_poses[-1] @ step)
+        constant = np.where(gt_depth > 0, np.float32(baselines.mean_depth_cm), np.float32(0))
+        inputs = {"ground_truth": (gt_depth, gt_pose),
+                  "model_depth_gt_path": (model_depth * depth_scale, gt_pose),
+                  "constant_depth": (constant, gt_pose),
+                  "constant_velocity": (gt_depth, velocity_poses[-1]),
+                  "trivial": (constant, velocity_poses[-1])}
+        for row, (depth, pose) in inputs.items():
+            volumes[row].integrate(depth, rgb, K, pose)
+        surface.add(gt_depth, K, gt_pose)
+        gt_poses.append(gt_pose)
+    gt_poses = np.stack(gt_poses)
+    if len(gt_poses) != len(model_poses):
+        raise ValueError(f"{out_dir}: trajectory.tum has {len(model_poses)} poses for {len(gt_poses)} frames of "
+                         f"{source.description}")
+    paths = {"model": (model_poses, True), "constant_velocity": (np.stack(velocity_poses), False)}
+    path_results = {row: path_errors(gt_poses, poses, with_scale) for row, (poses, with_scale) in paths.items()}
+    alignments = {"model": path_results["model"].pop("alignment"),
+                  "constant_velocity": path_results["constant_velocity"].pop("alignment")}
+    alignments["trivial"] = alignments["constant_velocity"]
+    identity = Alignment(np.eye(3), np.zeros(3), 1.0)
+    meshes = {row: volume.extract_mesh().vertices for row, volume in volumes.items()}
+    meshes["model"] = read_ply_vertices(out_dir / "mesh.ply")
+    gt_points = surface.points()
+    surface_results = {row: surface_errors(alignments.get(row, identity).apply(meshes[row]), gt_points, voxel)
+                       for row in SURFACE_ROWS}
+    return {"frames": len(gt_poses), "voxel_cm": voxel, "depth_scale": depth_scale,
+            "frames_per_second": float(summary["frames_per_second"]),
+            "path": path_results, "surface": surface_results}
+
+
+def path_errors(gt_poses: np.ndarray, poses: np.ndarray, with_scale: bool) -> dict:
+    """``evo`` APE (positions) and RPE (consecutive frames) of ``poses`` after aligning them onto ``gt_poses``
+    (Sim(3) ``with_scale``, else SE(3)); ``alignment`` holds the transform, ``per_frame`` the position errors."""
+    from evo.core import metrics
+    from evo.core.trajectory import PoseTrajectory3D
+
+    stamps = np.arange(len(gt_poses), dtype=np.float64)
+    reference = PoseTrajectory3D(poses_se3=list(gt_poses), timestamps=stamps)
+    estimate = PoseTrajectory3D(poses_se3=list(poses), timestamps=stamps)
+    alignment = _align(estimate, reference, with_scale)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((reference, estimate))
+    result = {"ate_rmse": float(ape.get_statistic(metrics.StatisticsType.rmse)),
+              "ate_mean": float(ape.get_statistic(metrics.StatisticsType.mean)),
+              "ate_median": float(ape.get_statistic(metrics.StatisticsType.median)),
+              "scale": alignment.scale}
+    if len(gt_poses) > 1:
+        for key, relation in (("rpe_trans", metrics.PoseRelation.translation_part),
+                              ("rpe_rot", metrics.PoseRelation.rotation_angle_deg)):
+            rpe = metrics.RPE(relation, delta=1, delta_unit=metrics.Unit.frames, all_pairs=False)
+            rpe.process_data((reference, estimate))
+            result[key] = float(rpe.get_statistic(metrics.StatisticsType.mean))
+    return {**result, "alignment": alignment, "per_frame": np.asarray(ape.error, np.float64)}
+
+
+def _align(estimate, reference, with_scale: bool) -> Alignment:
+    """Umeyama alignment of positions (``evo``'s ``align``), in place; a path too short or too straight to fix a
+    rotation is aligned at its first pose instead (and scaled by the ratio of path lengths)."""
+    from evo.core.geometry import GeometryException
+
+    first_gt, first = reference.poses_se3[0].copy(), estimate.poses_se3[0].copy()
+    try:
+        rotation, translation, scale = estimate.align(reference, correct_scale=with_scale)
+        return Alignment(np.asarray(rotation), np.asarray(translation), float(scale))
+    except GeometryException:
+        scale = _length_ratio(reference.positions_xyz, estimate.positions_xyz) if with_scale else 1.0
+        transform = first_gt @ np.linalg.inv(first)
+        estimate.scale(scale)
+        estimate.align_origin(reference)
+        return Alignment(transform[:3, :3], first_gt[:3, 3] - scale * transform[:3, :3] @ first[:3, 3], scale)
+
+
+def _length_ratio(reference: np.ndarray, estimate: np.ndarray) -> float:
+    length = float(np.linalg.norm(np.diff(estimate, axis=0), axis=1).sum())
+    return float(np.linalg.norm(np.diff(reference, axis=0), axis=1).sum()) / length if length > 0 else 1.0
+
+
+def surface_errors(vertices: np.ndarray, gt_points: np.ndarray, voxel_cm: float) -> dict[str, float]:
+    """Accuracy (vertices to the ground truth) and completeness (ground truth to the vertices), cm; an empty
+    mesh has no accuracy (NaN) and completeness 0."""
+    if len(gt_points) == 0:
+        raise ValueError("the ground truth has no surface points: no frame has valid depth")
+    if len(vertices) == 0:
+        return {"accuracy_mean": float("nan"), "accuracy_median": float("nan"),
+                "completeness_mean": float("nan"), "completeness_median": float("nan"), "completeness_ratio": 0.0}
+    accuracy, _ = cKDTree(gt_points).query(vertices)
+    completeness, _ = cKDTree(vertices).query(gt_points)
+    return {"accuracy_mean": float(accuracy.mean()), "accuracy_median": float(np.median(accuracy)),
+            "completeness_mean": float(completeness.mean()), "completeness_median": float(np.median(completeness)),
+            "completeness_ratio": float(np.mean(completeness <= COMPLETE_WITHIN_VOXELS * voxel_cm))}
+
+
+class SurfacePoints:
+    """Ground-truth surface samples, one per cell of ``spacing_cm``: memory follows the surface seen, not the
+    number of frames."""
+
+    def __init__(self, spacing_cm: float) -> None:
+        self.spacing = spacing_cm
+        self.cells: dict[tuple[int, int, int], np.ndarray] = {}
+
+    def add(self, depth_cm: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> None:
+        points = back_project(depth_cm, K, T_world_cam)
+        keys = np.floor(points / self.spacing).astype(np.int64)
+        _, first = np.unique(keys, axis=0, return_index=True)
+        for key, point in zip(map(tuple, keys[first]), points[first]):
+            self.cells.setdefault(key, point)
+
+    def points(self) -> np.ndarray:
+        return np.stack(list(self.cells.values())) if self.cells else np.zeros((0, 3))
+
+
+def back_project(depth_cm: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+    """World points (cm) of every pixel with depth > 0: pixel centres at integer coordinates, as K is stored."""
+    rows, cols = np.nonzero(depth_cm > 0)
+    z = depth_cm[rows, cols].astype(np.float64)
+    camera = np.stack([(cols - K[0, 2]) / K[0, 0] * z, (rows - K[1, 2]) / K[1, 1] * z, z], axis=1)
+    return camera @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+
+
+def _ground_truth(frame: InputFrame, size: int, source: FrameSource) -> tuple[np.ndarray, np.ndarray]:
+    if frame.depth_cm is None or frame.T_world_cam is None:
+        raise ValueError(f"{source.description}: frame {frame.index} has no ground-truth depth and pose to measure "
+                         f"against")
+    return resize_depth(np.asarray(frame.depth_cm, np.float32), size), np.asarray(frame.T_world_cam, np.float64)
+
+
+def _frames_with_model_depth(source: FrameSource, frames: FrameRange, out_dir: Path,
+                             summary: dict) -> Iterator[tuple[InputFrame, np.ndarray]]:
+    unit = float(summary["depth_unit_cm"])
+    for frame in source.frames(frames):
+        counts = read_png16(out_dir / "depth" / f"{frame.index:06d}.png")
+        yield frame, counts.astype(np.float32) * np.float32(unit)
+
+
+def per_frame_path_errors(result: dict) -> list[dict[str, float]]:
+    """Rows ``frame, <path row>...`` of position errors after alignment, for a CSV plot."""
+    columns = {row: result["path"][row]["per_frame"] for row in PATH_ROWS}
+    count = len(next(iter(columns.values())))
+    return [{"frame": i, **{row: float(values[i]) for row, values in columns.items()}} for i in range(count)]
+
+
+def metrics_summary(result: dict) -> dict:
+    """The metrics file's content: ``result`` without its per-frame arrays."""
+    path = {row: {k: v for k, v in values.items() if k != "per_frame"} for row, values in result["path"].items()}
+    return {**result, "path": path}
+
+
+def run_reconstruction(params: Params, name: str, project_root: str | Path = ".") -> dict:
+    """The ``reconstruct`` stage for ``reconstruct.sequences.<name>``: reconstruct the sequence with the trained
+    model into ``<reconstruct.out>/<name>/``, measure it (:func:`measure_reconstruction`), write
+    ``<reconstruct.metrics>/<name>.json`` and ``<reconstruct.plots>/<name>/`` (the picture sheet, per-frame path
+    errors) and log them with the reconstruction's pictures into the model's MLflow run."""
+    cfg = params.reconstruct
+    item = cfg.sequences[name]
+    root = Path(project_root).resolve()
+    model_path = root / cfg.model
+    record = load_model_file(model_path)
+    source = DatasetFrames(root / getattr(params.data, item.dataset).root, item.sequence, params)
+    out_dir = root / cfg.out / name
+    options = ReconstructOptions(FrameRange(item.start, item.stop, item.stride), cfg.size, 1.0, cfg.voxel_cm,
+                                 cfg.trunc_cm, device=cfg.device)
+    reconstruct(source, source.K, model_path, out_dir, options)
+    result = measure_reconstruction(source, out_dir, record.baselines)
+    write_json(root / cfg.metrics / f"{name}.json", metrics_summary(result))
+    plots = root / cfg.plots / name
+    write_csv(plots / "path_errors.csv", pd.DataFrame(per_frame_path_errors(result)))
+    write_bytes(plots / "sheet.png", (out_dir / "sheet.png").read_bytes())
+    log_reconstruction(params, root, record.mlflow_run_id, name, out_dir, flat_metrics(result))
+    return result
+
+
+def flat_metrics(result: dict) -> dict[str, float]:
+    """The measured errors as ``<path|surface>/<row>/<metric>`` (finite values only: MLflow refuses NaN)."""
+    summary = metrics_summary(result)
+    values = {f"{table}/{row}/{key}": value for table in ("path", "surface")
+              for row, figures in summary[table].items() for key, value in figures.items()}
+    return {key: float(value) for key, value in values.items() if np.isfinite(value)}
+
+
+def format_measurement(name: str, result: dict) -> str:
+    """Two small Markdown tables a person reads at the end of the stage: path and surface errors per row."""
+    lines = [f"## {name}: {result['frames']} frames, voxel {result['voxel_cm']:.3g} cm, "
+             f"{result['frames_per_second']:.1f} frames/s", "",
+             "| path | ATE RMSE cm | ATE median cm | RPE cm | RPE deg | scale |", "| --- | --- | --- | --- | --- | --- |"]
+    for row, figures in result["path"].items():
+        lines.append(f"| {row} | {figures['ate_rmse']:.4f} | {figures['ate_median']:.4f} | "
+                     f"{figures.get('rpe_trans', float('nan')):.4f} | {figures.get('rpe_rot', float('nan')):.3f} | "
+                     f"{figures['scale']:.3f} |")
+    lines += ["", "| surface | accuracy mean / median cm | completeness mean / median cm | complete within "
+                  f"{COMPLETE_WITHIN_VOXELS:g} voxels |", "| --- | --- | --- | --- |"]
+    for row, figures in result["surface"].items():
+        lines.append(f"| {row} | {figures['accuracy_mean']:.3f} / {figures['accuracy_median']:.3f} | "
+                     f"{figures['completeness_mean']:.3f} / {figures['completeness_median']:.3f} | "
+                     f"{figures['completeness_ratio']:.1%} |")
+    return "\n".join(lines) + "\n"

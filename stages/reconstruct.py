@@ -1,0 +1,27 @@
+"""DVC stage `reconstruct` (foreach sequence): the trained model's depth, camera path and fused surface of a
+built-in test sequence, measured against its exact ground truth.
+
+Usage: ``python stages/reconstruct.py NAME`` (a key of ``reconstruct.sequences`` in ``params.yaml``); writes
+``<reconstruct.out>/NAME/`` (what ``endoflow reconstruct`` writes), ``<reconstruct.metrics>/NAME.json`` and
+``<reconstruct.plots>/NAME/``, logs them into the model's MLflow run and prints the path and surface tables.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from endoflow.config import load_params
+from endoflow.reconstruction.measure import format_measurement, run_reconstruction
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("name", help="a key of reconstruct.sequences")
+    parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
+    args = parser.parse_args()
+    result = run_reconstruction(load_params(args.params), args.name)
+    print(format_measurement(args.name, result), end="")
+
+
+if __name__ == "__main__":
+    main()
