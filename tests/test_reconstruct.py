@@ -308,3 +308,22 @@ def test_ground_truth_depth_along_ground_truth_poses_fuses_to_the_exact_surface_
     assert np.isfinite(errors).mean() > 0.95  # the surface lies where the frames looked
     median = np.median(errors[np.isfinite(errors)])
     assert median < voxel, (median, voxel)
+
+
+def test_a_long_path_stays_rigid_however_many_float32_steps_it_chains() -> None:
+    from endoflow.reconstruction.frames import InputFrame
+    from endoflow.reconstruction.reconstruct import CameraPath
+
+    rng = np.random.default_rng(0)
+    angle = 0.01
+    step = np.eye(4)
+    step[:3, :3] = cv2.Rodrigues(np.array([angle, 2 * angle, -angle]))[0]
+    step[:3, 3] = (0.01, 0.0, 0.1)
+    path = CameraPath()
+    depth = np.ones((4, 4), np.float32)
+    for i in range(3000):
+        noisy = (step + rng.normal(0, 1e-7, (4, 4)) * [[1, 1, 1, 0]] * 4).astype(np.float32)  # float32 network output
+        path.add(InputFrame(i, i / 30, np.zeros((4, 4, 3), np.uint8)), None if i == 0 else noisy, 1.0, depth, 4)
+    rotations = np.stack(path.poses)[:, :3, :3]
+    np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rotations.shape),
+                               atol=1e-12)

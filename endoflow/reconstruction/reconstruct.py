@@ -140,6 +140,16 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     return summary
 
 
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The rotation closest to ``matrix`` (SVD). The network's rotations are orthonormal only to float32
+    rounding; chained over hundreds of frames that error grows until the path is no longer rigid (and the
+    trajectory writers rightly refuse it), so every step and every chained pose is projected back."""
+    u, _, vt = np.linalg.svd(matrix)
+    if np.linalg.det(u @ vt) < 0:
+        u[:, -1] *= -1
+    return u @ vt
+
+
 def default_voxel_cm(K: np.ndarray, max_depth_cm: float, size: int) -> float:
     """A voxel about the footprint of one pixel at a quarter of the depth range: finer wastes memory on noise."""
     return float(max_depth_cm / 4 / K[0, 0])
@@ -166,8 +176,10 @@ class CameraPath:
             pose = np.eye(4)
         else:
             step = np.array(T_cur_prev)
+            step[:3, :3] = nearest_rotation(step[:3, :3])
             step[:3, 3] *= scale
             pose = self.poses[-1] @ invert_pose(step)
+            pose[:3, :3] = nearest_rotation(pose[:3, :3])
         self.poses.append(pose)
         self.timestamps.append(frame.timestamp)
         self.indices.append(frame.index)
