@@ -12,16 +12,21 @@ this module checks them against evo (``evo.core.metrics``) on the same trajector
   ``rpe_rot`` are the means of evo's consecutive RPE ``translation_part`` / ``rotation_angle_deg``.
 - Alignment done by evo: ``est.scale(s)`` on the prediction chained from the identity, then
   ``est.align_origin(gt)``, gives our EndoSLAM figures in world coordinates, where ``s`` is OUR scale.
+- Our scales are optima of evo's errors: the SimCol3D scale minimises the RMSE of evo's consecutive RPE
+  ``translation_part`` on the chained path, the EndoSLAM scale the RMSE of evo's APE after ``scale`` and
+  ``align_origin``.
 
 How our alignment differs from evo's own (what a user of evo must do to reproduce our numbers):
 
-- evo's ``align(..., correct_only_scale=True)`` (``evo_ape -s``/``--correct_scale`` without ``-a``) takes the
-  scale of an Umeyama Sim(3) fit: positions centred on their means, a rotation fitted too (its scale is
-  ``trace(D S) / var(est)``), and then applies only that scale about the world origin. Ours is the plain
+- evo's scale correction (``evo_ape -s``, ``PosePath3D.align(..., correct_only_scale=True)``) takes the scale
+  of an Umeyama Sim(3) fit: positions centred on their means and a rotation fitted too (the scale is
+  ``trace(D S) / var(est)``), of which only the scale is applied, about the world origin. Ours is the plain
   least-squares ``s = sum <g_i, p_i> / sum |p_i|^2`` of positions relative to ``P_0`` in ``P_0``'s camera
-  frame: no centring, no rotation, and the scaling is about the first pose. The two agree when the prediction is
-  the GT up to scale and differ as soon as it has noise, so evo's scale correction is not our protocol: give
-  evo our scale (``PosePath3D.scale``) and ``align_origin``, as the tests below do.
+  frame: no centring, no rotation, the scaling about the first pose. ``evo_ape -s --align_origin`` (evo scales,
+  then moves the first pose onto the reference's) has our protocol's form, scaling about the first pose, but
+  evo's scale value. The two scales agree when the prediction is the GT up to scale and differ as soon as it
+  has noise, so evo's scale correction is not our protocol: give evo our scale (``PosePath3D.scale``) and
+  ``align_origin``, as the tests below do.
 - The SimCol3D challenge fits its scale on RELATIVE translations (each in its frame ``i``), then chains; evo has
   no such fit. Its RTE/ROT/ATE are evo's RPE/APE only once the trajectory is chained with that scale.
 - evo labels translation errors in metres but never converts unless asked (``change_unit``): cm in, cm out.
@@ -127,6 +132,23 @@ def test_simcol_per_pose_ate_is_evos_unaligned_ape_on_our_scaled_trajectory(seed
     assert ours["ate"] == pytest.approx(ape.get_statistic(StatisticsType.median), rel=RTOL)
 
 
+def rpe_translation_rmse_at_scale(gt_poses: np.ndarray, predicted: np.ndarray, scale: float) -> float:
+    chained = metrics.chain_relative_poses(gt_poses[0], metrics.scaled_relative_poses(predicted, scale))
+    rpe = consecutive_rpe(PoseRelation.translation_part)
+    rpe.process_data((evo_trajectory(gt_poses), evo_trajectory(chained)))
+    return rpe.get_statistic(StatisticsType.rmse)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_simcol_scale_is_the_one_that_minimises_evos_consecutive_rpe_translation_rmse(seed: int):
+    """``|t(E_i)| = |s t(Q'_i) - t(Q_i)|`` (a rotation keeps lengths): the least-squares fit on relative
+    translations is the scale of least RPE, which evo can check but not fit."""
+    gt_poses, predicted = case(seed)
+    scale = metrics.simcol_pose_sequence(gt_poses, predicted)["scale"]
+    best = rpe_translation_rmse_at_scale(gt_poses, predicted, scale)
+    assert all(best < rpe_translation_rmse_at_scale(gt_poses, predicted, scale * factor) for factor in (0.99, 1.01))
+
+
 def test_simcol_scale_undoes_the_network_scale_of_an_exact_prediction():
     gt_poses = smooth_camera_path(40, np.random.default_rng(3))
     ours = metrics.simcol_pose_sequence(gt_poses, exact_up_to_scale(gt_poses))
@@ -177,6 +199,24 @@ def test_evos_origin_alignment_with_our_scale_gives_our_endoslam_figures_in_worl
     assert ours["ate"] == pytest.approx(ape.get_statistic(StatisticsType.rmse), rel=RTOL)
     assert ours["rpe_trans"] == pytest.approx(rpe_trans.get_statistic(StatisticsType.mean), rel=RTOL)
     assert ours["rpe_rot"] == pytest.approx(rpe_rot.get_statistic(StatisticsType.mean), rel=RTOL)
+
+
+def origin_aligned_ape_rmse_at_scale(gt_poses: np.ndarray, predicted: np.ndarray, scale: float) -> float:
+    reference = evo_trajectory(gt_poses)
+    estimate = evo_trajectory(metrics.chain_relative_poses(np.eye(4), predicted))
+    estimate.scale(scale)
+    estimate.align_origin(reference)
+    ape = APE(PoseRelation.translation_part)
+    ape.process_data((reference, estimate))
+    return ape.get_statistic(StatisticsType.rmse)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_endoslam_scale_is_the_one_that_minimises_evos_origin_aligned_ape_rmse(seed: int):
+    gt_poses, predicted = case(seed)
+    scale = metrics.endoslam_pose_sequence(gt_poses, predicted)["scale"]
+    best = origin_aligned_ape_rmse_at_scale(gt_poses, predicted, scale)
+    assert all(best < origin_aligned_ape_rmse_at_scale(gt_poses, predicted, scale * factor) for factor in (0.99, 1.01))
 
 
 def evos_only_scale(gt_poses: np.ndarray, predicted: np.ndarray) -> float:
