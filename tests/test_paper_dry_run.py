@@ -57,6 +57,9 @@ DRY_RUN_CUTS = {
     "ray.use_gpu": False,
     "ray.cpus_per_worker": 2.0,
     "train.loader_workers": 1,
+    # the reconstruct stage fuses six surfaces per sequence: at 480 px the default voxel (the pixel footprint,
+    # 0.022 cm) costs minutes on 2 cores, and a coarse one runs the same code
+    "reconstruct.voxel_cm": 0.2,
 }
 
 

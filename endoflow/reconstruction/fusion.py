@@ -22,6 +22,7 @@ import numpy as np
 from endoflow.io import atomic_path
 
 BLOCK = 8  # voxels per block edge
+CHUNK_BLOCKS = 8  # blocks per chunk edge when extracting the mesh: 64^3 voxels at a time
 
 
 @dataclass
@@ -115,28 +116,47 @@ class TSDFVolume:
         self._weight[row, voxel] = w + 1
 
     def extract_mesh(self) -> SurfaceMesh:
-        """The zero level set of the observed voxels as a triangle mesh, with colours of the nearest voxel."""
+        """The zero level set of the observed voxels as a triangle mesh, with colours of the nearest voxel.
+
+        Extracted chunk by chunk (:data:`CHUNK_BLOCKS`^3 blocks, plus one voxel layer of the next blocks so that
+        chunks join), so memory follows the surface, not the bounding box of a long path."""
+        parts = [self._chunk_mesh(chunk) for chunk in sorted({tuple(k // CHUNK_BLOCKS for k in key)
+                                                             for key in self.blocks})]
+        parts = [part for part in parts if len(part.vertices)]
+        if not parts:
+            return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
+        offsets = np.cumsum([0] + [len(part.vertices) for part in parts[:-1]])
+        return SurfaceMesh(np.concatenate([part.vertices for part in parts]),
+                           np.concatenate([part.triangles + offset for part, offset in zip(parts, offsets)]),
+                           np.concatenate([part.colours for part in parts]))
+
+    def _chunk_mesh(self, chunk: tuple[int, int, int]) -> SurfaceMesh:
         from skimage.measure import marching_cubes
 
-        if not self.blocks:
-            return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
-        keys = np.array(list(self.blocks), dtype=np.int64)
-        low = keys.min(axis=0)
-        shape = tuple((keys.max(axis=0) - low + 1) * BLOCK)
-        tsdf = np.ones(shape, np.float32)
-        weight = np.zeros(shape, np.float32)
-        colour = np.zeros(shape + (3,), np.float32)
-        for key, row in self.blocks.items():
-            corner = (np.array(key) - low) * BLOCK
-            region = tuple(slice(c, c + BLOCK) for c in corner)
-            tsdf[region] = self._tsdf[row].reshape(BLOCK, BLOCK, BLOCK)
-            weight[region] = self._weight[row].reshape(BLOCK, BLOCK, BLOCK)
-            colour[region] = self._colour[row].reshape(BLOCK, BLOCK, BLOCK, 3)
+        empty = SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
+        low = np.array(chunk) * CHUNK_BLOCKS
+        size = CHUNK_BLOCKS * BLOCK + 1  # the chunk's voxels and the first layer of the next chunk's
+        tsdf = np.ones((size,) * 3, np.float32)
+        weight = np.zeros((size,) * 3, np.float32)
+        colour = np.zeros((size,) * 3 + (3,), np.float32)
+        for offset in np.ndindex(*(CHUNK_BLOCKS + 1,) * 3):
+            row = self.blocks.get(tuple(int(v) for v in low + offset))
+            if row is None:
+                continue
+            region = tuple(slice(o * BLOCK, min(o * BLOCK + BLOCK, size)) for o in offset)
+            extent = tuple(r.stop - r.start for r in region)
+            tsdf[region] = self._tsdf[row].reshape(BLOCK, BLOCK, BLOCK)[:extent[0], :extent[1], :extent[2]]
+            weight[region] = self._weight[row].reshape(BLOCK, BLOCK, BLOCK)[:extent[0], :extent[1], :extent[2]]
+            colour[region] = self._colour[row].reshape(BLOCK, BLOCK, BLOCK, 3)[:extent[0], :extent[1], :extent[2]]
         observed = weight > 0
-        if not (observed.any() and tsdf[observed].min() < 0 < tsdf[observed].max()):
-            return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
-        vertices, triangles, _, _ = marching_cubes(tsdf, level=0.0, mask=observed_cubes(observed))
-        nearest = np.clip(np.round(vertices).astype(np.int64), 0, np.array(shape) - 1)
+        cubes = observed_cubes(observed)
+        if not (cubes.any() and tsdf[observed].min() < 0 < tsdf[observed].max()):
+            return empty
+        try:
+            vertices, triangles, _, _ = marching_cubes(tsdf, level=0.0, mask=cubes)
+        except (ValueError, RuntimeError):  # no crossing among the masked cubes
+            return empty
+        nearest = np.clip(np.round(vertices).astype(np.int64), 0, size - 1)
         colours = colour[nearest[:, 0], nearest[:, 1], nearest[:, 2]]
         world = (vertices + low * BLOCK + 0.5) * self.voxel_cm
         return SurfaceMesh(world, triangles.astype(np.int64), np.clip(np.round(colours), 0, 255).astype(np.uint8))
