@@ -256,7 +256,8 @@ def test_the_dry_run_records_time_and_peak_memory_of_every_stage(paper_repro):
     clone, resources = paper_repro
     params = load_params(clone / "params.yaml")
     expected = {"synthesize", "pretrain_latent_bank", "train", *(f"preprocess@{d}" for d in ("simcol", "endoslam",
-                "scenenet")), *(f"evaluate@{name}" for name in params.eval.test_sets)}
+                "scenenet")), *(f"evaluate@{name}" for name in params.eval.test_sets),
+                *(f"reconstruct@{name}" for name in params.reconstruct.sequences)}
     assert set(resources["stages"]) == expected
     assert resources["max_rss_one_process_gib"] > 0
     for stage in resources["stages"].values():
