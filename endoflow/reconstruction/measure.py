@@ -173,8 +173,7 @@ def _length_ratio(reference: np.ndarray, estimate: np.ndarray) -> float:
 
 def surface_errors(vertices: np.ndarray, gt_points: np.ndarray, voxel_cm: float) -> dict[str, float]:
     """Accuracy (vertices to the ground truth) and completeness (ground truth to the vertices), cm, each distance
-    capped at :data:`DISTANCE_CAP_CM`; an empty
-    mesh has no accuracy (NaN) and completeness 0."""
+    capped at :data:`DISTANCE_CAP_CM`; an empty mesh has no accuracy (NaN) and completeness 0."""
     if len(gt_points) == 0:
         raise ValueError("the ground truth has no surface points: no frame has valid depth")
     if len(vertices) == 0:
