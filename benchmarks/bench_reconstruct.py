@@ -2,8 +2,8 @@
 memory than a short one, in one run.
 
     python benchmarks/bench_reconstruct.py [--frames 60] [--size 480] [--short 600] [--long 6000]
-                                           [--video-size 128] [--repeats 1] [--threads 2] [--device cpu]
-                                           [--parts speed memory]
+                                           [--video-size 128] [--measure-frames 3] [--repeats 1] [--threads 2]
+                                           [--device cpu] [--parts speed memory measuring]
 
 Model: the default model (``Params().model``: latent bank on) at ``data.size`` 64, randomly initialised and
 written as a model file (``save_model_file``): weights do not change speed.
@@ -31,6 +31,13 @@ the long/short ratios of the peaks, which should be about 1. What legitimately g
 path (a 4 x 4 pose, a timestamp and an index: a few hundred bytes), the output video's index (tens of bytes)
 and the files on disk. Linux only (``/proc``).
 
+Measuring: the first ``--measure-frames`` frames of the speed scene (rendered again if the speed part is not
+run) are reconstructed at ``--size`` with fusion and measured (``measure_reconstruction``, the ``reconstruct``
+stage's measure: five more fusions and eleven nearest-neighbour searches) twice in one run: with the k-d tree
+settings of ``capped_distances`` and with scipy's defaults (leaves of 16 points, one core). The model file's
+baselines are flat (a constant-velocity step of zero), so the constant-velocity and trivial rows lie
+centimetres off the surface: the slow case of a nearest-neighbour search.
+
 Figures are printed, not asserted: they depend on the machine and its load.
 """
 
@@ -50,13 +57,21 @@ from typing import Iterator, Optional
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from endoflow.config import Params
 from endoflow.data.shards import resize_rgb
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.io import atomic_path
 from endoflow.models.endoflow_model import build_model
-from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_trained_model, save_model_file
+from endoflow.models.model_file import (
+    ModelRecord,
+    TrainingBaselines,
+    load_model_file,
+    load_trained_model,
+    save_model_file,
+)
+from endoflow.reconstruction import measure
 from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame, open_frames
 from endoflow.reconstruction.reconstruct import ReconstructOptions, reconstruct
 from endoflow.synth.writers import synthesize_layout
@@ -79,10 +94,12 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--short", type=int, default=600, help="frames of the short video (memory)")
     parser.add_argument("--long", type=int, default=6000, help="frames of the long video (memory)")
     parser.add_argument("--video-size", type=int, default=128, help="native frame size of the memory videos")
+    parser.add_argument("--measure-frames", type=int, default=3, help="frames of the measuring run")
     parser.add_argument("--repeats", type=int, default=1, help="timed speed runs per setting (best is reported)")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
-    parser.add_argument("--parts", nargs="+", choices=("speed", "memory"), default=["speed", "memory"])
+    parser.add_argument("--parts", nargs="+", choices=("speed", "memory", "measuring"),
+                        default=["speed", "memory", "measuring"])
     return parser.parse_args()
 
 
@@ -221,6 +238,44 @@ def measure_speed(args: argparse.Namespace, work: Path, params: Params, model_fi
                   f"{run.seconds:6.1f} s = {run.frames_per_second:6.2f} frames/s")
         results.append((runs, split))
     return results
+
+
+# --------------------------------------------------------------------------------------------- measuring
+def scipy_default_distances(targets: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``capped_distances`` with scipy's k-d tree defaults: leaves of 16 points, one core."""
+    distances, _ = cKDTree(targets).query(points, distance_upper_bound=measure.DISTANCE_CAP_CM)
+    return np.minimum(distances, measure.DISTANCE_CAP_CM)
+
+
+def timed_measure(source: FrameSource, out: Path, baselines: TrainingBaselines) -> tuple[float, dict]:
+    with open(os.devnull, "w") as nowhere, contextlib.redirect_stderr(nowhere):
+        started = time.perf_counter()
+        result = measure.measure_reconstruction(source, out, baselines)
+        return time.perf_counter() - started, result
+
+
+def measure_measuring(args: argparse.Namespace, work: Path, params: Params, model_file: Path) -> dict[str, float]:
+    """Seconds of ``measure_reconstruction`` with our k-d tree settings and with scipy's defaults."""
+    root = work / "SimCol3D"
+    source = open_frames(root, SEQUENCE, params) if root.exists() else render_scene(
+        root, args.measure_frames, RENDER_SIZE, params, args.threads, args.device)
+    out = work / "measured"
+    options = ReconstructOptions(frames=FrameRange(stop=args.measure_frames), size=args.size, device=args.device)
+    quietly_reconstruct(source, source.K, model_file, out, options)
+    baselines = load_model_file(model_file).baselines
+    ours, result = timed_measure(source, out, baselines)
+    ours_distances = measure.capped_distances
+    measure.capped_distances = scipy_default_distances
+    try:
+        defaults, default_result = timed_measure(source, out, baselines)
+    finally:
+        measure.capped_distances = ours_distances
+    figures = [[row[key] for row in found["surface"].values() for key in sorted(row)]
+               for found in (result, default_result)]
+    if not np.array_equal(*figures, equal_nan=True):
+        raise AssertionError("the two k-d tree settings measured different surface errors")
+    print(f"measuring: {args.measure_frames} frames at {args.size} px, voxel {result['voxel_cm']:.3g} cm")
+    return {"ours": ours, "scipy defaults": defaults}
 
 
 # ------------------------------------------------------------------------------------------------ memory
@@ -394,6 +449,13 @@ def print_memory_table(runs: dict[str, MemoryRun]) -> None:
           f"({growth * MIB / max(frames_between, 1):.0f} bytes per frame)")
 
 
+def print_measuring_table(seconds: dict[str, float]) -> None:
+    print(f"\n{'measuring (k-d tree)':20s} {'seconds':>8s}")
+    for label, value in seconds.items():
+        print(f"{label:20s} {value:8.1f}")
+    print(f"scipy defaults / ours: {seconds['scipy defaults'] / seconds['ours']:.2f}x (same figures)")
+
+
 def main() -> None:
     args = parse_args()
     torch.set_num_threads(args.threads)
@@ -407,10 +469,13 @@ def main() -> None:
         model_file = write_untrained_model_file(work / "endoflow.pt", params)
         speed = measure_speed(args, work, params, model_file) if "speed" in args.parts else []
         memory = measure_memory(args, work, params, model_file) if "memory" in args.parts else {}
+        measuring = measure_measuring(args, work, params, model_file) if "measuring" in args.parts else {}
     if speed:
         print_speed_table(speed)
     if memory:
         print_memory_table(memory)
+    if measuring:
+        print_measuring_table(measuring)
 
 
 if __name__ == "__main__":

@@ -52,9 +52,13 @@ SURFACE_ROWS = ("ground_truth", "model", "model_depth_gt_path", "constant_depth"
 PATH_ROWS = ("model", "constant_velocity")
 COMPLETE_WITHIN_VOXELS = 2.0  # completeness_ratio: ground-truth points this many voxels from the mesh at most
 GT_POINT_SPACING_VOXELS = 0.5  # the ground-truth surface keeps one point per half voxel
-# Distances are capped here: a vertex this far off is simply wrong, and a k-d tree searched from far outside its
-# points visits most of them (minutes for an untrained model's surface at 480 px).
+# Distances are capped here: a vertex this far off is simply wrong, and the search stops there.
 DISTANCE_CAP_CM = 5.0
+# A point centimetres off a surface sampled every 0.01 cm (480 px) is nearly as far from thousands of its points,
+# and the k-d tree visits all their leaves: large leaves make that 3x cheaper than scipy's default of 16, and
+# cost nothing for near points (an untrained model's trivial rows at 480 px: 238 s with 16, 33 s with 256 and
+# both cores; see docs/reconstruction.md).
+KD_TREE_LEAF_SIZE = 256
 # Each side of a distance is an evenly strided sample of at most this many points: at 480 px a surface has
 # millions of vertices, and the statistics of 100k are the same to three digits.
 MAX_MEASURED_POINTS = 100_000
@@ -179,8 +183,8 @@ def surface_errors(vertices: np.ndarray, gt_points: np.ndarray, voxel_cm: float)
     if len(vertices) == 0:
         return {"accuracy_mean": float("nan"), "accuracy_median": float("nan"),
                 "completeness_mean": float("nan"), "completeness_median": float("nan"), "completeness_ratio": 0.0}
-    accuracy = capped_distances(cKDTree(gt_points), evenly_strided(vertices))
-    completeness = capped_distances(cKDTree(vertices), evenly_strided(gt_points))
+    accuracy = capped_distances(gt_points, evenly_strided(vertices))
+    completeness = capped_distances(vertices, evenly_strided(gt_points))
     return {"accuracy_mean": float(accuracy.mean()), "accuracy_median": float(np.median(accuracy)),
             "completeness_mean": float(completeness.mean()), "completeness_median": float(np.median(completeness)),
             "completeness_ratio": float(np.mean(completeness <= COMPLETE_WITHIN_VOXELS * voxel_cm))}
@@ -191,9 +195,11 @@ def evenly_strided(points: np.ndarray) -> np.ndarray:
     return points[::max(1, int(np.ceil(len(points) / MAX_MEASURED_POINTS)))]
 
 
-def capped_distances(tree: cKDTree, points: np.ndarray) -> np.ndarray:
-    """Distance from each of ``points`` to the nearest point of ``tree``, at most :data:`DISTANCE_CAP_CM`."""
-    distances, _ = tree.query(points, distance_upper_bound=DISTANCE_CAP_CM)
+def capped_distances(targets: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Exact distance from each of ``points`` to the nearest of ``targets``, at most :data:`DISTANCE_CAP_CM` (the
+    same for any number of cores: the search runs on all of them)."""
+    tree = cKDTree(targets, leafsize=KD_TREE_LEAF_SIZE)
+    distances, _ = tree.query(points, distance_upper_bound=DISTANCE_CAP_CM, workers=-1)
     return np.minimum(distances, DISTANCE_CAP_CM)
 
 
