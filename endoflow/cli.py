@@ -192,7 +192,8 @@ def _report(args: argparse.Namespace) -> int:
     from endoflow.report import build_report
 
     params = _params_if_present(args.params)
-    print(build_report(".", params.eval.metrics, params_to_dict(params), experiments=not args.no_experiments), end="")
+    print(build_report(".", params.eval.predictions, params_to_dict(params), experiments=not args.no_experiments),
+          end="")
     return 0
 
 

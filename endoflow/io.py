@@ -19,6 +19,7 @@ frames) pass ``durable=False``, as the folder swap is what makes them visible.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import posixpath
@@ -171,6 +172,15 @@ def replace_directory(staging: str | Path, path: str | Path) -> None:
     finally:
         shutil.rmtree(old, ignore_errors=True)
     _fsync_folder(path.parent)
+
+
+def file_sha256(location: str | Path) -> str:
+    """Hex SHA-256 of a file (a path or an fsspec URL), read in 1 MiB blocks."""
+    digest = hashlib.sha256()
+    with fsspec.open(str(location), "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def _fsync_file(path: Path) -> None:

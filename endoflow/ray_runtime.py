@@ -70,7 +70,8 @@ def connect_ray(cfg: RayConfig) -> bool:
         return False
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     if cfg.address:
-        ray.init(address=cfg.address, log_to_driver=True, runtime_env=shipped_runtime_env())
+        ray.init(address=cfg.address, log_to_driver=True, logging_level=logging.WARNING,
+                 runtime_env=shipped_runtime_env())
         try:
             check_same_endoflow_on_every_node(endoflow_build())
         except BaseException:
@@ -80,6 +81,7 @@ def connect_ray(cfg: RayConfig) -> bool:
         with multi_node_ray_off():  # "local": a new instance even where `ray start` left one running
             ray.init(address="local", num_cpus=cfg.num_cpus or os.cpu_count(), include_dashboard=False,
                      object_store_memory=cfg.object_store_mb * 2**20, log_to_driver=True,
+                     logging_level=logging.WARNING,
                      runtime_env={"worker_process_setup_hook": "endoflow.ray_runtime.quiet_worker_logs"})
     return True
 

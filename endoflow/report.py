@@ -1,8 +1,9 @@
 """Markdown tables like the paper's Tables 1-3 from the evaluation metrics of the workspace and experiments,
 and the summary the evaluate stage prints for one test set (:func:`format_evaluation`).
 
-Sources: ``<eval.metrics>/*.json`` of the workspace, and (unless disabled) every DVC experiment and its
-baseline commit as ``dvc exp show --json`` reports them, so after
+Sources: the full evaluations (``<eval.predictions>/<test set>/evaluation.json``, see
+:mod:`endoflow.evaluation.results`) of the workspace and (unless disabled) of every finished DVC experiment and
+baseline commit that has them, listed through DVC's Python API and read at their revisions, so after
 
     dvc exp run -S model.latent_bank=false
     dvc exp run -S model.pose_vae=false
@@ -15,10 +16,12 @@ switches (latent bank, pose VAE). The trivial baselines are shown once per test 
 from __future__ import annotations
 
 import json
-import subprocess
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Optional
+from typing import Any, Callable, Iterable, Optional
+
+from endoflow.evaluation.results import EVALUATION_FILE, evaluation_path
 
 PAPER_COLUMNS = (("abs_rel", "Abs Rel"), ("sq_rel", "Sq Rel"), ("rmse", "RMSE"), ("rmse_log", "RMSE log"),
                  ("l1", "L1"), ("a1", "δ<1.25"), ("a2", "δ<1.25²"), ("a3", "δ<1.25³"))
@@ -52,43 +55,91 @@ class RunResults:
         return f"{self.name} ({', '.join(switches)})" if switches else self.name
 
 
-def workspace_results(metrics_dir: str | Path, params: Optional[dict] = None) -> RunResults:
-    """The workspace's ``<metrics_dir>/*.json``."""
-    folder = Path(metrics_dir)
-    test_sets = {path.stem: json.loads(path.read_text()) for path in sorted(folder.glob("*.json"))}
-    return RunResults("workspace", params or {}, test_sets)
+class ExperimentsUnavailable(Exception):
+    """DVC's experiments cannot be listed here; the message says why."""
 
 
-def experiment_results(exp_show: list[dict], metrics_dir: str) -> list[RunResults]:
-    """Runs from parsed ``dvc exp show --json`` output (baseline commits and their experiments)."""
-    prefix = metrics_dir.rstrip("/") + "/"
+def workspace_results(predictions_dir: str | Path, params: Optional[dict] = None,
+                      running: Optional[str] = None) -> RunResults:
+    """The workspace's full evaluations (``<predictions_dir>/<test set>/evaluation.json``); ``running`` names a
+    DVC experiment running in the workspace, whose results may be partial."""
+    folder = Path(predictions_dir)
+    test_sets = {path.parent.name: json.loads(path.read_text())
+                 for path in sorted(folder.glob(f"*/{EVALUATION_FILE}"))}
+    name = f"workspace: {running} running, partial" if running else "workspace"
+    return RunResults(name, params or {}, test_sets)
+
+
+def dvc_experiment_states(project_root: str | Path) -> list[dict]:
+    """What ``dvc exp show --json`` prints (baseline commits, each with its experiments), through DVC's Python
+    API, so that it works without ``dvc`` on ``PATH``; :class:`ExperimentsUnavailable` says why it cannot."""
+    try:
+        from dvc.exceptions import DvcException, NotDvcRepoError
+        from dvc.repo import Repo
+    except ImportError as exc:
+        raise ExperimentsUnavailable(f"DVC cannot be imported by {sys.executable} ({exc}): run endoflow from the "
+                                     f"environment it was installed into") from exc
+    try:
+        with Repo(str(project_root)) as repo:
+            return [state.dumpd() for state in repo.experiments.show(hide_queued=True, hide_failed=True)]
+    except NotDvcRepoError as exc:
+        raise ExperimentsUnavailable(f"{Path(project_root).resolve()} is not a DVC project") from exc
+    except DvcException as exc:
+        raise ExperimentsUnavailable(f"DVC could not list the experiments: {exc}") from exc
+
+
+def running_in_workspace(states: list[dict]) -> Optional[str]:
+    """The name of the DVC experiment running in the workspace, if one is."""
+    for state in states:
+        for group in state.get("experiments") or []:
+            executor = group.get("executor") or {}
+            if executor.get("state") == "running" and executor.get("name") == "workspace":
+                return group.get("name") or "?"
+    return None
+
+
+def experiment_results(states: list[dict], project_root: str | Path, predictions_dir: str,
+                       read: Optional[Callable[[str, str], Optional[str]]] = None) -> list[RunResults]:
+    """Baseline commits and finished experiments that have evaluations, each read at its revision (``read(rev,
+    path)`` gives a file's text there or ``None``; default: DVC's file system, which reads outputs from the
+    cache)."""
+    read = read or _dvc_reader(project_root)
     runs = []
-    for state in _states(exp_show):
-        data = state.get("data") or {}
-        test_sets = {Path(path).stem: result["data"] for path, result in (data.get("metrics") or {}).items()
-                     if path.startswith(prefix) and result.get("data")}
-        if not test_sets or state.get("rev") == "workspace":
+    for state in _finished_states(states):
+        rev = state.get("rev")
+        if not rev or rev == "workspace":
             continue
+        data = state.get("data") or {}
         params = ((data.get("params") or {}).get("params.yaml") or {}).get("data") or {}
-        runs.append(RunResults(state.get("name") or str(state.get("rev", "?"))[:7], params, test_sets))
+        test_sets = {}
+        for test_set in (params.get("eval") or {}).get("test_sets") or {}:
+            text = read(rev, str(evaluation_path(predictions_dir, test_set)))
+            if text is not None:
+                test_sets[test_set] = json.loads(text)
+        if test_sets:
+            runs.append(RunResults(state.get("name") or str(rev)[:7], params, test_sets))
     return runs
 
 
-def _states(exp_show: Iterable[dict]) -> Iterable[dict]:
-    for state in exp_show:
+def _finished_states(states: Iterable[dict]) -> Iterable[dict]:
+    for state in states:
         yield state
         for group in state.get("experiments") or []:
-            yield from _states(group.get("revs") or [])
+            if (group.get("executor") or {}).get("state") in (None, "success"):
+                yield from _finished_states(group.get("revs") or [])
 
 
-def dvc_experiments(project_root: str | Path) -> list[dict]:
-    """``dvc exp show --json`` of the project (an empty list outside a DVC/git project)."""
-    try:
-        completed = subprocess.run(["dvc", "exp", "show", "--json"], cwd=project_root, capture_output=True,
-                                   text=True, check=True)
-    except (OSError, subprocess.CalledProcessError):
-        return []
-    return json.loads(completed.stdout or "[]")
+def _dvc_reader(project_root: str | Path) -> Callable[[str, str], Optional[str]]:
+    from dvc.api import DVCFileSystem
+
+    def read(rev: str, path: str) -> Optional[str]:
+        fs = DVCFileSystem(str(project_root), rev=rev)
+        try:
+            return fs.read_text(path) if fs.exists(path) else None
+        except FileNotFoundError:  # listed in the revision's dvc.lock, but gone from this cache
+            return None
+
+    return read
 
 
 def markdown_table(headers: list[str], rows: list[list[str]]) -> str:
@@ -177,14 +228,20 @@ def format_evaluation(result: dict) -> str:
     return "\n\n".join(parts) + "\n"
 
 
-def build_report(project_root: str | Path, metrics_dir: str, params: Optional[dict] = None,
+def build_report(project_root: str | Path, predictions_dir: str, params: Optional[dict] = None,
                  experiments: bool = True) -> str:
-    """The whole report for a project: workspace metrics plus, if asked, DVC experiments."""
+    """The whole report for a project: the workspace's evaluations plus, if asked, those of DVC's baseline
+    commits and experiments (a note on stderr says why when DVC cannot list them)."""
     root = Path(project_root)
+    states: list[dict] = []
+    if experiments:
+        try:
+            states = dvc_experiment_states(root)
+        except ExperimentsUnavailable as exc:
+            print(f"endoflow report: workspace only: {exc}", file=sys.stderr)
     runs = []
-    workspace = workspace_results(root / metrics_dir, params)
+    workspace = workspace_results(root / predictions_dir, params, running_in_workspace(states))
     if workspace.test_sets:
         runs.append(workspace)
-    if experiments:
-        runs += experiment_results(dvc_experiments(root), metrics_dir)
+    runs += experiment_results(states, root, predictions_dir) if states else []
     return format_report(runs, order=((params or {}).get("eval") or {}).get("test_sets") or ())

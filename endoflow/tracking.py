@@ -13,11 +13,12 @@ Browse with ``mlflow ui --backend-store-uri sqlite:///$PWD/mlflow.db`` from the 
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Iterable, Mapping, Optional
 
 from mlflow import MlflowClient
 from mlflow.entities import Metric, Param, RunStatus
@@ -28,7 +29,20 @@ from endoflow.config import Params, flatten_params
 
 MLFLOW_PARAM_LIMIT = 6000  # characters MLflow accepts in one param value
 FINGERPRINT_TAG = "endoflow.fingerprint"
+DVC_EXPERIMENT_TAG = "endoflow.dvc_experiment"
+# the tags MLflow's UI reads for a run's "Source" column and an experiment's kind and description
 GIT_COMMIT_TAG = "mlflow.source.git.commit"
+SOURCE_NAME_TAG = "mlflow.source.name"
+SOURCE_TYPE_TAG = "mlflow.source.type"
+EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
+DESCRIPTION_TAG = "mlflow.note.content"
+# without a kind, MLflow 3's UI opens an experiment in its GenAI view (traces, prompts)
+MODEL_TRAINING_KIND = "custom_model_development"
+# DVC sets this in the environment of every stage that `dvc exp run` (or `dvc queue start`) runs
+DVC_EXPERIMENT_ENV = "DVC_EXP_NAME"
+# a latent-bank run carries its bank file's digest; a training run, the run of the bank it used
+LATENT_BANK_DIGEST_TAG = "endoflow.latent_bank_sha256"
+LATENT_BANK_RUN_TAG = "endoflow.latent_bank_run_id"
 # on a run opened for a model whose own training run is not in this store (a model file copied between machines)
 MODEL_RUN_TAG = "endoflow.model_run_id"
 
@@ -53,12 +67,50 @@ def client(uri: str) -> MlflowClient:
 
 
 def ensure_experiment(params: Params, project_root: str | Path, name: str) -> str:
-    """Id of experiment ``name``, creating it with the project's artifact location the first time."""
+    """Id of experiment ``name``, created the first time with the project's artifact location, as a
+    model-training experiment with a description (:func:`experiment_tags`); an older experiment without them
+    gets them."""
     mlflow_client = client(tracking_uri(params, project_root))
+    tags = experiment_tags(params, name)
     experiment = mlflow_client.get_experiment_by_name(name)
-    if experiment is not None:
-        return experiment.experiment_id
-    return mlflow_client.create_experiment(name, artifact_location=artifact_location(params, project_root))
+    if experiment is None:
+        return mlflow_client.create_experiment(name, artifact_location=artifact_location(params, project_root),
+                                               tags=tags)
+    for key, value in tags.items():
+        if key not in experiment.tags:
+            mlflow_client.set_experiment_tag(experiment.experiment_id, key, value)
+    return experiment.experiment_id
+
+
+def experiment_tags(params: Params, name: str) -> dict[str, str]:
+    """The kind (model training) and the description MLflow shows for one of endoflow's experiments."""
+    if name == params.tracking.latent_bank_experiment:
+        description = ("Pretraining of endoflow's generative latent bank (StyleGAN-like, WGAN-GP) on depth maps: "
+                       "one run per `pretrain_latent_bank` stage run, with its losses, sliced Wasserstein "
+                       "distance and samples. Training runs name the run of the bank they used "
+                       "(tag endoflow.latent_bank_run_id).")
+    else:
+        description = ("endoflow's joint depth and pose training: one run per `train` stage run, named after its "
+                       "DVC experiment (or its ablation switches and seed), with the evaluation (abs_rel, rte, "
+                       "rot per test set) and reconstruction results of its model.")
+    return {EXPERIMENT_KIND_TAG: MODEL_TRAINING_KIND, DESCRIPTION_TAG: description}
+
+
+def dvc_experiment_name() -> Optional[str]:
+    """The DVC experiment this process runs in, if any."""
+    return os.environ.get(DVC_EXPERIMENT_ENV) or None
+
+
+def run_name_for(stage: str, distinguishing: Iterable[str]) -> str:
+    """A run's name: its DVC experiment's where there is one, else the stage and what distinguishes the run
+    (``train bank no-vae seed1``), so that the runs of an ablation differ in MLflow's table."""
+    return dvc_experiment_name() or " ".join([stage, *distinguishing])
+
+
+def ablation_switches(params: Params) -> list[str]:
+    """``bank``/``no-bank`` and ``vae``/``no-vae``: the model's ablation switches, as run names show them."""
+    return [word if on else f"no-{word}" for word, on in (("bank", params.model.latent_bank),
+                                                           ("vae", params.model.pose_vae))]
 
 
 def flat_params(params: Params) -> dict[str, str]:
@@ -99,15 +151,26 @@ def start_run(params: Params, project_root: str | Path, experiment: str, run_nam
             run_id = unfinished[0].info.run_id
             mlflow_client.update_run(run_id, status="RUNNING")
             return run_id
-    tags = {"mlflow.runName": run_name}
-    commit = git_commit(project_root)
-    if commit:
-        tags[GIT_COMMIT_TAG] = commit
+    tags = {"mlflow.runName": run_name, **source_tags(project_root)}
     if fingerprint is not None:
         tags[FINGERPRINT_TAG] = fingerprint
+    if dvc_experiment_name():
+        tags[DVC_EXPERIMENT_TAG] = dvc_experiment_name()
     run = mlflow_client.create_run(experiment_id, tags=tags, run_name=run_name)
     log_params(uri, run.info.run_id, flat_params(params))
     return run.info.run_id
+
+
+def source_tags(project_root: str | Path) -> dict[str, str]:
+    """The tags of MLflow's "Source" column: the script that runs (relative to the project) and the commit."""
+    script = Path(sys.argv[0]).resolve()
+    root = Path(project_root).resolve()
+    tags = {SOURCE_NAME_TAG: str(script.relative_to(root)) if script.is_relative_to(root) else script.name,
+            SOURCE_TYPE_TAG: "LOCAL"}
+    commit = git_commit(project_root)
+    if commit:
+        tags[GIT_COMMIT_TAG] = commit
+    return tags
 
 
 def run_exists(uri: str, run_id: str) -> bool:
@@ -145,6 +208,27 @@ def run_for_model(params: Params, project_root: str | Path, model_run_id: Option
     return run.info.run_id
 
 
+def set_tags(uri: str, run_id: str, tags: Mapping[str, str]) -> None:
+    mlflow_client = client(uri)
+    for key, value in tags.items():
+        mlflow_client.set_tag(run_id, key, value)
+
+
+def link_latent_bank(params: Params, project_root: str | Path, run_id: str, bank_digest: str) -> Optional[str]:
+    """Tag training run ``run_id`` with the digest of the latent bank file it uses and, when this store holds
+    the pretraining run that wrote that file, with that run's id; returns the id (``None`` if not found)."""
+    uri = tracking_uri(params, project_root)
+    tags = {LATENT_BANK_DIGEST_TAG: bank_digest}
+    experiment = client(uri).get_experiment_by_name(params.tracking.latent_bank_experiment)
+    found = client(uri).search_runs([experiment.experiment_id],
+                                    filter_string=f"tags.`{LATENT_BANK_DIGEST_TAG}` = '{bank_digest}'",
+                                    order_by=["attributes.start_time DESC"], max_results=1) if experiment else []
+    if found:
+        tags[LATENT_BANK_RUN_TAG] = found[0].info.run_id
+    set_tags(uri, run_id, tags)
+    return found[0].info.run_id if found else None
+
+
 def log_params(uri: str, run_id: str, values: Mapping[str, str]) -> None:
     """Log params in batches (MLflow caps a batch at 100 params)."""
     items = [Param(k, v) for k, v in values.items()]
@@ -165,6 +249,11 @@ def log_metrics(uri: str, run_id: str, values: Mapping[str, float], step: int = 
 def metric_key(key: str) -> str:
     """MLflow keys allow letters, digits, ``_ - . / space``; anything else becomes ``_``."""
     return "".join(c if c.isalnum() or c in "_-./ " else "_" for c in key)
+
+
+def log_dict(uri: str, run_id: str, values: Mapping[str, Any], artifact_file: str) -> None:
+    """Save ``values`` as a JSON artifact."""
+    client(uri).log_dict(run_id, dict(values), artifact_file)
 
 
 def log_figure(uri: str, run_id: str, figure: Any, artifact_file: str) -> None:

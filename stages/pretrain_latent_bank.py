@@ -1,14 +1,13 @@
 """DVC stage `pretrain_latent_bank`: SceneNet depth shards -> the pretrained generative latent bank.
 
 Usage: ``python stages/pretrain_latent_bank.py [--params params.yaml]``; reads ``latent_bank.shards`` and writes
-``latent_bank.out``, ``latent_bank.metrics`` and ``latent_bank.plots``, and logs an MLflow run in
-``tracking.latent_bank_experiment``.
+``latent_bank.out``, ``latent_bank.metrics`` and ``latent_bank.plots``, logs an MLflow run in
+``tracking.latent_bank_experiment``, and ends with one line: the SWD before and after, and its floor.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 
 from endoflow.config import load_params
 from endoflow.training.pretrain import pretrain_latent_bank
@@ -19,14 +18,13 @@ def main() -> None:
     parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
     args = parser.parse_args()
     params = load_params(args.params)
-    metrics = pretrain_latent_bank(
+    pretrain_latent_bank(
         params,
         shards_dir=params.latent_bank.shards,
         out_path=params.latent_bank.out,
         metrics_path=params.latent_bank.metrics,
         plots_dir=params.latent_bank.plots,
     )
-    print(json.dumps(metrics, indent=2))
 
 
 if __name__ == "__main__":

@@ -9,17 +9,17 @@ writes ``train.out`` (models/endoflow.pt), ``train.metrics`` (metrics/train.json
 from __future__ import annotations
 
 import argparse
-import json
 
 from endoflow.config import load_params
-from endoflow.training.ray_trainer import train
+from endoflow.training.ray_trainer import format_training_summary, train
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
     args = parser.parse_args()
-    print(json.dumps(train(load_params(args.params)), indent=2))
+    params = load_params(args.params)
+    print(format_training_summary(train(params), params.train.out), end="")
 
 
 if __name__ == "__main__":

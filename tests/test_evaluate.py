@@ -206,20 +206,28 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
                                tmp_path / "plots", tmp_path / "predictions")
     log_evaluation(params, tmp_path, result, tmp_path / "plots")
 
-    written = json.loads((tmp_path / "m.json").read_text())
+    written = json.loads((tmp_path / "predictions" / "evaluation.json").read_text())
+    assert written == json.loads(json.dumps(result))
     assert written["sequences"] == 1 and written["frames"] == FRAMES and written["mlflow_run_id"] == run_id
     assert set(written["depth_paper"]) == {"model", "constant_depth", "mean_depth_map"}
     assert set(written["pose_simcol"]) == {"model", "constant_velocity"}
     assert set(written["depth_simcol"]["model"]) == {"l1", "rel", "rmse"}
-    for name in ("per_frame.csv", "per_sequence.csv", "trajectory.csv", "trajectory_O1.png",
-                 "depth_examples.png", "errors_per_frame.png"):
-        assert (tmp_path / "plots" / name).is_file(), name
-    assert len(pd.read_csv(tmp_path / "plots" / "per_frame.csv")) == FRAMES
+    # what DVC reads: the headline, under the test set's name
+    assert json.loads((tmp_path / "m.json").read_text()) == {"simcol_3": {
+        "abs_rel": written["depth_paper"]["model"]["abs_rel"], "rte": written["pose_simcol"]["model"]["rte"],
+        "rot": written["pose_simcol"]["model"]["rot"]}}
+    # pictures in the plots folder; the tables DVC charts beside the predictions
+    assert sorted(path.name for path in (tmp_path / "plots").iterdir()) == [
+        "depth_examples.png", "errors_per_frame.png", "trajectory_O1.png"]
+    for name in ("per_frame.csv", "per_sequence.csv", "trajectory.csv"):
+        assert (tmp_path / "predictions" / name).is_file(), name
+    assert len(pd.read_csv(tmp_path / "predictions" / "per_frame.csv")) == FRAMES
     assert len(list((tmp_path / "predictions").rglob("*.npy"))) == FRAMES
     assert not list(tmp_path.glob(".*partial*"))
 
     run = tracking.client(uri).get_run(run_id)
     assert "eval/simcol_3/depth_paper/model/abs_rel" in run.data.metrics
+    assert {"simcol_3/abs_rel", "simcol_3/rte", "simcol_3/rot"} <= set(run.data.metrics)
     artifacts = [a.path for a in tracking.client(uri).list_artifacts(run_id, "eval/simcol_3")]
     assert "eval/simcol_3/trajectory_O1.png" in artifacts
 

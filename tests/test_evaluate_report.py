@@ -1,4 +1,4 @@
-"""`endoflow report`: Markdown tables from the workspace's evaluation JSON and from `dvc exp show --json`."""
+"""`endoflow report`: Markdown tables from the full evaluations of the workspace and of DVC's experiments."""
 
 from __future__ import annotations
 
@@ -6,7 +6,14 @@ import json
 from pathlib import Path
 
 from endoflow.cli import main
-from endoflow.report import experiment_results, format_evaluation, format_report, markdown_table, workspace_results
+from endoflow.report import (
+    experiment_results,
+    format_evaluation,
+    format_report,
+    markdown_table,
+    running_in_workspace,
+    workspace_results,
+)
 
 
 def evaluation(abs_rel: float, rte: float) -> dict:
@@ -26,32 +33,51 @@ def table_rows(text: str) -> list[list[str]]:
             for line in text.splitlines() if line.startswith("|")]
 
 
-def exp_show(experiments: dict[str, tuple[bool, bool, float]]) -> list[dict]:
+def exp_show(experiments: dict[str, tuple[bool, bool]], running: str | None = None) -> list[dict]:
     """The shape `dvc exp show --json` prints: baseline commits, each with ranges of experiment revisions."""
-    def state(rev: str, name: str | None, bank: bool, vae: bool, abs_rel: float | None) -> dict:
-        metrics = {} if abs_rel is None else {"metrics/eval/simcol_12.json": {"data": evaluation(abs_rel, 0.3)}}
+    def state(rev: str, name: str | None, bank: bool, vae: bool) -> dict:
+        params = {"model": {"latent_bank": bank, "pose_vae": vae}, "eval": {"test_sets": {"simcol_12": {}}}}
         return {"rev": rev, "name": name, "error": None, "experiments": None,
-                "data": {"rev": rev, "params": {"params.yaml": {"data": {"model": {"latent_bank": bank,
-                                                                                   "pose_vae": vae}}}},
-                         "metrics": metrics}}
+                "data": {"rev": rev, "params": {"params.yaml": {"data": params}}, "metrics": {}}}
 
-    head = state("abc1234def", "main", True, True, None)
+    head = state("abc1234def", "main", True, True)
     head["experiments"] = [{"name": name, "executor": None, "revs": [state(f"{i:07d}", name, *flags)]}
                            for i, (name, flags) in enumerate(experiments.items())]
-    return [state("workspace", None, True, True, 0.11), head]
+    if running:
+        head["experiments"].append({"name": running, "executor": {"state": "running", "name": "workspace"},
+                                    "revs": [state("9999999", running, False, False)]})
+    return [state("workspace", None, True, True), head]
 
 
-def test_experiments_become_labelled_runs_and_the_workspace_row_is_not_duplicated():
-    runs = experiment_results(exp_show({"no-bank": (False, True, 0.2), "no-vae": (True, False, 0.15)}),
-                              "metrics/eval")
+def reader(abs_rels: dict[str, float]):
+    """``read(rev, path)`` over evaluation files that exist at some revisions only."""
+    def read(rev: str, path: str) -> str | None:
+        assert path == "predictions/simcol_12/evaluation.json"
+        return json.dumps(evaluation(abs_rels[rev], 0.3)) if rev in abs_rels else None
+    return read
+
+
+def test_experiments_become_labelled_runs_read_at_their_revisions():
+    states = exp_show({"no-bank": (False, True), "no-vae": (True, False)}, running="busy")
+    runs = experiment_results(states, ".", "predictions", read=reader({"0000000": 0.2, "0000001": 0.15,
+                                                                        "9999999": 0.5}))
+    # the baseline commit has no evaluation; the running experiment is not a result yet
     assert [r.label for r in runs] == ["no-bank (bank off, VAE on)", "no-vae (bank on, VAE off)"]
     assert runs[0].test_sets["simcol_12"]["depth_paper"]["model"]["abs_rel"] == 0.2
+    assert running_in_workspace(states) == "busy"
+    assert running_in_workspace(exp_show({"no-bank": (False, True)})) is None
+
+
+def write_evaluation(predictions: Path, abs_rel: float, rte: float) -> None:
+    (predictions / "simcol_12").mkdir(parents=True)
+    (predictions / "simcol_12" / "evaluation.json").write_text(json.dumps(evaluation(abs_rel, rte)))
 
 
 def test_report_has_a_table_per_protocol_with_baselines_and_an_ablation_summary(tmp_path: Path):
-    (tmp_path / "simcol_12.json").write_text(json.dumps(evaluation(0.1234, 0.25)))
+    write_evaluation(tmp_path, 0.1234, 0.25)
     runs = [workspace_results(tmp_path, {"model": {"latent_bank": True, "pose_vae": True}}),
-            *experiment_results(exp_show({"no-bank": (False, True, 0.2)}), "metrics/eval")]
+            *experiment_results(exp_show({"no-bank": (False, True)}), ".", "predictions",
+                                read=reader({"0000000": 0.2}))]
     report = format_report(runs)
     assert "## simcol_12" in report
     assert "### Depth, paper protocol" in report and "### Depth, SimCol3D challenge protocol" in report
@@ -62,6 +88,12 @@ def test_report_has_a_table_per_protocol_with_baselines_and_an_ablation_summary(
     assert ["baseline: constant velocity", "–", "0.9000", "–"] in rows
     assert ["no-bank (bank off, VAE on)", "0.2000", "0.3000"] in table_rows(report.split("## Ablation summary")[1])
     assert "EndoSLAM protocol" not in report  # absent protocols get no empty table
+
+
+def test_the_workspace_row_says_when_an_experiment_is_running_in_it(tmp_path: Path):
+    write_evaluation(tmp_path, 0.1234, 0.25)
+    run = workspace_results(tmp_path, {"model": {"latent_bank": False, "pose_vae": True}}, running="busy")
+    assert run.label == "workspace: busy running, partial (bank off, VAE on)"
 
 
 def test_markdown_tables_pad_their_columns_to_one_width():

@@ -144,3 +144,14 @@ def test_short_optimisation_learns_depth_and_motion():
     assert end < 0.6 * start
     assert end < 0.6 * no_motion
 
+
+
+def test_logged_losses_name_each_terms_share_of_the_total_and_its_unweighted_value():
+    from endoflow.training.loop import logged_losses
+
+    losses = {"total": 0.0315, "photometric": 0.03, "smoothness": 1.0, "kl": 50.0}
+    logged = logged_losses(losses, {"photometric": 1.0, "smoothness": 1e-3, "kl": 1e-5})
+    weighted = [value for key, value in logged.items() if key.startswith("loss/weighted/")]
+    assert sum(weighted) == pytest.approx(logged["loss/total"])
+    assert logged["loss/weighted/kl"] == pytest.approx(5e-4) and logged["loss/unweighted/kl"] == 50.0
+    assert "loss/unweighted/photometric" not in logged  # weight 1: the same number twice would only confuse

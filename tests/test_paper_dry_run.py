@@ -24,6 +24,7 @@ import pytest
 import yaml
 
 from endoflow.config import load_params, params_from_dict, params_to_dict
+from endoflow.evaluation.results import evaluation_path
 from endoflow.models.endoflow_model import generator_spec
 from endoflow.models.model_file import load_model_file, load_plain_torch_file
 from tests.project_clone import PROJECT, clone_project, pipeline_env
@@ -230,8 +231,10 @@ def test_every_stage_of_the_paper_pipeline_writes_its_outputs(paper_repro):
     for path in (params.latent_bank.out, params.latent_bank.metrics, params.train.out, params.train.metrics):
         assert (clone / path).is_file(), path
     for test_set in params.eval.test_sets:
-        metrics = json.loads((clone / params.eval.metrics / f"{test_set}.json").read_text())
-        assert metrics["frames"] > 0, test_set
+        evaluation = json.loads(evaluation_path(clone / params.eval.predictions, test_set).read_text())
+        assert evaluation["frames"] > 0, test_set
+        headline = json.loads((clone / params.eval.metrics / f"{test_set}.json").read_text())[test_set]
+        assert set(headline) == {"abs_rel", "rte", "rot"}, test_set
         assert any((clone / params.eval.predictions / test_set).rglob("*.npy")), test_set
 
 

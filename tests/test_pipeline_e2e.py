@@ -12,7 +12,10 @@ from pathlib import Path
 import pytest
 from mlflow import MlflowClient
 
+from endoflow import tracking
 from endoflow.config import load_params
+from endoflow.evaluation.results import evaluation_path
+from endoflow.io import file_sha256
 from tests.project_clone import PROJECT, clone_project, pipeline_env, run
 
 
@@ -40,10 +43,11 @@ def test_every_stage_output_exists(smoke_repro):
     for test_set in params.eval.test_sets:
         assert (smoke_repro / "metrics" / "eval" / f"{test_set}.json").is_file()
         assert any((smoke_repro / "predictions" / test_set).rglob("*.npy"))
+        assert evaluation_path(smoke_repro / params.eval.predictions, test_set).is_file()
     for name in params.reconstruct.sequences:
         for output in ("mesh.ply", "sheet.png", "video.mp4", "trajectory.tum", "reconstruction.json"):
             assert (smoke_repro / params.reconstruct.out / name / output).is_file(), (name, output)
-        measured = json.loads((smoke_repro / params.reconstruct.metrics / f"{name}.json").read_text())
+        measured = json.loads((smoke_repro / params.reconstruct.out / name / "measurement.json").read_text())
         assert set(measured["surface"]) >= {"ground_truth", "model", "trivial"}, name
         assert (smoke_repro / params.reconstruct.plots / name / "sheet.png").is_file()
 
@@ -57,6 +61,51 @@ def test_dvc_metrics_show_lists_training_and_evaluation(smoke_repro):
     assert params.latent_bank.metrics in files
     assert any(name.startswith("metrics/eval/") for name in files)
     assert any(name.startswith(f"{params.reconstruct.metrics}/") for name in files)
+
+
+def test_dvc_metrics_are_a_short_numeric_summary(smoke_repro):
+    env = pipeline_env("e2e")
+    shown = json.loads(run(["dvc", "metrics", "show", "--json"], smoke_repro, env).stdout)
+    params = load_params(smoke_repro / "params.yaml")
+    values = {}
+    for workspace in shown.values():
+        for path, content in workspace["data"].items():
+            assert "error" not in content, (path, content)
+            values.update(flatten(content["data"]))
+    assert all(isinstance(value, (int, float)) for value in values.values()), values
+    expected = {f"{test_set}.{key}" for test_set in params.eval.test_sets for key in ("abs_rel", "rte", "rot")}
+    expected |= {f"{name}.{key}" for name in params.reconstruct.sequences
+                 for key in ("ate", "ate_cv", "accuracy", "completeness")}
+    assert expected <= set(values)
+    assert len(values) <= len(expected) + 8, sorted(values)  # and the few training and latent-bank figures
+
+
+def flatten(tree: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def test_dvc_plots_chart_the_declared_columns_and_the_page_works_offline(smoke_repro, tmp_path: Path):
+    env = pipeline_env("e2e")
+    shown = json.loads(run(["dvc", "plots", "show", "--json"], smoke_repro, env).stdout)
+    assert not shown.get("errors"), shown.get("errors")
+    charts = {name: entries for name, entries in shown["data"].items() if not name.endswith(".png")}
+    # the training curves, two charts per test set, one per reconstructed sequence; all with data
+    params = load_params(smoke_repro / "params.yaml")
+    assert len(charts) == 1 + 2 * len(params.eval.test_sets) + len(params.reconstruct.sequences), sorted(charts)
+    for name, entries in charts.items():
+        for entry in entries:
+            assert entry["content"]["data"]["values"], name
+    pictures = [name for name in shown["data"] if name.endswith(".png")]
+    assert any("curves.png" in name for name in pictures) and any("sheet.png" in name for name in pictures)
+    run(["dvc", "plots", "show", "-o", str(tmp_path / "page")], smoke_repro, env)
+    page = (tmp_path / "page" / "index.html").read_text()
+    assert "cannot be drawn" in page and "vegaEmbed" in page
 
 
 def test_one_mlflow_run_holds_training_and_evaluation(smoke_repro):
@@ -76,4 +125,24 @@ def test_one_mlflow_run_holds_training_and_evaluation(smoke_repro):
     assert {"model", "eval", "reconstruct"} <= artifacts, artifacts
     assert any(name.startswith("reconstruct/") for name in metric_names), metric_names
     bank = client.get_experiment_by_name(params.tracking.latent_bank_experiment)
-    assert len(client.search_runs([bank.experiment_id])) == 1
+    bank_runs = client.search_runs([bank.experiment_id])
+    assert len(bank_runs) == 1
+
+
+def test_mlflow_shows_named_model_training_runs_with_their_source_and_headline(smoke_repro):
+    params = load_params(smoke_repro / "params.yaml")
+    client = MlflowClient(tracking_uri=f"sqlite:///{smoke_repro / 'mlflow.db'}")
+    experiment = client.get_experiment_by_name(params.tracking.experiment)
+    assert experiment.tags[tracking.EXPERIMENT_KIND_TAG] == "custom_model_development"
+    assert experiment.tags[tracking.DESCRIPTION_TAG]
+    train_run = client.search_runs([experiment.experiment_id])[0]
+    assert train_run.info.run_name == f"train bank vae seed{params.seed}"
+    assert train_run.data.tags[tracking.SOURCE_NAME_TAG] == "stages/train.py"
+    assert train_run.data.tags[tracking.SOURCE_TYPE_TAG] == "LOCAL"
+    for test_set in params.eval.test_sets:
+        assert {f"{test_set}/abs_rel", f"{test_set}/rte", f"{test_set}/rot"} <= set(train_run.data.metrics)
+    bank = client.get_experiment_by_name(params.tracking.latent_bank_experiment)
+    bank_run = client.search_runs([bank.experiment_id])[0]
+    assert bank.tags[tracking.EXPERIMENT_KIND_TAG] == "custom_model_development"
+    assert train_run.data.tags[tracking.LATENT_BANK_RUN_TAG] == bank_run.info.run_id
+    assert bank_run.data.tags[tracking.LATENT_BANK_DIGEST_TAG] == file_sha256(smoke_repro / params.latent_bank.out)

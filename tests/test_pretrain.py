@@ -15,6 +15,7 @@ from endoflow import tracking
 from endoflow.config import Params
 from endoflow.data.shard_format import MANIFEST, MANIFEST_SCHEMA, ShardEntry, manifest_bytes, shard_digests, shard_name
 from endoflow.evaluation.swd import laplacian_pyramid, multiscale_swd
+from endoflow.io import file_sha256
 from endoflow.models.latent_bank import LatentBankGenerator, load_generator
 from endoflow.training.pretrain import PretrainProgress, Stage, normalise_depth, pretrain_latent_bank, stage_schedule
 
@@ -118,8 +119,10 @@ def test_tiny_pretraining_writes_a_loadable_bank_metrics_and_plots(tmp_path, cap
     assert isinstance(generator, LatentBankGenerator)
     assert generator(torch.randn(3, cfg.latent_dim)).shape == (3, 1, 16, 16)
     written = json.loads(metrics_path.read_text())
+    # what DVC shows: the SWD figures only; the rest is in the run's metrics.json
+    assert set(written) == {"swd_untrained", "swd_final", "swd_ratio", "swd_real_reference"}
     assert written["swd_final"] == pytest.approx(metrics["swd_final"])
-    assert written["generator_steps"] == 3 * 4
+    assert metrics["generator_steps"] == 3 * 4
     assert written["swd_untrained"] > 0 and written["swd_final"] > 0
     for name in ("samples_final.png", "samples_untrained.png", "losses.png"):
         image = cv2.imread(str(plots / name))
@@ -129,6 +132,10 @@ def test_tiny_pretraining_writes_a_loadable_bank_metrics_and_plots(tmp_path, cap
     (run,) = tracking.client(uri).search_runs([experiment.experiment_id])
     assert run.info.status == "FINISHED"
     assert run.data.metrics["swd_final"] == pytest.approx(written["swd_final"])
+    downloaded = tracking.client(uri).download_artifacts(run.info.run_id, "metrics.json", str(tmp_path))
+    logged = json.loads(Path(downloaded).read_text())
+    assert logged["generator_steps"] == 3 * 4 and logged["swd_final_levels"] == metrics["swd_final_levels"]
+    assert run.data.tags[tracking.LATENT_BANK_DIGEST_TAG] == file_sha256(out)
     assert run.data.params["latent_bank.resolution"] == "16"
     printed = capsys.readouterr().out.splitlines()
     device = "cuda" if torch.cuda.is_available() else "cpu"  # latent_bank.device: auto

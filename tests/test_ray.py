@@ -97,7 +97,7 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
         assert audits[0]["keys"] and not set(audits[0]["keys"]) & set(audits[1]["keys"])
 
     record = load_model_file(tmp_path / params.train.out)
-    assert record.epoch == summary["best_epoch"] and record.baselines.mean_depth_map.shape == (64, 64)
+    assert record.epoch + 1 == summary["best_epoch"] and record.baselines.mean_depth_map.shape == (64, 64)
     assert (tmp_path / params.train.metrics).is_file()
     assert (tmp_path / params.train.plots / "curves.png").is_file()
 
@@ -108,13 +108,18 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
     assert run.info.status == "FINISHED"
     assert run.data.params["ray.num_workers"] == "2"
     history = tracking.client(uri).get_metric_history(run.info.run_id, "val_abs_rel")
-    # Both epochs are logged; the killed run's workers may have logged epoch 1 too before they died (they run
+    epochs = tracking.client(uri).get_metric_history(run.info.run_id, "epoch")
+    # Both epochs are logged at their last global step (one step each), on the per-step metrics' axis, with the
+    # epoch (from 1) beside them; the killed run's workers may have logged epoch 2 too before they died (they run
     # in Ray's own process groups, so the kill reaches them a moment later), which MLflow keeps as a second value.
-    assert sorted({m.step for m in history}) == [0, 1]
-    assert "loss/total" in run.data.metrics
+    assert sorted({m.step for m in history}) == [1, 2]
+    assert sorted({(m.step, m.value) for m in epochs}) == [(1, 1.0), (2, 2.0)]
+    assert {"loss/total", "loss/weighted/kl", "loss/unweighted/kl", "loss/weighted/photometric"} <= set(
+        run.data.metrics)
     artifacts = {a.path for folder in ("val_depth", "model")
                  for a in tracking.client(uri).list_artifacts(run.info.run_id, folder)}
-    assert {"val_depth/epoch_0000.png", "val_depth/epoch_0001.png", "model/endoflow.pt"} <= artifacts
+    assert {"val_depth/epoch_0001.png", "val_depth/epoch_0002.png", "val_depth/latest.png",
+            "model/endoflow.pt"} <= artifacts
 
     # the same training, never interrupted, keeping one checkpoint: the same weights, bit for bit
     reference = tmp_path / "uninterrupted"

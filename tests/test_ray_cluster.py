@@ -152,7 +152,7 @@ def test_a_worker_killed_during_an_epoch_is_replaced_and_training_finishes_by_it
     replacement = read_rank_audits(folders[1])[1]
     assert replacement["pid"] != kill["pid"]  # a new process trained epoch 1 as rank 1
     resumed = load_training_state(folders[-1])
-    assert [record["epoch"] for record in resumed.state.history] == [0, 1]
+    assert [record["epoch"] for record in resumed.state.history] == [1, 2]  # counted from 1
 
     reference_root, reference_summary = uninterrupted
     assert summary["global_steps"] == reference_summary["global_steps"]

@@ -59,3 +59,53 @@ def test_run_has_params_commit_metrics_artifacts_and_reopens_while_unfinished(tm
     assert (tmp_path / "mlflow.db").is_file()
     assert (tmp_path / "mlartifacts").is_dir()
     assert list((tmp_path / "mlartifacts").rglob("epoch_000.png"))
+
+
+def test_experiments_are_model_training_experiments_with_a_description(tmp_path: Path):
+    params = Params()
+    uri = tracking.tracking_uri(params, tmp_path)
+    training = tracking.client(uri).get_experiment(tracking.ensure_experiment(params, tmp_path, "endoflow"))
+    bank = tracking.client(uri).get_experiment(
+        tracking.ensure_experiment(params, tmp_path, params.tracking.latent_bank_experiment))
+    for experiment in (training, bank):
+        assert experiment.tags[tracking.EXPERIMENT_KIND_TAG] == tracking.MODEL_TRAINING_KIND
+    assert "depth and pose training" in training.tags[tracking.DESCRIPTION_TAG]
+    assert "latent bank" in bank.tags[tracking.DESCRIPTION_TAG]
+
+
+def test_an_older_experiment_without_a_kind_gets_one(tmp_path: Path):
+    params = Params()
+    uri = tracking.tracking_uri(params, tmp_path)
+    old = tracking.client(uri).create_experiment("endoflow")
+    assert tracking.ensure_experiment(params, tmp_path, "endoflow") == old
+    assert tracking.client(uri).get_experiment(old).tags[tracking.EXPERIMENT_KIND_TAG] == tracking.MODEL_TRAINING_KIND
+
+
+def test_runs_are_named_after_their_dvc_experiment_else_what_distinguishes_them(monkeypatch):
+    params = Params()
+    params.model.pose_vae = False
+    params.seed = 3
+    monkeypatch.delenv(tracking.DVC_EXPERIMENT_ENV, raising=False)
+    name = tracking.run_name_for("train", [*tracking.ablation_switches(params), f"seed{params.seed}"])
+    assert name == "train bank no-vae seed3"
+    monkeypatch.setenv(tracking.DVC_EXPERIMENT_ENV, "no-vae")
+    assert tracking.run_name_for("train", ["anything"]) == "no-vae"
+
+
+def test_a_run_carries_its_source_its_dvc_experiment_and_its_latent_bank_run(tmp_path: Path, monkeypatch):
+    params = Params()
+    uri = tracking.tracking_uri(params, tmp_path)
+    monkeypatch.setenv(tracking.DVC_EXPERIMENT_ENV, "no-vae")
+    monkeypatch.setattr("sys.argv", [str(tmp_path / "stages" / "train.py")])
+    bank_run = tracking.start_run(params, tmp_path, params.tracking.latent_bank_experiment, "bank")
+    tracking.set_tags(uri, bank_run, {tracking.LATENT_BANK_DIGEST_TAG: "d1"})
+    run_id = tracking.start_run(params, tmp_path, "endoflow", "no-vae")
+    assert tracking.link_latent_bank(params, tmp_path, run_id, "d1") == bank_run
+    tags = tracking.client(uri).get_run(run_id).data.tags
+    assert tags[tracking.SOURCE_NAME_TAG] == "stages/train.py" and tags[tracking.SOURCE_TYPE_TAG] == "LOCAL"
+    assert tags[tracking.DVC_EXPERIMENT_TAG] == "no-vae"
+    assert tags[tracking.LATENT_BANK_RUN_TAG] == bank_run and tags[tracking.LATENT_BANK_DIGEST_TAG] == "d1"
+    # a bank this store never pretrained (copied from elsewhere): its digest only
+    other = tracking.start_run(params, tmp_path, "endoflow", "other")
+    assert tracking.link_latent_bank(params, tmp_path, other, "d2") is None
+    assert tracking.LATENT_BANK_RUN_TAG not in tracking.client(uri).get_run(other).data.tags

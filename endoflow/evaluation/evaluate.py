@@ -18,13 +18,14 @@ those. Metrics are computed at the stored shard size. The protocols aggregate as
 depth errors are averaged over all images of the test set; the challenge's depth and pose figures are
 computed per sequence and then averaged over the sequences.
 
-Outputs: ``<eval.metrics>/<name>.json``; ``<eval.plots>/<name>/`` with PNG figures (``trajectory_<seq>.png``,
-``depth_examples.png``, ``errors_per_frame.png``) and CSV for ``dvc plots`` (``per_frame.csv``: ``index``,
-``sequence``, ``frame``, ``abs_rel_<method>``, ``rmse_<method>``, ``simcol_l1_<method>``, ``rte_<method>``,
-``rot_<method>``; ``per_sequence.csv``; ``trajectory.csv``: ``gt_x`` ... ``model_z``, ``constant_velocity_z``);
-``<eval.predictions>/<name>/`` in the challenge's layout (``<group>_Test/Frames_<sequence>_OP/depth/
-FrameBuffer_NNNN.npy``: float16 ``depth / 20`` in [0, 1] at the native (square) size; ``.../pose/
-FrameBuffer_NNNN_to_FrameBuffer_MMMM.txt``: the 16 numbers of ``inv(P_i) @ P_{i+1}``, row-major).
+Outputs: ``<eval.metrics>/<name>.json``, the headline (:mod:`endoflow.evaluation.results`); ``<eval.plots>/<name>/``
+with PNG figures (``trajectory_<seq>.png``, ``depth_examples.png``, ``errors_per_frame.png``);
+``<eval.predictions>/<name>/`` with every figure (``evaluation.json``), the tables ``dvc plots`` charts
+(``per_frame.csv``: ``index``, ``sequence``, ``frame``, ``abs_rel_<method>``, ``rmse_<method>``,
+``simcol_l1_<method>``, ``rte_<method>``, ``rot_<method>``; ``per_sequence.csv``; ``trajectory.csv``: ``gt_x``
+... ``model_z``, ``constant_velocity_z``) and the predictions in the challenge's layout
+(``<group>_Test/Frames_<sequence>_OP/depth/FrameBuffer_NNNN.npy``: float16 ``depth / 20`` in [0, 1] at the native
+(square) size; ``.../pose/FrameBuffer_NNNN_to_FrameBuffer_MMMM.txt``: the 16 numbers of ``inv(P_i) @ P_{i+1}``, row-major).
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ import torch
 from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig, Precision
 from endoflow.evaluation import metrics, plots
+from endoflow.evaluation.results import EVALUATION_FILE, headline_metrics
 from endoflow.io import save_figure, staged_directory, write_csv, write_json
 from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
@@ -376,7 +378,8 @@ def evaluate_test_set(params: Params, name: str, samples: Iterable[dict], model_
                       out_metrics: Path, out_plots: Path, out_predictions: Path) -> dict:
     """Evaluate the model in ``model_path`` on ordered ``samples`` of test set ``name``; write all outputs.
 
-    Returns the metrics written to ``out_metrics`` (with ``mlflow_run_id`` of the training run).
+    Returns the full result (with ``mlflow_run_id`` of the training run), written to
+    ``<out_predictions>/evaluation.json``; ``out_metrics`` gets its headline (:mod:`endoflow.evaluation.results`).
     """
     test_set = eval_set(params, name)
     device = resolve_device(params.eval.device, "eval.device")
@@ -392,34 +395,41 @@ def evaluate_test_set(params: Params, name: str, samples: Iterable[dict], model_
             evaluator.process(batch)
         if not evaluator.sequences:
             raise ValueError(f"test set {name}: no frames found in the selected shards")
-    elapsed = time.perf_counter() - started
-    summary, frames_table, sequences_table, trajectories = score_sequences(evaluator)
-    result = {
-        "test_set": name,
-        "dataset": test_set.dataset,
-        "sequences": len(evaluator.sequences),
-        "frames": evaluator.frames_done,
-        "depth_frames": int(sum(len(s.depth_frames) for s in evaluator.sequences)),
-        **summary,
-        "frames_per_second": evaluator.frames_done / max(elapsed, 1e-9),
-        "mlflow_run_id": record.mlflow_run_id,
-    }
-    write_plots(name, out_plots, evaluator, frames_table, sequences_table, trajectories)
-    write_json(out_metrics, result)
+        elapsed = time.perf_counter() - started
+        summary, frames_table, sequences_table, trajectories = score_sequences(evaluator)
+        result = {
+            "test_set": name,
+            "dataset": test_set.dataset,
+            "sequences": len(evaluator.sequences),
+            "frames": evaluator.frames_done,
+            "depth_frames": int(sum(len(s.depth_frames) for s in evaluator.sequences)),
+            **summary,
+            "frames_per_second": evaluator.frames_done / max(elapsed, 1e-9),
+            "mlflow_run_id": record.mlflow_run_id,
+        }
+        write_tables(predictions_dir, frames_table, sequences_table, trajectories)
+        write_json(predictions_dir / EVALUATION_FILE, result)
+    write_plots(name, out_plots, evaluator, frames_table, trajectories)
+    write_json(out_metrics, {name: headline_metrics(result)})
     return result
 
 
+def write_tables(folder: Path, frames_table: pd.DataFrame, sequences_table: pd.DataFrame,
+                 trajectories: dict) -> None:
+    """The per-frame, per-sequence and trajectory tables (CSV) of one test set, the data of its DVC plots."""
+    write_csv(folder / "per_frame.csv", frames_table)
+    write_csv(folder / "per_sequence.csv", sequences_table)
+    rows = [{"sequence": seq, "frame": f, **{f"{m}_{axis}": traj[m][i, k] for m in ("gt", *POSE_METHODS)
+                                               for k, axis in enumerate("xyz")}}
+            for seq, traj in trajectories.items() for i, f in enumerate(traj["frames"])]
+    if rows:
+        write_csv(folder / "trajectory.csv", pd.DataFrame(rows))
+
+
 def write_plots(name: str, out_plots: Path, evaluator: SequenceEvaluator, frames_table: pd.DataFrame,
-                sequences_table: pd.DataFrame, trajectories: dict) -> None:
-    """PNG figures and CSV tables of one test set, swapped in as a whole."""
+                trajectories: dict) -> None:
+    """The PNG figures of one test set (pictures only: DVC shows them offline), swapped in as a whole."""
     with staged_directory(out_plots) as folder:
-        write_csv(folder / "per_frame.csv", frames_table)
-        write_csv(folder / "per_sequence.csv", sequences_table)
-        rows = [{"sequence": seq, "frame": f, **{f"{m}_{axis}": traj[m][i, k] for m in ("gt", *POSE_METHODS)
-                                                   for k, axis in enumerate("xyz")}}
-                for seq, traj in trajectories.items() for i, f in enumerate(traj["frames"])]
-        if rows:
-            write_csv(folder / "trajectory.csv", pd.DataFrame(rows))
         for seq, traj in trajectories.items():
             figure = plots.trajectory_figure(f"{name} {seq}: trajectory (scale fitted, chained from the first "
                                              f"GT pose)", traj["gt"], {m: traj[m] for m in POSE_METHODS})
@@ -439,7 +449,8 @@ def write_plots(name: str, out_plots: Path, evaluator: SequenceEvaluator, frames
 
 
 def log_evaluation(params: Params, project_root: str | Path, result: dict, plots_dir: Path) -> None:
-    """Log the metrics (``eval/<test set>/<protocol>/<method>/<metric>``) and plots into the training run, or
+    """Log the metrics (``eval/<test set>/<protocol>/<method>/<metric>``, and the headline as
+    ``<test set>/<metric>``) and plots into the training run, or
     into a run opened for the model when the store lacks its training run (:func:`tracking.run_for_model`)."""
     run_id = tracking.run_for_model(params, project_root, result.get("mlflow_run_id"), "evaluate")
     uri = tracking.tracking_uri(params, project_root)
@@ -448,6 +459,7 @@ def log_evaluation(params: Params, project_root: str | Path, result: dict, plots
               for protocol in PROTOCOLS if protocol in result
               for method, figures in result[protocol].items() for key, value in figures.items()}
     values[f"{prefix}/frames_per_second"] = result["frames_per_second"]
+    values.update({f"{result['test_set']}/{key}": value for key, value in headline_metrics(result).items()})
     tracking.log_metrics(uri, run_id, values)
     tracking.log_artifact(uri, run_id, plots_dir, prefix)
 

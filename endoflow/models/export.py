@@ -21,7 +21,6 @@ batch dimension.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import warnings
 from contextlib import ExitStack, contextmanager
@@ -34,7 +33,7 @@ import onnxruntime
 import torch
 from torch import nn
 
-from endoflow.io import atomic_path, write_json
+from endoflow.io import atomic_path, file_sha256, write_json
 from endoflow.models.model_file import ModelRecord, load_trained_model
 
 # torchlib (the dynamo exporter's op library) is written for opset 18: asking for it means no version
@@ -141,7 +140,7 @@ def export_onnx(model_path: str | Path, out_dir: str | Path) -> ExportReport:
                                  name=str(out_dir / file))
             name = Path(file).stem
             graphs.append(GraphReport(name=name, file=file, bytes=temporary.stat().st_size,
-                                      sha256=sha256_of(temporary), max_abs_diff=diff,
+                                      sha256=file_sha256(temporary), max_abs_diff=diff,
                                       tolerance=rtol * output_scale(expected), inputs=interfaces[name][0],
                                       outputs=interfaces[name][1]))
     report = _report(model_path, out_dir, record, graphs)
@@ -208,15 +207,6 @@ def output_scale(expected: np.ndarray) -> float:
     return max(1.0, float(np.max(np.abs(expected))))
 
 
-def sha256_of(path: Path) -> str:
-    """Hex SHA-256 of a file, read in 1 MiB blocks."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def graph_interfaces(record: ModelRecord) -> dict[str, tuple[list[dict[str, Any]], list[dict[str, Any]]]]:
     """Each graph's (inputs, outputs) as ``export.json`` documents them: names, shapes, units, conventions."""
     size, cfg = record.params.data.size, record.params.model
@@ -239,7 +229,7 @@ def graph_interfaces(record: ModelRecord) -> dict[str, tuple[list[dict[str, Any]
 def _report(model_path: Path, out_dir: Path, record: ModelRecord, graphs: list[GraphReport]) -> ExportReport:
     """The export's record (``export.json``): the graphs' interfaces, conventions, and what was measured."""
     size = record.params.data.size
-    model_sha256 = sha256_of(model_path)
+    model_sha256 = file_sha256(model_path)
     data = {
         "format": "onnx",
         "opset": OPSET,

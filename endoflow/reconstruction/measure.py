@@ -62,6 +62,8 @@ KD_TREE_LEAF_SIZE = 256
 # Each side of a distance is an evenly strided sample of at most this many points: at 480 px a surface has
 # millions of vertices, and the statistics of 100k are the same to three digits.
 MAX_MEASURED_POINTS = 100_000
+MEASUREMENT_FILE = "measurement.json"  # every figure, beside the reconstruction it measures
+PATH_ERRORS_FILE = "path_errors.csv"  # per-frame position errors of each path row, charted by `dvc plots`
 
 
 @dataclass(frozen=True)
@@ -261,9 +263,12 @@ def metrics_summary(result: dict) -> dict:
 
 def run_reconstruction(params: Params, name: str, project_root: str | Path = ".") -> dict:
     """The ``reconstruct`` stage for ``reconstruct.sequences.<name>``: reconstruct the sequence with the trained
-    model into ``<reconstruct.out>/<name>/``, measure it (:func:`measure_reconstruction`), write
-    ``<reconstruct.metrics>/<name>.json`` and ``<reconstruct.plots>/<name>/`` (the picture sheet, per-frame path
-    errors) and log them with the reconstruction's pictures into the model's MLflow run."""
+    model into ``<reconstruct.out>/<name>/``, measure it (:func:`measure_reconstruction`) and log the figures and
+    pictures into the model's MLflow run. Every figure goes beside the reconstruction (:data:`MEASUREMENT_FILE`,
+    and per-frame path errors in :data:`PATH_ERRORS_FILE`); ``<reconstruct.metrics>/<name>.json``, the file DVC
+    reads, holds the headline under the sequence's name (:func:`headline_measurement`, shown by
+    ``dvc exp show`` as ``simcol_S5.ate``); ``<reconstruct.plots>/<name>/sheet.png`` is the
+    picture sheet."""
     cfg = params.reconstruct
     item = cfg.sequences[name]
     root = Path(project_root).resolve()
@@ -275,12 +280,21 @@ def run_reconstruction(params: Params, name: str, project_root: str | Path = "."
                                  cfg.trunc_cm, device=cfg.device)
     reconstruct(source, source.K, model_path, out_dir, options)
     result = measure_reconstruction(source, out_dir, record.baselines)
-    write_json(root / cfg.metrics / f"{name}.json", metrics_summary(result))
-    plots = root / cfg.plots / name
-    write_csv(plots / "path_errors.csv", pd.DataFrame(per_frame_path_errors(result)))
-    write_bytes(plots / "sheet.png", (out_dir / "sheet.png").read_bytes())
+    write_json(out_dir / MEASUREMENT_FILE, metrics_summary(result))
+    write_json(root / cfg.metrics / f"{name}.json", {name: headline_measurement(result)})
+    write_csv(out_dir / PATH_ERRORS_FILE, pd.DataFrame(per_frame_path_errors(result)))
+    write_bytes(root / cfg.plots / name / "sheet.png", (out_dir / "sheet.png").read_bytes())
     log_reconstruction(params, root, record.mlflow_run_id, name, out_dir, flat_metrics(result))
     return result
+
+
+def headline_measurement(result: dict) -> dict[str, float]:
+    """Four numbers per sequence for ``dvc exp show``: the model's path ATE RMSE beside constant velocity's,
+    and its surface's median accuracy and completeness ratio."""
+    return {"ate": result["path"]["model"]["ate_rmse"],
+            "ate_cv": result["path"]["constant_velocity"]["ate_rmse"],
+            "accuracy": result["surface"]["model"]["accuracy_median"],
+            "completeness": result["surface"]["model"]["completeness_ratio"]}
 
 
 def flat_metrics(result: dict) -> dict[str, float]:

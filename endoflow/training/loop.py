@@ -143,12 +143,13 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
         lr = optimizer.param_groups[0]["lr"]
         scheduler.step()
         val = validate(epoch_context)
-        record = {"epoch": epoch, "lr": lr, "train_loss": seen["mean_loss"], **val}
+        # the history counts epochs from 1, as every output a person reads does (progress, MLflow, history.csv)
+        record = {"epoch": epoch + 1, "lr": lr, "train_loss": seen["mean_loss"], **val}
         state.history.append(record)
         if improves_on(val, state.best):
             state.best = BestEpoch(epoch, val, cpu_copy(model.state_dict()))
         state.epoch = epoch
-        epoch_context.logger.epoch_end(record, model, examples, device)
+        epoch_context.logger.epoch_end(record, state.global_step, model, examples, device)
         report_checkpoint(epoch_context, scheduler, state, seen["keys"], record)
 
 
@@ -330,6 +331,18 @@ def fixed_examples(val_urls: list[str], count: int) -> list[dict]:
     return examples
 
 
+def logged_losses(losses: dict[str, float], weights: dict[str, float]) -> dict[str, float]:
+    """MLflow's names for a step's losses: ``loss/total``; each term's contribution to it as
+    ``loss/weighted/<term>`` (they sum to the total); the terms before weighting as ``loss/unweighted/<term>``
+    (the KL is in nats and dwarfs the total by orders of magnitude)."""
+    values = {"loss/total": losses["total"]}
+    for term, weight in weights.items():
+        values[f"loss/weighted/{term}"] = weight * losses[term]
+        if weight != 1.0:
+            values[f"loss/unweighted/{term}"] = losses[term]
+    return values
+
+
 class RankZeroLogger:
     """Progress lines and MLflow logging; a no-op on ranks other than 0."""
 
@@ -340,6 +353,8 @@ class RankZeroLogger:
         self.log_every = config.params.train.log_every
         self.epochs = config.params.train.epochs
         self.precision = config.params.train.precision
+        self.loss_weights = {"photometric": 1.0, "smoothness": config.params.loss.smoothness_weight,
+                             "kl": config.params.loss.kl_weight}
 
     def step(self, global_step: int, epoch: int, step: int, total_steps: int, losses: dict[str, float],
              samples: int, elapsed: float) -> None:
@@ -351,21 +366,25 @@ class RankZeroLogger:
         progress(f"[train] epoch {epoch + 1}/{self.epochs} step {step + 1}/{total_steps} "
                  f"loss {losses['total']:.4f} | {rate:.1f} samples/s | ~{format_duration(seconds_left)} left "
                  f"(training only)")
-        tracking.log_metrics(self.uri, self.run_id, {**{f"loss/{k}": v for k, v in losses.items()},
+        tracking.log_metrics(self.uri, self.run_id, {**logged_losses(losses, self.loss_weights),
                                                      "samples_per_second": rate}, step=global_step)
 
-    def epoch_end(self, record: dict[str, Any], model: EndoflowModel, examples: list[dict],
+    def epoch_end(self, record: dict[str, Any], global_step: int, model: EndoflowModel, examples: list[dict],
                   device: torch.device) -> None:
+        """Progress, and MLflow: the epoch's figures and ``epoch`` (from 1) at the global step, on the per-step
+        metrics' axis; the validation frames as ``val_depth/epoch_NNNN.png`` and as ``val_depth/latest.png``
+        (one path in every run, which MLflow's compare page matches across runs)."""
         if not self.active:
             return
         values = {k: v for k, v in record.items() if k != "epoch" and isinstance(v, (int, float))}
-        progress(f"[train] epoch {record['epoch'] + 1}/{self.epochs} done: "
+        progress(f"[train] epoch {record['epoch']}/{self.epochs} done: "
                  + ", ".join(f"{k} {v:.4g}" for k, v in values.items()))
-        tracking.log_metrics(self.uri, self.run_id, values, step=record["epoch"])
+        tracking.log_metrics(self.uri, self.run_id, {**values, "epoch": record["epoch"]}, step=global_step)
         if examples:
             figure = examples_figure(model, examples, device, self.precision,
-                                     f"validation frames after epoch {record['epoch'] + 1}")
-            tracking.log_figure(self.uri, self.run_id, figure, f"val_depth/epoch_{record['epoch']:04d}.png")
+                                     f"validation frames after epoch {record['epoch']}")
+            for name in (f"epoch_{record['epoch']:04d}", "latest"):
+                tracking.log_figure(self.uri, self.run_id, figure, f"val_depth/{name}.png")
             plt.close(figure)
 
 

@@ -39,7 +39,7 @@ from endoflow.data.shard_format import (
 )
 from endoflow.evaluation import plots
 from endoflow.geometry.pose import matrix_to_pose_vec, pose_vec_to_matrix
-from endoflow.io import save_figure, staged_directory, write_csv, write_json
+from endoflow.io import file_sha256, save_figure, staged_directory, write_csv, write_json
 from endoflow.locations import absolute_location, local_file
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from endoflow.models.latent_bank import check_latent_bank_file
@@ -58,6 +58,11 @@ NOT_FINGERPRINTED = ("train.epochs", "train.log_every", "train.image_examples", 
 
 class TrainingError(RuntimeError):
     """Training failed on the workers; the message carries the workers' own error."""
+
+
+# what ``train.metrics`` holds for DVC (numbers a column can show; the run id and fingerprint are in the model
+# file and the MLflow run)
+TRAIN_DVC_METRICS = ("best_epoch", "val_abs_rel", "val_rmse", "final_train_loss")
 
 
 def training_fingerprint(params: Params, train_shards: str, latent_bank: Optional[str]) -> str:
@@ -114,7 +119,10 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
         check_latent_bank_file(local_file(latent_bank))
     fingerprint = training_fingerprint(params, shards, latent_bank)
     uri = tracking.tracking_uri(params, root)
-    run_id = tracking.start_run(params, root, params.tracking.experiment, "train", fingerprint)
+    name = tracking.run_name_for("train", [*tracking.ablation_switches(params), f"seed{params.seed}"])
+    run_id = tracking.start_run(params, root, params.tracking.experiment, name, fingerprint)
+    if latent_bank:
+        tracking.link_latent_bank(params, root, run_id, file_sha256(latent_bank))
     try:
         summary = train_in_run(params, root, WorkerConfig(params, tuple(train_urls), tuple(val_urls), latent_bank,
                                                           uri, run_id, resume_from=None), fingerprint)
@@ -151,6 +159,14 @@ def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: 
     return summary
 
 
+def format_training_summary(summary: dict[str, Any], model_path: str) -> str:
+    """The closing lines of the ``train`` stage: the best epoch's validation figures, the model and the run."""
+    return (f"[train] done: {summary['epochs']} epochs, {summary['global_steps']} steps; best epoch "
+            f"{summary['best_epoch']}: val Abs Rel {summary['val_abs_rel']:.4f}, val RMSE "
+            f"{summary['val_rmse']:.4f}; final train loss {summary['final_train_loss']:.4f}\n"
+            f"[train] model written to {model_path}; MLflow run {summary['mlflow_run_id']}\n")
+
+
 def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str) -> TrainingCheckpoint:
     """Train with Ray Train's ``TorchTrainer`` (DDP); returns the final training state.
 
@@ -159,7 +175,7 @@ def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str
     ``ray.max_failures`` times, and they continue after the newest checkpoint it recorded (see
     :func:`endoflow.training.loop.restored_checkpoint`).
     """
-    from ray.train import CheckpointConfig, FailureConfig, RunConfig
+    from ray.train import CheckpointConfig, FailureConfig, LoggingConfig, RunConfig
     from ray.train.torch import TorchTrainer
 
     from endoflow.training.cluster import check_worker_resources, scaling_config
@@ -174,7 +190,10 @@ def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str
             scaling_config=scaling_config(params.ray),
             run_config=RunConfig(name=run_name, storage_path=storage,
                                  failure_config=FailureConfig(max_failures=params.ray.max_failures),
-                                 checkpoint_config=CheckpointConfig(num_to_keep=params.train.keep_checkpoints)),
+                                 checkpoint_config=CheckpointConfig(num_to_keep=params.train.keep_checkpoints),
+                                 # Ray Train's INFO lines (each checkpoint and report, worker start-up) go to
+                                 # its log files in the Ray session folder only; our progress lines stay
+                                 logging_config=LoggingConfig(log_level="WARNING")),
         )
         result = trainer.fit()
     finally:
@@ -212,11 +231,11 @@ def write_training_outputs(params: Params, root: Path, state: TrainState, run_id
     summary = {
         "epochs": int(state.epoch) + 1,
         "global_steps": int(state.global_step),
-        "best_epoch": int(best.epoch),
+        "best_epoch": int(best.epoch) + 1,  # counted from 1, as the history and progress lines count
         **{k: float(v) for k, v in best.val.items()},
         "final_train_loss": float(state.history[-1]["train_loss"]),
         "mlflow_run_id": run_id,
         "fingerprint": fingerprint,
     }
-    write_json(root / params.train.metrics, summary)
+    write_json(root / params.train.metrics, {key: summary[key] for key in TRAIN_DVC_METRICS if key in summary})
     return summary

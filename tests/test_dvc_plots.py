@@ -1,0 +1,83 @@
+"""dvc.yaml's plots: every chart names its x and its y columns, the model beside its baselines, for every test set
+and reconstructed sequence of every preset (DVC cannot loop over them in its top-level plots); stage plots are
+pictures only, so that `dvc plots show` never charts a default column; the HTML page DVC writes says why charts
+are missing offline."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from endoflow.config import load_params
+from endoflow.evaluation.evaluate import DEPTH_METHODS, POSE_METHODS
+from endoflow.reconstruction.measure import PATH_ROWS
+from tests.project_clone import PROJECT
+
+PARAMS_FILES = [PROJECT / "params.yaml", *sorted((PROJECT / "presets").glob("*.yaml"))]
+
+
+def top_level_plots() -> dict[str, dict]:
+    dvc = yaml.safe_load((PROJECT / "dvc.yaml").read_text())
+    return {name: props for entry in dvc["plots"] for name, props in entry.items()}
+
+
+def resolved(text: str, params_file: Path) -> str:
+    """``text`` with the ``${section.key}`` references of the charts resolved as DVC does."""
+    params = yaml.safe_load(params_file.read_text())
+    for section in ("train", "eval", "reconstruct"):
+        for key, value in params[section].items():
+            if isinstance(value, str):
+                text = text.replace(f"${{{section}.{key}}}", value)
+    return text
+
+
+def charted_columns(params_file: Path) -> dict[str, set[str]]:
+    """``{file: columns}`` over every top-level chart, paths resolved with ``params_file``."""
+    columns: dict[str, set[str]] = {}
+    for props in top_level_plots().values():
+        assert set(props) >= {"x", "y"}, props
+        for path, names in props["y"].items():
+            columns.setdefault(resolved(path, params_file), set()).update(names)
+    return columns
+
+
+@pytest.mark.parametrize("params_file", PARAMS_FILES, ids=lambda path: path.name)
+def test_every_test_set_is_charted_with_the_model_beside_its_baselines(params_file: Path):
+    params = load_params(params_file)
+    columns = charted_columns(params_file)
+    for test_set in params.eval.test_sets:
+        charted = columns.get(f"{params.eval.predictions}/{test_set}/per_frame.csv", set())
+        assert {f"abs_rel_{m}" for m in DEPTH_METHODS} | {f"rte_{m}" for m in POSE_METHODS} <= charted, test_set
+
+
+@pytest.mark.parametrize("params_file", PARAMS_FILES, ids=lambda path: path.name)
+def test_every_reconstructed_sequence_is_charted_beside_constant_velocity(params_file: Path):
+    params = load_params(params_file)
+    columns = charted_columns(params_file)
+    for name in params.reconstruct.sequences:
+        assert columns.get(f"{params.reconstruct.out}/{name}/path_errors.csv") == set(PATH_ROWS), name
+
+
+def test_training_curves_chart_loss_and_validation_error_per_epoch():
+    chart = top_level_plots()["training curves"]
+    assert chart["x"] == "epoch"
+    assert chart["y"] == {"${train.plots}/history.csv": ["train_loss", "val_abs_rel", "val_rmse"]}
+
+
+def test_stage_plots_are_pictures_only():
+    """A CSV or JSON among a stage's plots would get DVC's default chart (its last column)."""
+    stages = yaml.safe_load((PROJECT / "dvc.yaml").read_text())["stages"]
+    for name, stage in stages.items():
+        for entry in (stage.get("do") or stage).get("plots", []):
+            path = entry if isinstance(entry, str) else next(iter(entry))
+            assert not path.endswith((".csv", ".json", ".tsv", ".yaml")), (name, path)
+
+
+def test_the_plots_page_says_why_charts_are_missing_offline():
+    config = (PROJECT / ".dvc" / "config").read_text()
+    assert "html_template = plots_page.html" in config
+    page = (PROJECT / ".dvc" / "plots_page.html").read_text()
+    assert "{plot_divs}" in page and "{scripts}" in page
+    assert "cannot be drawn" in page and 'typeof vegaEmbed === "undefined"' in page
