@@ -88,8 +88,13 @@ def connect_ray(cfg: RayConfig) -> bool:
 
 def quiet_worker_logs() -> None:
     """Ray worker setup: without the dashboard, Ray Train's placement-group cleaner cannot reach the state
-    API and warns about it every second; its job (cleaning up after a crashed controller) is unaffected."""
+    API and warns about it every second; its job (cleaning up after a crashed controller) is unaffected. Each
+    report's ``Reporting training result N: TrainingReport(...)`` comes from a logger named after its file,
+    outside ``ray.train`` (whose level ``RunConfig.logging_config`` sets), so it is quieted here."""
+    from ray.train.v2._internal.execution import context as train_context
+
     logging.getLogger("ray.train.v2._internal.execution.controller.placement_group_cleaner").setLevel(logging.ERROR)
+    train_context.logger.setLevel(logging.WARNING)
 
 
 def shipped_runtime_env() -> dict[str, Any]:
