@@ -8,6 +8,11 @@ would become the artifact root. Only one process writes to a run at a time (the 
 Ray workers while training), which SQLite needs. Every call names its run id explicitly (no global
 "active run"), so Ray workers can log into the driver's run.
 
+What MLflow's UI shows comes from here too: experiments as model-training experiments with a description,
+runs named after their DVC experiment or what distinguishes them (:func:`run_name_for`), the source and
+commit tags of its "Source" column, and our own tags linking a training run to its DVC experiment, its inputs'
+fingerprint and the pretraining run of its latent bank.
+
 Browse with ``mlflow ui --backend-store-uri sqlite:///$PWD/mlflow.db`` from the project root.
 """
 
@@ -209,6 +214,7 @@ def run_for_model(params: Params, project_root: str | Path, model_run_id: Option
 
 
 def set_tags(uri: str, run_id: str, tags: Mapping[str, str]) -> None:
+    """Set (or overwrite) ``tags`` on the run."""
     mlflow_client = client(uri)
     for key, value in tags.items():
         mlflow_client.set_tag(run_id, key, value)
