@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Iterator, Optional, Sequence
 
 from endoflow.config import ConfigError, load_params
 from endoflow.data.base import DATASETS, DataFormatError
@@ -68,7 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec = commands.add_parser("reconstruct", help="depth, camera path and fused surface of a video, an image "
                                                   "folder or a dataset sequence, from a trained model")
     rec.add_argument("input", type=Path, help="video file, folder of images, or dataset root (with --sequence)")
-    rec.add_argument("--model", type=Path, default=Path("models/endoflow.pt"), help="model file of the train stage")
+    rec.add_argument("--model", default="models/endoflow.pt",
+                     help="model file of the train stage, or an MLflow model: models:/<name>/<version> (the store "
+                          "of params.yaml's tracking.uri)")
     rec.add_argument("--out", type=Path, required=True, help="output folder (replaced when the run completes)")
     rec.add_argument("--sequence", default=None, help="a sequence of the dataset at INPUT (ground truth comes along)")
     rec.add_argument("--intrinsics", default=None,
@@ -160,9 +163,10 @@ def _reconstruct(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"endoflow reconstruct: error: {exc}", file=sys.stderr)
         return 2
-    record = load_model_file(args.model)
-    frames = open_frames(args.input, args.sequence, record.params)
-    summary = reconstruct(frames, intrinsics_for(args.intrinsics, frames), args.model, args.out, options)
+    with _model_file(args.model, args.params) as model_path:
+        record = load_model_file(model_path)
+        frames = open_frames(args.input, args.sequence, record.params)
+        summary = reconstruct(frames, intrinsics_for(args.intrinsics, frames), model_path, args.out, options)
     if args.mlflow:
         run_id = log_reconstruction(_params_if_present(args.params), Path(".").resolve(), record.mlflow_run_id,
                                     args.out.name, args.out)
@@ -172,6 +176,20 @@ def _reconstruct(args: argparse.Namespace) -> int:
     print(f"{summary['frames']} frames at {summary['size']} px, {summary['frames_per_second']:.1f} frames/s"
           f"{fitted}; outputs in {args.out}")
     return 0
+
+
+@contextlib.contextmanager
+def _model_file(location: str, params_path: str) -> Iterator[Path]:
+    """A model file, or an MLflow model's (downloaded from the store of ``tracking.uri`` for the duration)."""
+    from endoflow.models.mlflow_model import is_model_uri, local_model_file
+
+    if not is_model_uri(location):
+        yield Path(location)
+        return
+    from endoflow import tracking  # MLflow takes seconds to import: only model URIs pay for it
+
+    with local_model_file(location, tracking.tracking_uri(_params_if_present(params_path), ".")) as path:
+        yield path
 
 
 def _model_export(args: argparse.Namespace) -> int:

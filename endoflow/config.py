@@ -318,6 +318,9 @@ class TrackingConfig:
     uri: Optional[str] = None
     experiment: str = "endoflow"
     latent_bank_experiment: str = "endoflow-latent-bank"
+    # a name: each training registers its model as a new version of this MLflow registered model
+    # (models:/<name>/<version>, which `endoflow reconstruct --model` and eval.model accept); null: not registered
+    registered_model: Optional[str] = None
 
 
 # The datasets endoflow reads, one per section of ``data``: the one list every command, stage, reader and
@@ -535,7 +538,7 @@ def _is_power_of_two(value: int) -> bool:
     return value >= 1 and value & (value - 1) == 0
 
 
-def _is_test_set_name(name: str) -> bool:
+def _is_plain_name(name: str) -> bool:
     return bool(name) and all(c.isascii() and (c.isalnum() or c in "_-") for c in name)
 
 
@@ -667,8 +670,13 @@ _RECONSTRUCT_RULES: tuple[tuple[str, _Check | _Each], ...] = (
     ("reconstruct.device", _DEVICE),
 )
 
+_TRACKING_RULES: tuple[tuple[str, _Check | _Each], ...] = (
+    # MLflow's registry takes other characters too, but a models:/<name>/<version> URI must parse back
+    ("tracking.registered_model", _optional(_Check(_is_plain_name, "a name of letters, digits, _ and -"))),
+)
+
 _RANGE_RULES = (_TOP_RULES + _DATA_RULES + _SYNTH_RULES + _PREPROCESS_RULES + _LATENT_BANK_RULES + _MODEL_RULES
-                + _LOSS_RULES + _TRAIN_RULES + _RAY_RULES + _EVAL_RULES + _RECONSTRUCT_RULES)
+                + _LOSS_RULES + _TRAIN_RULES + _RAY_RULES + _EVAL_RULES + _RECONSTRUCT_RULES + _TRACKING_RULES)
 
 
 def _check_ranges(params: Params) -> None:
@@ -782,7 +790,7 @@ def _check_loader_workers_fit_worker_cpus(params: Params) -> None:
 def _check_test_sets(params: Params) -> None:
     known = list(DATASETS)
     for name, test_set in params.eval.test_sets.items():
-        if not _is_test_set_name(name):
+        if not _is_plain_name(name):
             raise ConfigError(f"eval.test_sets: name {name!r} must be letters, digits, _ and - only (it names a "
                               f"DVC stage, folders and dotted keys)")
         if test_set.dataset not in known:
@@ -793,7 +801,7 @@ def _check_reconstructions(params: Params) -> None:
     known = [name for name in DATASETS if name not in DEPTH_ONLY_DATASETS]
     for name, item in params.reconstruct.sequences.items():
         key = f"reconstruct.sequences.{name}"
-        if not _is_test_set_name(name):
+        if not _is_plain_name(name):
             raise ConfigError(f"reconstruct.sequences: name {name!r} must be letters, digits, _ and - only (it "
                               f"names a DVC stage and folders)")
         if item.dataset not in known:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import sys
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,6 +78,10 @@ def connect_ray(cfg: RayConfig) -> bool:
         except BaseException:
             ray.shutdown()
             raise
+        # Ray's own "Connecting to existing Ray cluster" line is INFO, below the level set above
+        nodes = [node for node in ray.nodes() if node.get("Alive")]
+        print(f"[ray] joined the cluster at {cfg.address}: {len(nodes)} nodes, "
+              f"{ray.cluster_resources().get('CPU', 0):g} CPUs", file=sys.stderr, flush=True)
     else:
         with multi_node_ray_off():  # "local": a new instance even where `ray start` left one running
             ray.init(address="local", num_cpus=cfg.num_cpus or os.cpu_count(), include_dashboard=False,

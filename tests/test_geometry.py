@@ -283,3 +283,19 @@ def test_low_precision_keeps_geometry_in_float32() -> None:
         warped_autocast, valid_autocast = warp_frame(image, depth, T, K)
     assert torch.allclose(warped_autocast.float(), reference, atol=1e-5)
     assert torch.equal(valid_autocast, reference_valid)
+
+
+def test_chain_step_is_the_inverse_step_composed_and_stays_rigid():
+    from endoflow.geometry.pose import chain_step, nearest_rotation
+
+    rng = np.random.default_rng(4)
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    step = np.eye(4)
+    step[:3, :3], step[:3, 3] = q * np.sign(np.linalg.det(q)), rng.normal(size=3)
+    start = np.eye(4)
+    start[:3, 3] = (1.0, 2.0, 3.0)
+    np.testing.assert_allclose(chain_step(start, step), start @ np.linalg.inv(step), atol=1e-12)
+    noisy = step[:3, :3] + 1e-4 * rng.standard_normal((3, 3))
+    rotation = nearest_rotation(noisy)
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rotation) == pytest.approx(1.0) and np.abs(rotation - step[:3, :3]).max() < 1e-3

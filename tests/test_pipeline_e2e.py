@@ -122,7 +122,10 @@ def test_one_mlflow_run_holds_training_and_evaluation(smoke_repro):
     for test_set in params.eval.test_sets:
         assert any(name.startswith(f"eval/{test_set}/") for name in metric_names), test_set
     artifacts = {item.path for item in client.list_artifacts(runs[0].info.run_id)}
-    assert {"model", "eval", "reconstruct"} <= artifacts, artifacts
+    assert {"eval", "reconstruct", "val_depth"} <= artifacts, artifacts
+    # the model is an MLflow "logged model" of the run (MLflow 3 keeps its files beside the run's own)
+    logged = client.search_logged_models(experiment_ids=[experiment.experiment_id])
+    assert [model.source_run_id for model in logged] == [runs[0].info.run_id]
     assert any(name.startswith("reconstruct/") for name in metric_names), metric_names
     bank = client.get_experiment_by_name(params.tracking.latent_bank_experiment)
     bank_runs = client.search_runs([bank.experiment_id])
@@ -146,3 +149,6 @@ def test_mlflow_shows_named_model_training_runs_with_their_source_and_headline(s
     assert bank.tags[tracking.EXPERIMENT_KIND_TAG] == "custom_model_development"
     assert train_run.data.tags[tracking.LATENT_BANK_RUN_TAG] == bank_run.info.run_id
     assert bank_run.data.tags[tracking.LATENT_BANK_DIGEST_TAG] == file_sha256(smoke_repro / params.latent_bank.out)
+    # the smoke preset registers its model: version 1 of tracking.registered_model, from the training run
+    version = client.get_model_version(params.tracking.registered_model, "1")
+    assert version.run_id == train_run.info.run_id

@@ -119,7 +119,7 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
     artifacts = {a.path for folder in ("val_depth", "model")
                  for a in tracking.client(uri).list_artifacts(run.info.run_id, folder)}
     assert {"val_depth/epoch_0001.png", "val_depth/epoch_0002.png", "val_depth/latest.png",
-            "model/endoflow.pt"} <= artifacts
+            "model/MLmodel"} <= artifacts  # the model, as an MLflow model (tests/test_mlflow_model.py)
 
     # the same training, never interrupted, keeping one checkpoint: the same weights, bit for bit
     reference = tmp_path / "uninterrupted"

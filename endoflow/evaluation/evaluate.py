@@ -50,6 +50,7 @@ from endoflow.data.trajectory_files import write_simcol_relative_pose
 from endoflow.data.shard_format import read_manifest
 from endoflow.devices import autocast, images_to_device, resolve_device, to_compute_layout
 from endoflow.locations import absolute_location
+from endoflow.models.mlflow_model import is_model_uri, local_model_file
 from endoflow.models.model_file import TrainingBaselines, load_trained_model
 
 DEPTH_METHODS = ("model", "constant_depth", "mean_depth_map")
@@ -471,8 +472,10 @@ def run_evaluation(params: Params, name: str, project_root: str | Path = ".") ->
     root = Path(project_root).resolve()
     urls = eval_set_shards(absolute_location(params.eval.shards, root), eval_set(params, name))
     plots_dir = root / params.eval.plots / name
-    result = evaluate_test_set(params, name, triplet_dataset(urls), root / params.eval.model,
-                               root / params.eval.metrics / f"{name}.json", plots_dir,
-                               root / params.eval.predictions / name)
+    model = params.eval.model if is_model_uri(params.eval.model) else root / params.eval.model
+    with local_model_file(model, tracking.tracking_uri(params, root)) as model_path:
+        result = evaluate_test_set(params, name, triplet_dataset(urls), model_path,
+                                   root / params.eval.metrics / f"{name}.json", plots_dir,
+                                   root / params.eval.predictions / name)
     log_evaluation(params, root, result, plots_dir)
     return result

@@ -98,6 +98,27 @@ def relative_pose(T_world_s: ArrayOrTensor, T_world_t: ArrayOrTensor) -> ArrayOr
 
 
 # ------------------------------------------------------------------------------------------ numpy
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The rotation closest to ``matrix`` (SVD). The network's rotations are orthonormal only to float32
+    rounding; chained over hundreds of frames that error grows until the path is no longer rigid (and the
+    trajectory writers rightly refuse it), so every step and every chained pose is projected back."""
+    u, _, vt = np.linalg.svd(matrix)
+    if np.linalg.det(u @ vt) < 0:
+        u[:, -1] *= -1
+    return u @ vt
+
+
+def chain_step(T_world_prev: np.ndarray, T_cur_prev: np.ndarray) -> np.ndarray:
+    """``T_world_cur = T_world_prev @ inv(T_cur_prev)``: the next camera-to-world pose of a path from the
+    relative pose a pose network predicts, with the step's and the result's rotations kept rigid
+    (:func:`nearest_rotation`)."""
+    step = np.array(T_cur_prev, dtype=np.float64)
+    step[:3, :3] = nearest_rotation(step[:3, :3])
+    pose = np.asarray(T_world_prev, dtype=np.float64) @ invert_pose(step)
+    pose[:3, :3] = nearest_rotation(pose[:3, :3])
+    return pose
+
+
 def quaternion_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrices ``[..., 3, 3]`` from quaternions ``[..., 4]`` (qx, qy, qz, qw; scalar last).
 

@@ -41,7 +41,7 @@ from endoflow.data.shards import (
     stored_intrinsics,
 )
 from endoflow.devices import images_to_device, resolve_device
-from endoflow.geometry.pose import invert_pose
+from endoflow.geometry.pose import chain_step
 from endoflow.io import staged_directory, write_bytes, write_json
 from endoflow.models.model_file import load_trained_model
 from endoflow.progress import format_duration
@@ -140,16 +140,6 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     return summary
 
 
-def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
-    """The rotation closest to ``matrix`` (SVD). The network's rotations are orthonormal only to float32
-    rounding; chained over hundreds of frames that error grows until the path is no longer rigid (and the
-    trajectory writers rightly refuse it), so every step and every chained pose is projected back."""
-    u, _, vt = np.linalg.svd(matrix)
-    if np.linalg.det(u @ vt) < 0:
-        u[:, -1] *= -1
-    return u @ vt
-
-
 def default_voxel_cm(K: np.ndarray, max_depth_cm: float, size: int) -> float:
     """A voxel about the footprint of one pixel at a quarter of the depth range: finer wastes memory on noise."""
     return float(max_depth_cm / 4 / K[0, 0])
@@ -176,10 +166,8 @@ class CameraPath:
             pose = np.eye(4)
         else:
             step = np.array(T_cur_prev)
-            step[:3, :3] = nearest_rotation(step[:3, :3])
             step[:3, 3] *= scale
-            pose = self.poses[-1] @ invert_pose(step)
-            pose[:3, :3] = nearest_rotation(pose[:3, :3])
+            pose = chain_step(self.poses[-1], step)
         self.poses.append(pose)
         self.timestamps.append(frame.timestamp)
         self.indices.append(frame.index)

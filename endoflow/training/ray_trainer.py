@@ -41,6 +41,7 @@ from endoflow.evaluation import plots
 from endoflow.geometry.pose import matrix_to_pose_vec, pose_vec_to_matrix
 from endoflow.io import file_sha256, save_figure, staged_directory, write_csv, write_json
 from endoflow.locations import absolute_location, local_file
+from endoflow.models.mlflow_model import log_mlflow_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from endoflow.models.latent_bank import check_latent_bank_file
 from endoflow.ray_runtime import connect_ray
@@ -154,7 +155,7 @@ def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: 
     uri, run_id = config.tracking_uri, config.run_id
     tracking.log_metrics(uri, run_id, {f"best/{k}": v for k, v in summary.items()
                                        if isinstance(v, (int, float)) and not isinstance(v, bool)})
-    tracking.log_artifact(uri, run_id, root / params.train.out, "model")
+    log_mlflow_model(uri, run_id, root / params.train.out, params.tracking.registered_model)
     tracking.log_artifact(uri, run_id, root / params.train.plots, "plots/train")
     return summary
 

@@ -1,0 +1,133 @@
+"""The trained model as an MLflow model: logged with a signature and an input example, registered, loadable
+with `mlflow.pyfunc` on its own (depth and camera path of consecutive frames, as the torch model gives them),
+nothing pickled; endoflow reads a `models:/` URI's model file back without running the logged code, and
+`endoflow reconstruct` takes the URI."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from endoflow import tracking
+from endoflow.cli import main as cli
+from endoflow.config import Params
+from endoflow.geometry.pose import invert_pose
+from endoflow.io import file_sha256
+from endoflow.models.endoflow_model import build_model
+from endoflow.models.mlflow_model import example_frames, local_model_file, log_mlflow_model
+from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_trained_model, save_model_file
+
+SIZE = 64
+NAME = "endoflow-test"
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("mlflow_model_project")
+
+
+@pytest.fixture(scope="module")
+def params() -> Params:
+    params = Params()
+    params.data.size = SIZE
+    params.model = replace(params.model, latent_bank=False)
+    return params
+
+
+@pytest.fixture(scope="module")
+def logged(project: Path, params: Params) -> tuple[Path, str, str]:
+    """(model file, run id, models:/ URI) of an untrained model logged into a run and registered."""
+    model_path = project / "models" / "endoflow.pt"
+    model_path.parent.mkdir()
+    torch.manual_seed(0)
+    model = build_model(params, latent_bank_path=None)
+    baselines = TrainingBaselines(mean_depth_cm=7.0, mean_depth_map=np.full((SIZE, SIZE), 7.0, np.float32),
+                                  mean_relative_pose=np.eye(4))
+    run_id = tracking.start_run(params, project, params.tracking.experiment, "train bank vae seed0")
+    save_model_file(model_path, ModelRecord(params=params, state=model.state_dict(), epoch=0, val={},
+                                            mlflow_run_id=run_id, baselines=baselines))
+    uri = tracking.tracking_uri(params, project)
+    model_uri = log_mlflow_model(uri, run_id, model_path, NAME)
+    tracking.end_run(uri, run_id)
+    return model_path, run_id, model_uri
+
+
+def downloaded_model(params: Params, project: Path, destination: Path) -> Path:
+    import mlflow
+
+    return Path(mlflow.artifacts.download_artifacts(artifact_uri=f"models:/{NAME}/1", dst_path=str(destination),
+                                                    tracking_uri=tracking.tracking_uri(params, project)))
+
+
+def test_the_model_is_registered_with_a_signature_an_input_example_and_no_pickle(logged, params, project,
+                                                                                  tmp_path):
+    _, run_id, _ = logged
+    uri = tracking.tracking_uri(params, project)
+    version = tracking.client(uri).get_model_version(NAME, "1")
+    assert version.run_id == run_id
+    folder = downloaded_model(params, project, tmp_path)
+    description = yaml.safe_load((folder / "MLmodel").read_text())
+    inputs = json.loads(description["signature"]["inputs"])
+    outputs = json.loads(description["signature"]["outputs"])
+    assert inputs == [{"type": "tensor", "tensor-spec": {"dtype": "uint8", "shape": [-1, SIZE, SIZE, 3]}}]
+    assert [o["name"] for o in outputs] == ["depth_cm", "T_world_cam"]
+    assert description["saved_input_example_info"]
+    assert not list(folder.rglob("*.pkl")) and not list(folder.rglob("*.pickle"))  # models from code
+
+
+def test_pyfunc_gives_the_torch_models_depth_and_chained_path(logged, params, project, tmp_path):
+    import mlflow
+
+    model_path, _, _ = logged
+    mlflow.set_tracking_uri(tracking.tracking_uri(params, project))
+    mlflow.set_registry_uri(tracking.tracking_uri(params, project))
+    pyfunc = mlflow.pyfunc.load_model(f"models:/{NAME}/1")
+    frames = np.concatenate([example_frames(SIZE), example_frames(SIZE)[:1, :, ::-1]])
+    out = pyfunc.predict(frames)
+    model, _ = load_trained_model(model_path, torch.device("cpu"))
+    images = torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255
+    with torch.no_grad():
+        depth = model.predict_depth(images)[:, 0].numpy()
+        steps = model.predict_pose(images[:-1], images[1:]).double().numpy()
+    assert out["depth_cm"].shape == (3, SIZE, SIZE) and out["depth_cm"].dtype == np.float32
+    np.testing.assert_allclose(out["depth_cm"], depth, rtol=1e-5)
+    poses = out["T_world_cam"]
+    np.testing.assert_allclose(poses[0], np.eye(4))
+    np.testing.assert_allclose(poses[1], invert_pose(steps[0]), atol=1e-5)  # T_world_cur = inv(T_cur_prev)
+    np.testing.assert_allclose(poses[2], poses[1] @ invert_pose(steps[1]), atol=1e-5)
+
+
+def test_endoflow_reads_a_models_uri_as_its_model_file(logged, params, project):
+    model_path, _, model_uri = logged
+    uri = tracking.tracking_uri(params, project)
+    for location in (f"models:/{NAME}/1", model_uri):
+        with local_model_file(location, uri) as path:
+            assert file_sha256(path) == file_sha256(model_path)
+            kept = path
+        assert not kept.exists()  # downloaded for the duration only
+    with local_model_file(model_path, uri) as path:
+        assert path == model_path
+    with pytest.raises(FileNotFoundError, match="models:/no-such-model/1: no such model in sqlite:///"):
+        with local_model_file("models:/no-such-model/1", uri):
+            pass
+
+
+def test_reconstruct_takes_a_models_uri(logged, params, project, monkeypatch):
+    frames = project / "frames"
+    frames.mkdir()
+    import cv2
+
+    for i, frame in enumerate(np.concatenate([example_frames(SIZE)] * 2)):
+        cv2.imwrite(str(frames / f"{i:04d}.png"), frame[:, :, ::-1])
+    monkeypatch.chdir(project)
+    code = cli(["reconstruct", str(frames), "--model", f"models:/{NAME}/1", "--intrinsics", "50,50,32,32",
+                "--out", str(project / "out"), "--no-fusion"])
+    assert code == 0
+    summary = json.loads((project / "out" / "reconstruction.json").read_text())
+    assert summary["frames"] == 4
