@@ -67,8 +67,8 @@ def artifact_location(params: Params, project_root: str | Path) -> Optional[str]
 
 
 def client(uri: str) -> MlflowClient:
-    """A client bound to ``uri`` (no process-wide tracking URI is set)."""
-    return MlflowClient(tracking_uri=uri)
+    """A client bound to ``uri`` for runs and for registered models (no process-wide URI is set or read)."""
+    return MlflowClient(tracking_uri=uri, registry_uri=uri)
 
 
 def ensure_experiment(params: Params, project_root: str | Path, name: str) -> str:

@@ -6,7 +6,6 @@ nothing pickled; endoflow reads a `models:/` URI's model file back without runni
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +19,9 @@ from endoflow.config import Params
 from endoflow.geometry.pose import invert_pose
 from endoflow.io import file_sha256
 from endoflow.models.endoflow_model import build_model
-from endoflow.models.mlflow_model import example_frames, local_model_file, log_mlflow_model
+from endoflow.models.mlflow_model import example_frames, local_model_file, log_mlflow_model, using_store
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_trained_model, save_model_file
+from tests.small_model import small_model_params
 
 SIZE = 64
 NAME = "endoflow-test"
@@ -34,10 +34,7 @@ def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def params() -> Params:
-    params = Params()
-    params.data.size = SIZE
-    params.model = replace(params.model, latent_bank=False)
-    return params
+    return small_model_params(SIZE)
 
 
 @pytest.fixture(scope="module")
@@ -61,8 +58,8 @@ def logged(project: Path, params: Params) -> tuple[Path, str, str]:
 def downloaded_model(params: Params, project: Path, destination: Path) -> Path:
     import mlflow
 
-    return Path(mlflow.artifacts.download_artifacts(artifact_uri=f"models:/{NAME}/1", dst_path=str(destination),
-                                                    tracking_uri=tracking.tracking_uri(params, project)))
+    with using_store(tracking.tracking_uri(params, project)):
+        return Path(mlflow.artifacts.download_artifacts(artifact_uri=f"models:/{NAME}/1", dst_path=str(destination)))
 
 
 def test_the_model_is_registered_with_a_signature_an_input_example_and_no_pickle(logged, params, project,
@@ -85,9 +82,8 @@ def test_pyfunc_gives_the_torch_models_depth_and_chained_path(logged, params, pr
     import mlflow
 
     model_path, _, _ = logged
-    mlflow.set_tracking_uri(tracking.tracking_uri(params, project))
-    mlflow.set_registry_uri(tracking.tracking_uri(params, project))
-    pyfunc = mlflow.pyfunc.load_model(f"models:/{NAME}/1")
+    with using_store(tracking.tracking_uri(params, project)):
+        pyfunc = mlflow.pyfunc.load_model(f"models:/{NAME}/1")
     frames = np.concatenate([example_frames(SIZE), example_frames(SIZE)[:1, :, ::-1]])
     out = pyfunc.predict(frames)
     model, _ = load_trained_model(model_path, torch.device("cpu"))
@@ -101,6 +97,12 @@ def test_pyfunc_gives_the_torch_models_depth_and_chained_path(logged, params, pr
     np.testing.assert_allclose(poses[0], np.eye(4))
     np.testing.assert_allclose(poses[1], invert_pose(steps[0]), atol=1e-5)  # T_world_cur = inv(T_cur_prev)
     np.testing.assert_allclose(poses[2], poses[1] @ invert_pose(steps[1]), atol=1e-5)
+
+
+def test_logging_and_reading_leave_mlflows_process_wide_store_alone(logged, params, project):
+    import mlflow
+
+    assert tracking.tracking_uri(params, project) not in (mlflow.get_tracking_uri(), mlflow.get_registry_uri())
 
 
 def test_endoflow_reads_a_models_uri_as_its_model_file(logged, params, project):

@@ -134,7 +134,8 @@ def test_one_mlflow_run_holds_training_and_evaluation(smoke_repro):
 
 def test_mlflow_shows_named_model_training_runs_with_their_source_and_headline(smoke_repro):
     params = load_params(smoke_repro / "params.yaml")
-    client = MlflowClient(tracking_uri=f"sqlite:///{smoke_repro / 'mlflow.db'}")
+    store = f"sqlite:///{smoke_repro / 'mlflow.db'}"
+    client = MlflowClient(tracking_uri=store, registry_uri=store)
     experiment = client.get_experiment_by_name(params.tracking.experiment)
     assert experiment.tags[tracking.EXPERIMENT_KIND_TAG] == "custom_model_development"
     assert experiment.tags[tracking.DESCRIPTION_TAG]

@@ -5,7 +5,6 @@ renderer's exact surface from ground-truth depth and poses to within about a vox
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -27,6 +26,7 @@ from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_fram
 from endoflow.reconstruction.fusion import TSDFVolume, read_ply_vertices
 from endoflow.reconstruction.reconstruct import ReconstructOptions, default_voxel_cm, reconstruct
 from endoflow.synth.writers import synthesize_layout
+from tests.small_model import small_model_params
 
 SIZE = 64
 FRAMES = 8
@@ -34,10 +34,7 @@ FRAMES = 8
 
 @pytest.fixture(scope="module")
 def params() -> Params:
-    params = Params()
-    params.data.size = SIZE
-    params.model = replace(params.model, latent_bank=False)
-    return params
+    return small_model_params(SIZE)
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,6 @@ input that cannot be measured says why."""
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +28,7 @@ from endoflow.reconstruction.measure import (
     SurfacePoints,
 )
 from endoflow.synth.writers import synthesize_layout
+from tests.small_model import small_model_params
 
 SIZE = 64
 FRAMES = 12
@@ -37,10 +37,7 @@ UNIT_CM = 0.001
 
 @pytest.fixture(scope="module")
 def params() -> Params:
-    params = Params()
-    params.data.size = SIZE
-    params.model = replace(params.model, latent_bank=False)
-    return params
+    return small_model_params(SIZE)
 
 
 @pytest.fixture(scope="module")

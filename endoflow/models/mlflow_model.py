@@ -105,14 +105,28 @@ def log_mlflow_model(tracking_uri: str, run_id: str, model_path: Path, registere
     import mlflow
 
     size = load_model_file(model_path).params.data.size
-    mlflow.set_tracking_uri(tracking_uri)
-    mlflow.set_registry_uri(tracking_uri)
-    with mlflow.start_run(run_id=run_id):
+    with using_store(tracking_uri), mlflow.start_run(run_id=run_id):
         info = mlflow.pyfunc.log_model(
             name=ARTIFACT_NAME, python_model=str(ENTRY_FILE), artifacts={MODEL_FILE_ARTIFACT: str(model_path)},
             code_paths=[str(PACKAGE_FOLDER)], signature=model_signature(size), input_example=example_frames(size),
             pip_requirements=requirements(), registered_model_name=registered_name)
     return info.model_uri
+
+
+@contextlib.contextmanager
+def using_store(uri: str) -> Iterator[None]:
+    """Within: MLflow's fluent API (``log_model``, ``models:/`` downloads) uses the store at ``uri`` for runs and
+    registered models; the process-wide URIs are restored after, so that nothing else is redirected."""
+    import mlflow
+
+    previous = mlflow.get_tracking_uri(), mlflow.get_registry_uri()
+    mlflow.set_tracking_uri(uri)
+    mlflow.set_registry_uri(uri)
+    try:
+        yield
+    finally:
+        mlflow.set_tracking_uri(previous[0])
+        mlflow.set_registry_uri(previous[1])
 
 
 @contextlib.contextmanager
@@ -125,8 +139,7 @@ def local_model_file(location: str | Path, tracking_uri: str) -> Iterator[Path]:
     import mlflow
     from mlflow.exceptions import MlflowException
 
-    with tempfile.TemporaryDirectory(prefix="endoflow-model-") as folder:
-        mlflow.set_registry_uri(tracking_uri)
+    with tempfile.TemporaryDirectory(prefix="endoflow-model-") as folder, using_store(tracking_uri):
         try:
             local = Path(mlflow.artifacts.download_artifacts(artifact_uri=str(location), dst_path=folder,
                                                              tracking_uri=tracking_uri))
