@@ -30,6 +30,7 @@ import yaml
 from endoflow import tracking
 from endoflow.config import Params, params_to_dict
 from endoflow.data.shards import write_dataset_shards
+from endoflow.models.mlflow_model import using_store
 from endoflow.models.model_file import load_model_file
 from endoflow.training.checkpoint import latest_checkpoint, load_training_state, read_rank_audits, weights_digest
 from endoflow.training.ray_trainer import TrainingError, train, training_fingerprint
@@ -116,8 +117,9 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
     assert sorted({(m.step, m.value) for m in epochs}) == [(1, 1.0), (2, 2.0)]
     assert {"loss/total", "loss/weighted/kl", "loss/unweighted/kl", "loss/weighted/photometric"} <= set(
         run.data.metrics)
-    artifacts = {a.path for folder in ("val_depth", "model")
-                 for a in tracking.client(uri).list_artifacts(run.info.run_id, folder)}
+    with using_store(uri):  # MLflow resolves the run's logged model ("model/") through the process-wide store
+        artifacts = {a.path for folder in ("val_depth", "model")
+                     for a in tracking.client(uri).list_artifacts(run.info.run_id, folder)}
     assert {"val_depth/epoch_0001.png", "val_depth/epoch_0002.png", "val_depth/latest.png",
             "model/MLmodel"} <= artifacts  # the model, as an MLflow model (tests/test_mlflow_model.py)
 
