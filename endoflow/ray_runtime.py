@@ -24,17 +24,27 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import re
 import sys
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, TextIO
 
 import endoflow
 from endoflow.config import ConfigError, RayConfig
 
 # How long every node gets to start a worker (with the shipped package) and report its endoflow.
 NODE_CHECK_TIMEOUT_S = 120.0
+# Lines Ray prints about itself that nobody can act on; they still reach the run's Ray log (worker_logs_to).
+# Ray Train's controller logs an internal actor's restart policy at ERROR level on every start
+# (https://github.com/ray-project/ray/issues/53727).
+UNACTIONABLE_RAY_LINES = (re.compile(r"core_worker\.cc:\d+: Actor with class name: 'PreemptionWatcher'"),)
+# Ray's notice, at every local start, that it turned on token authentication (what we want: nothing to do);
+# the notice that authentication is *off*, when joining a cluster without it, still shows.
+TOKEN_AUTH_ENABLED_NOTICE = "Token authentication is enabled for this Ray cluster"
+# the name under which Ray's driver prints the lines its workers and own processes stream to it
+RAY_PRINT_HANDLER = "ray_print_logs"
 
 
 class ClusterMismatchError(ConfigError):
@@ -71,8 +81,9 @@ def connect_ray(cfg: RayConfig) -> bool:
         return False
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     if cfg.address:
-        ray.init(address=cfg.address, log_to_driver=True, logging_level=logging.WARNING,
-                 runtime_env=shipped_runtime_env())
+        with without_token_auth_notice():
+            ray.init(address=cfg.address, log_to_driver=True, logging_level=logging.WARNING,
+                     runtime_env=shipped_runtime_env())
         try:
             check_same_endoflow_on_every_node(endoflow_build())
         except BaseException:
@@ -83,12 +94,61 @@ def connect_ray(cfg: RayConfig) -> bool:
         print(f"[ray] joined the cluster at {cfg.address}: {len(nodes)} nodes, "
               f"{ray.cluster_resources().get('CPU', 0):g} CPUs", file=sys.stderr, flush=True)
     else:
-        with multi_node_ray_off():  # "local": a new instance even where `ray start` left one running
+        # "local": a new instance even where `ray start` left one running
+        with multi_node_ray_off(), without_token_auth_notice():
             ray.init(address="local", num_cpus=cfg.num_cpus or os.cpu_count(), include_dashboard=False,
                      object_store_memory=cfg.object_store_mb * 2**20, log_to_driver=True,
                      logging_level=logging.WARNING,
                      runtime_env={"worker_process_setup_hook": "endoflow.ray_runtime.quiet_worker_logs"})
     return True
+
+
+@contextmanager
+def without_token_auth_notice() -> Iterator[None]:
+    """Within: Ray's "token authentication is enabled" notice is not printed (other auth warnings are)."""
+    from ray._private.authentication import authentication_token_setup
+
+    def keep(record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith(TOKEN_AUTH_ENABLED_NOTICE)
+
+    authentication_token_setup.logger.addFilter(keep)
+    try:
+        yield
+    finally:
+        authentication_token_setup.logger.removeFilter(keep)
+
+
+@contextmanager
+def worker_logs_to(path: str | Path) -> Iterator[None]:
+    """Within (Ray connected, printing what its processes stream to the driver): every such line is also
+    appended to ``path``, and the terminal gets all but :data:`UNACTIONABLE_RAY_LINES`."""
+    from ray._private.worker import global_worker_stdstream_dispatcher as dispatcher
+
+    printer = dict(dispatcher.handlers).get(RAY_PRINT_HANDLER)
+    with open(path, "a", encoding="utf-8") as log:
+        def route(data: dict[str, Any]) -> None:
+            write_ray_lines(log, data)
+            shown = [line for line in data["lines"]
+                     if not any(pattern.search(line) for pattern in UNACTIONABLE_RAY_LINES)]
+            if printer is not None and shown:
+                printer({**data, "lines": shown})
+
+        dispatcher.remove_handler(RAY_PRINT_HANDLER)
+        dispatcher.add_handler(RAY_PRINT_HANDLER, route)
+        try:
+            yield
+        finally:
+            dispatcher.remove_handler(RAY_PRINT_HANDLER)
+            if printer is not None:
+                dispatcher.add_handler(RAY_PRINT_HANDLER, printer)
+
+
+def write_ray_lines(log: TextIO, data: dict[str, Any]) -> None:
+    """Append streamed lines to ``log``, each after the process it came from, as Ray prints them."""
+    source = data.get("actor_name") or data.get("task_name") or ""
+    prefix = f"({source} pid={data.get('pid')}{', stderr' if data.get('is_err') else ''}) "
+    log.writelines(prefix + line + "\n" for line in data["lines"])
+    log.flush()
 
 
 def quiet_worker_logs() -> None:

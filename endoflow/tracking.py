@@ -18,6 +18,7 @@ Browse with ``mlflow ui --backend-store-uri sqlite:///$PWD/mlflow.db`` from the 
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -26,11 +27,12 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Optional
 
 from mlflow import MlflowClient
-from mlflow.entities import Metric, Param, RunStatus
+from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param, RunStatus
 from mlflow.exceptions import MlflowException
 from mlflow.protos.databricks_pb2 import RESOURCE_DOES_NOT_EXIST, ErrorCode
 
 from endoflow.config import Params, flatten_params
+from endoflow.io import file_sha256
 
 MLFLOW_PARAM_LIMIT = 6000  # characters MLflow accepts in one param value
 FINGERPRINT_TAG = "endoflow.fingerprint"
@@ -50,6 +52,9 @@ LATENT_BANK_DIGEST_TAG = "endoflow.latent_bank_sha256"
 LATENT_BANK_RUN_TAG = "endoflow.latent_bank_run_id"
 # on a run opened for a model whose own training run is not in this store (a model file copied between machines)
 MODEL_RUN_TAG = "endoflow.model_run_id"
+# what MLflow's UI shows beside a dataset input: what the run used it for
+DATASET_CONTEXT_TAG = "mlflow.data.context"
+MLFLOW_DIGEST_CHARS = 32  # the store's digest column holds 36 characters
 
 
 def tracking_uri(params: Params, project_root: str | Path) -> str:
@@ -233,6 +238,21 @@ def link_latent_bank(params: Params, project_root: str | Path, run_id: str, bank
         tags[LATENT_BANK_RUN_TAG] = found[0].info.run_id
     set_tags(uri, run_id, tags)
     return found[0].info.run_id if found else None
+
+
+def log_shards_input(uri: str, run_id: str, manifest: str, name: str, context: str) -> str:
+    """Log a shard folder as a dataset input of the run (the "Datasets used" of MLflow's UI): named ``name``,
+    its source the manifest at ``manifest`` (a path or an fsspec URL), its digest the manifest's SHA-256 (which
+    covers every shard's SHA-256 and sample count), ``context`` what the run used it for (``training``,
+    ``evaluation``). Logging the same input again (a resumed run) adds nothing. Returns the digest."""
+    hexdigest = file_sha256(manifest)[:MLFLOW_DIGEST_CHARS]
+    # the source types of MLflow's own artifact sources: "local" for a path, the URL's scheme otherwise
+    source_type, location = ((manifest.split("://", 1)[0], manifest) if "://" in manifest
+                             else ("local", str(Path(manifest).resolve())))
+    dataset = Dataset(name=name, digest=hexdigest, source_type=source_type, source=json.dumps({"uri": location}))
+    dataset_input = DatasetInput(dataset, tags=[InputTag(DATASET_CONTEXT_TAG, context)])
+    client(uri).log_inputs(run_id, datasets=[dataset_input])
+    return hexdigest
 
 
 def log_params(uri: str, run_id: str, values: Mapping[str, str]) -> None:

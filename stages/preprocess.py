@@ -10,13 +10,12 @@ tasks on the cluster at ``ray.address``.
 from __future__ import annotations
 
 import argparse
-import json
 import posixpath
 from pathlib import Path
 
 from endoflow.config import load_params
 from endoflow.data.base import DATASETS
-from endoflow.data.shards import preprocess_dataset
+from endoflow.data.shards import format_preprocess_summary, preprocess_dataset
 from endoflow.locations import absolute_location
 
 
@@ -28,7 +27,7 @@ def main() -> None:
     params = load_params(args.params)
     out = absolute_location(params.preprocess.out, Path.cwd())
     summary = preprocess_dataset(args.dataset, params, posixpath.join(out.rstrip("/"), args.dataset))
-    print(json.dumps(summary, indent=2))
+    print(format_preprocess_summary(summary), end="")
 
 
 if __name__ == "__main__":

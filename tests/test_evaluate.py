@@ -22,6 +22,7 @@ from endoflow.config import Params, EvalSetConfig
 from endoflow.data.base import Sequence
 from endoflow.data.loader import triplet_dataset
 from endoflow.data.shards import write_dataset_shards
+from endoflow.io import file_sha256
 from endoflow.evaluation import metrics
 from endoflow.evaluation.evaluate import (
     SequenceEvaluator,
@@ -230,6 +231,10 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     assert {"simcol_3/abs_rel", "simcol_3/rte", "simcol_3/rot"} <= set(run.data.metrics)
     artifacts = [a.path for a in tracking.client(uri).list_artifacts(run_id, "eval/simcol_3")]
     assert "eval/simcol_3/trajectory_O1.png" in artifacts
+    (test_shards,) = run.inputs.dataset_inputs
+    manifest = oracle_shards / "simcol" / "manifest.parquet"
+    assert (test_shards.dataset.name, test_shards.dataset.digest) == ("simcol", file_sha256(manifest)[:32])
+    assert [(tag.key, tag.value) for tag in test_shards.tags] == [("mlflow.data.context", "evaluation")]
 
 
 def test_a_model_whose_training_run_is_not_in_the_store_logs_into_one_new_run_with_a_warning(
@@ -246,7 +251,7 @@ def test_a_model_whose_training_run_is_not_in_the_store_logs_into_one_new_run_wi
                                tmp_path / "plots", tmp_path / "predictions")
     log_evaluation(params, tmp_path, result, tmp_path / "plots")
     assert "0123456789abcdef0123456789abcdef is not in sqlite:///" in capsys.readouterr().err
-    log_evaluation(params, tmp_path, result | {"test_set": "again"}, tmp_path / "plots")  # a second test set
+    log_evaluation(params, tmp_path, result | {"test_set": "simcol_12"}, tmp_path / "plots")  # a second test set
     assert "warning" not in capsys.readouterr().err
 
     uri = tracking.tracking_uri(params, tmp_path)
@@ -254,7 +259,7 @@ def test_a_model_whose_training_run_is_not_in_the_store_logs_into_one_new_run_wi
     runs = tracking.client(uri).search_runs([experiment.experiment_id])
     assert len(runs) == 1
     assert runs[0].data.tags[tracking.MODEL_RUN_TAG] == "0123456789abcdef0123456789abcdef"
-    assert {"eval/simcol_3/depth_paper/model/abs_rel", "eval/again/depth_paper/model/abs_rel"} <= set(
+    assert {"eval/simcol_3/depth_paper/model/abs_rel", "eval/simcol_12/depth_paper/model/abs_rel"} <= set(
         runs[0].data.metrics)
 
 

@@ -23,7 +23,7 @@ def evaluation(abs_rel: float, rte: float) -> dict:
                                   "a1": 0.8, "a2": 0.9, "a3": 0.95},
                         "constant_depth": {"abs_rel": 0.5, "a1": 0.3}},
         "depth_simcol": {"model": {"l1": 0.4, "rel": 9.0, "rmse": 0.7}},
-        "pose_simcol": {"model": {"ate": 2.0, "rte": rte, "rot": 1.5}, "constant_velocity": {"rte": 0.9}},
+        "pose_simcol": {"model": {"ate": 2.0, "ate_local": 0.6, "rte": rte, "rot": 1.5}, "constant_velocity": {"rte": 0.9}},
     }
 
 
@@ -85,7 +85,7 @@ def test_report_has_a_table_per_protocol_with_baselines_and_an_ablation_summary(
     assert ["workspace (bank on, VAE on)", "0.1234", "0.1000", "1.0000", "0.2000", "0.5000", "0.8000", "0.9000",
             "0.9500"] in rows
     assert ["baseline: constant depth", "0.5000", "–", "–", "–", "–", "0.3000", "–", "–"] in rows
-    assert ["baseline: constant velocity", "–", "0.9000", "–"] in rows
+    assert ["baseline: constant velocity", "–", "–", "0.9000", "–"] in rows
     assert ["no-bank (bank off, VAE on)", "0.2000", "0.3000"] in table_rows(report.split("## Ablation summary")[1])
     assert "EndoSLAM protocol" not in report  # absent protocols get no empty table
 
@@ -118,9 +118,9 @@ def test_evaluation_summary_shows_the_model_beside_its_baselines_per_protocol():
     assert paper[0] == ["method", "Abs Rel", "Sq Rel", "RMSE", "RMSE log", "L1", "δ<1.25", "δ<1.25²", "δ<1.25³"]
     assert [row[:2] for row in paper[2:]] == [["model", "0.1234"], ["baseline: constant depth", "0.5000"]]
     pose = sections["Pose, SimCol3D challenge protocol (medians)"]
-    assert pose[0] == ["method", "ATE (cm)", "RTE (cm)", "ROT (°)"]
-    assert pose[2:] == [["model", "2.0000", "0.2500", "1.5000"],
-                        ["baseline: constant velocity", "–", "0.9000", "–"]]
+    assert pose[0] == ["method", "ATE (cm)", "ATE local (cm)", "RTE (cm)", "ROT (°)"]
+    assert pose[2:] == [["model", "2.0000", "0.6000", "0.2500", "1.5000"],
+                        ["baseline: constant velocity", "–", "–", "0.9000", "–"]]
 
 
 def test_evaluation_summary_without_metrics_says_so():

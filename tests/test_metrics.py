@@ -117,8 +117,11 @@ def test_simcol_pose_scaled_prediction_is_exact_after_the_scale_fit():
     predicted = metrics.scaled_relative_poses(metrics.relative_poses(gt), 0.25)
     result = metrics.simcol_pose_sequence(gt, predicted)
     assert result["scale"] == pytest.approx(4.0)
-    for key in metrics.SIMCOL_POSE_KEYS:
+    for key in ("ate_local", "rte", "rot"):
         assert result[key] == pytest.approx(0.0, abs=1e-6), key
+    # the challenge's ATE scales the chain's absolute positions: 4 (t_0 + (t_i - t_0) / 4) = t_i + 3 t_0, so every
+    # frame is off by 3 |t_0|, P_0 being (3, -1, 2) cm from the world origin
+    np.testing.assert_allclose(result["per_frame"]["ate"], 3 * math.sqrt(14.0), rtol=1e-9)
 
 
 def test_simcol_pose_hand_computed_straight_line():
@@ -129,8 +132,21 @@ def test_simcol_pose_hand_computed_straight_line():
     np.testing.assert_allclose(result["per_frame"]["rte"], [0.4, 0.2], atol=1e-12)
     np.testing.assert_allclose(result["per_frame"]["ate"], [0.0, 0.4, 0.2], atol=1e-12)
     assert result["rte"] == pytest.approx(0.3)
-    assert result["ate"] == pytest.approx(0.2)
+    assert result["ate"] == result["ate_local"] == pytest.approx(0.2)  # P_0 at the origin: both ATEs agree
     assert result["rot"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_simcol_challenge_ate_scales_the_first_poses_offset_from_the_origin_and_ate_local_does_not():
+    gt = np.stack([translation(0, 0, z) for z in (10.0, 11.0, 12.0)])
+    predicted = np.stack([translation(0, 0, 1.0), translation(0, 0, 2.0)])
+    result = metrics.simcol_pose_sequence(gt, predicted)
+    assert result["scale"] == pytest.approx(0.6)
+    # the challenge: chain from P_0 (z = 10, 11, 13), times 0.6 (6, 6.6, 7.8), against 10, 11, 12
+    np.testing.assert_allclose(result["per_frame"]["ate"], [4.0, 4.4, 4.2], atol=1e-12)
+    assert result["ate"] == pytest.approx(4.2)
+    # ours: the scaled steps chained from P_0 (10, 10.6, 11.8)
+    np.testing.assert_allclose(result["per_frame"]["ate_local"], [0.0, 0.4, 0.2], atol=1e-12)
+    assert result["ate_local"] == pytest.approx(0.2)
 
 
 def test_simcol_pose_rotation_error_in_degrees():
@@ -147,8 +163,9 @@ def test_pose_metrics_do_not_depend_on_the_world_frame():
     world_change = translation(-7.0, 2.0, 11.0) @ rotation_y(-70.0) @ rotation_z(25.0)
     base = metrics.simcol_pose_sequence(gt, noisy)
     moved = metrics.simcol_pose_sequence(world_change @ gt, noisy)
-    for key in metrics.SIMCOL_POSE_KEYS:
+    for key in ("ate_local", "rte", "rot"):
         assert moved[key] == pytest.approx(base[key], rel=1e-9), key
+    assert abs(moved["ate"] - base["ate"]) > 0.01  # the challenge's ATE alone depends on the world origin
     assert base["rte"] > 0.01 and base["rot"] > 1.0
     endoslam_base = metrics.endoslam_pose_sequence(gt, noisy)
     endoslam_moved = metrics.endoslam_pose_sequence(world_change @ gt, noisy)

@@ -6,6 +6,7 @@ nothing pickled; endoflow reads a `models:/` URI's model file back without runni
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -133,3 +134,21 @@ def test_reconstruct_takes_a_models_uri(logged, params, project, monkeypatch):
     assert code == 0
     summary = json.loads((project / "out" / "reconstruction.json").read_text())
     assert summary["frames"] == 4
+
+
+def test_evaluate_takes_a_models_uri_and_logs_into_the_models_training_run(logged, params, project):
+    from endoflow.data.shards import write_dataset_shards
+    from endoflow.evaluation.evaluate import run_evaluation
+    from tests.test_evaluate import OracleSource, shard_params
+
+    _, run_id, _ = logged
+    shards = project / "eval_shards"
+    write_dataset_shards(OracleSource(), "simcol", shard_params(shards), shards / "simcol")
+    eval_params = small_model_params(SIZE)
+    eval_params.eval = replace(eval_params.eval, shards=str(shards), model=f"models:/{NAME}/1", batch_size=4)
+    result = run_evaluation(eval_params, "simcol_3", project)
+    assert result["mlflow_run_id"] == run_id and result["frames"] > 0
+    assert json.loads((project / eval_params.eval.metrics / "simcol_3.json").read_text())["simcol_3"][
+        "abs_rel"] == result["depth_paper"]["model"]["abs_rel"]
+    logged_metrics = tracking.client(tracking.tracking_uri(eval_params, project)).get_run(run_id).data.metrics
+    assert logged_metrics["simcol_3/abs_rel"] == pytest.approx(result["depth_paper"]["model"]["abs_rel"])

@@ -136,6 +136,8 @@ def test_tiny_pretraining_writes_a_loadable_bank_metrics_and_plots(tmp_path, cap
     logged = json.loads(Path(downloaded).read_text())
     assert logged["generator_steps"] == 3 * 4 and logged["swd_final_levels"] == metrics["swd_final_levels"]
     assert run.data.tags[tracking.LATENT_BANK_DIGEST_TAG] == file_sha256(out)
+    (depth_maps,) = run.inputs.dataset_inputs
+    assert depth_maps.dataset.digest == file_sha256(shards / "manifest.parquet")[:32]
     assert run.data.params["latent_bank.resolution"] == "16"
     printed = capsys.readouterr().out.splitlines()
     device = "cuda" if torch.cuda.is_available() else "cpu"  # latent_bank.device: auto

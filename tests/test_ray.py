@@ -30,6 +30,7 @@ import yaml
 from endoflow import tracking
 from endoflow.config import Params, params_to_dict
 from endoflow.data.shards import write_dataset_shards
+from endoflow.io import file_sha256
 from endoflow.models.mlflow_model import using_store
 from endoflow.models.model_file import load_model_file
 from endoflow.training.checkpoint import latest_checkpoint, load_training_state, read_rank_audits, weights_digest
@@ -108,6 +109,8 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
     run = runs[0]
     assert run.info.status == "FINISHED"
     assert run.data.params["ray.num_workers"] == "2"
+    (train_shards,) = run.inputs.dataset_inputs  # logged by both runs, kept once
+    assert train_shards.dataset.digest == file_sha256(tmp_path / params.train.shards / "manifest.parquet")[:32]
     history = tracking.client(uri).get_metric_history(run.info.run_id, "val_abs_rel")
     epochs = tracking.client(uri).get_metric_history(run.info.run_id, "epoch")
     # Both epochs are logged at their last global step (one step each), on the per-step metrics' axis, with the
@@ -118,10 +121,11 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
     assert {"loss/total", "loss/weighted/kl", "loss/unweighted/kl", "loss/weighted/photometric"} <= set(
         run.data.metrics)
     with using_store(uri):  # MLflow resolves the run's logged model ("model/") through the process-wide store
-        artifacts = {a.path for folder in ("val_depth", "model")
+        artifacts = {a.path for folder in ("val_depth", "model", "logs")
                      for a in tracking.client(uri).list_artifacts(run.info.run_id, folder)}
     assert {"val_depth/epoch_0001.png", "val_depth/epoch_0002.png", "val_depth/latest.png",
             "model/MLmodel"} <= artifacts  # the model, as an MLflow model (tests/test_mlflow_model.py)
+    assert "logs/ray-from-epoch-0002.log" in artifacts  # what Ray printed in the rerun (the killed run had no time)
 
     # the same training, never interrupted, keeping one checkpoint: the same weights, bit for bit
     reference = tmp_path / "uninterrupted"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import subprocess
 from pathlib import Path
 
@@ -109,3 +111,25 @@ def test_a_run_carries_its_source_its_dvc_experiment_and_its_latent_bank_run(tmp
     other = tracking.start_run(params, tmp_path, "endoflow", "other")
     assert tracking.link_latent_bank(params, tmp_path, other, "d2") is None
     assert tracking.LATENT_BANK_RUN_TAG not in tracking.client(uri).get_run(other).data.tags
+
+
+def test_a_shard_folder_is_a_dataset_input_named_by_its_manifest_and_digest_once_per_run(tmp_path: Path):
+    params = Params()
+    uri = tracking.tracking_uri(params, tmp_path)
+    manifest = tmp_path / "shards" / "simcol" / "manifest.parquet"
+    manifest.parent.mkdir(parents=True)
+    manifest.write_bytes(b"the manifest's bytes")
+    run_id = tracking.start_run(params, tmp_path, "endoflow", "train")
+    digest = tracking.log_shards_input(uri, run_id, str(manifest), "simcol", "training")
+    tracking.log_shards_input(uri, run_id, str(manifest), "simcol", "training")  # a resumed run logs it again
+    assert digest == hashlib.sha256(b"the manifest's bytes").hexdigest()[:32]
+    (logged,) = tracking.client(uri).get_run(run_id).inputs.dataset_inputs
+    assert (logged.dataset.name, logged.dataset.digest, logged.dataset.source_type) == ("simcol", digest, "local")
+    assert json.loads(logged.dataset.source) == {"uri": str(manifest)}
+    assert {tag.key: tag.value for tag in logged.tags} == {"mlflow.data.context": "training"}
+    # changed shards are another input (another digest)
+    manifest.write_bytes(b"other bytes")
+    tracking.log_shards_input(uri, run_id, manifest.as_uri(), "simcol", "evaluation")
+    inputs = tracking.client(uri).get_run(run_id).inputs.dataset_inputs
+    assert sorted((i.dataset.source_type, i.tags[0].value) for i in inputs) == [("file", "evaluation"),
+                                                                               ("local", "training")]

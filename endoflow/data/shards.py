@@ -209,6 +209,22 @@ def write_dataset_shards(
     }
 
 
+def format_preprocess_summary(summary: dict) -> str:
+    """The closing lines of the ``preprocess`` stage, from :func:`write_dataset_shards`' summary."""
+    samples, shards = summary["samples"], summary["shards"]
+    splits = ", ".join(f"{split} {samples[split]} samples in {shards[split]} shards" for split in SPLITS)
+    lines = [f"[preprocess] {summary['dataset']} done: {splits}; {summary['shards_reused']} shards kept from an "
+             f"interrupted run; {summary['frames_decoded']} frames decoded in {summary['seconds']:.1f} s "
+             f"({summary['frames_per_second']:.1f} frames/s)",
+             f"[preprocess] written to {summary['out_dir']}"]
+    if summary["samples_without_pose"]:
+        lines.append(f"[preprocess] warning: {summary['samples_without_pose']} samples have no pose (depth only)")
+    if summary["depth_out_of_range_pixels"]:
+        lines.append(f"[preprocess] warning: {summary['depth_out_of_range_pixels']} depth pixels beyond the "
+                     "16-bit range were stored as invalid (0)")
+    return "\n".join(lines) + "\n"
+
+
 def encode_settings(dataset: str, params: Params) -> EncodeSettings:
     if params.data.size < 1 or params.preprocess.neighbour_offset < 1:
         raise ValueError("data.size and preprocess.neighbour_offset must be positive")

@@ -47,7 +47,7 @@ from endoflow.evaluation.results import EVALUATION_FILE, headline_metrics
 from endoflow.io import save_figure, staged_directory, write_csv, write_json
 from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
-from endoflow.data.shard_format import read_manifest
+from endoflow.data.shard_format import manifest_location, read_manifest
 from endoflow.devices import autocast, images_to_device, resolve_device, to_compute_layout
 from endoflow.locations import absolute_location
 from endoflow.models.mlflow_model import is_model_uri, local_model_file
@@ -105,9 +105,14 @@ def eval_set(params: Params, name: str) -> EvalSetConfig:
     return params.eval.test_sets[name]
 
 
+def eval_set_folder(shards_root: str, test_set: EvalSetConfig) -> str:
+    """The shard folder of ``test_set``'s dataset."""
+    return f"{shards_root.rstrip('/')}/{test_set.dataset}"
+
+
 def eval_set_shards(shards_root: str, test_set: EvalSetConfig) -> list[str]:
     """Shard URLs (in order) that hold samples of ``test_set``, from the dataset's ``manifest.parquet``."""
-    base = f"{shards_root.rstrip('/')}/{test_set.dataset}"
+    base = eval_set_folder(shards_root, test_set)
     manifest = read_manifest(base)
     table = manifest.table.to_pandas()
     rows = table[table["split"] == test_set.split]
@@ -463,6 +468,9 @@ def log_evaluation(params: Params, project_root: str | Path, result: dict, plots
     values.update({f"{result['test_set']}/{key}": value for key, value in headline_metrics(result).items()})
     tracking.log_metrics(uri, run_id, values)
     tracking.log_artifact(uri, run_id, plots_dir, prefix)
+    test_set = eval_set(params, result["test_set"])
+    shards = eval_set_folder(absolute_location(params.eval.shards, project_root), test_set)
+    tracking.log_shards_input(uri, run_id, manifest_location(shards), test_set.dataset, "evaluation")
 
 
 def run_evaluation(params: Params, name: str, project_root: str | Path = ".") -> dict:

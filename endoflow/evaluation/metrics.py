@@ -7,10 +7,15 @@ Three protocols, each labelled in every output so tables never mix them:
   Sq Rel, RMSE, RMSE log, L1 and the three ``delta < 1.25^k`` accuracies; averaged over images.
 - ``simcol``: the SimCol3D challenge's evaluation scripts. Depth: predictions are ``depth / 20`` clipped to
   ``[0, 1]``, ONE least-squares scale per sequence from per-image means, then per image L1 (cm), median
-  relative error (%) and RMSE (cm), averaged over the sequence's images; no mask, no cap. Pose: relative
-  GT poses ``Q_i = inv(P_i) @ P_{i+1}``, predicted relative poses ``Q'_i`` chained into a trajectory after a
-  scale fitted on relative translations; ``E_i = inv(Q_i) @ Q'_i``; medians of ``|t(E_i)|`` (RTE, cm), of the
-  rotation angle of ``E_i`` (ROT, degrees) and of ``|t(P_i) - t(P'_i)|`` (ATE, cm).
+  relative error (%, the per-image median, so the sequence figure is a mean of medians) and RMSE (cm),
+  averaged over the sequence's images; no mask, no cap. Pose: relative GT poses ``Q_i = inv(P_i) @ P_{i+1}``,
+  a scale ``s`` fitted on relative translations, ``E_i = inv(Q_i) @ Q'_i`` with the translation of ``Q'_i``
+  scaled; medians of ``|t(E_i)|`` (RTE, cm) and of the rotation angle of ``E_i`` (ROT, degrees). ATE (cm),
+  exactly as the challenge script computes it: the unscaled ``Q'_i`` chained from ``P_0``, then every
+  absolute position of the chain multiplied by ``s``, the median of ``|t(P_i) - s t(P'_i)|``; ``P_0``'s
+  distance from the world origin is scaled too, so this figure depends on where the origin is.
+  ``ate_local`` (ours, beside it): the scaled ``Q'_i`` chained from ``P_0``, the median of
+  ``|t(P_i) - t(P'_i)|``, the same wherever the origin is.
 - ``endoslam``: KITTI-odometry-style figures as EndoSLAM reports them: ATE as the RMSE of positions after a
   least-squares scale alignment of the trajectory (both starting at the first GT pose), RPE as the mean
   translation (cm) and rotation (degrees) error of consecutive relative poses.
@@ -30,7 +35,7 @@ SIMCOL_REL_EPS_CM = 1e-4  # the challenge code's 10e-5 added to the GT in the re
 
 PAPER_DEPTH_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "l1", "a1", "a2", "a3")
 SIMCOL_DEPTH_KEYS = ("l1", "rel", "rmse")
-SIMCOL_POSE_KEYS = ("ate", "rte", "rot")
+SIMCOL_POSE_KEYS = ("ate", "ate_local", "rte", "rot")
 ENDOSLAM_POSE_KEYS = ("ate", "rpe_trans", "rpe_rot")
 
 
@@ -172,8 +177,9 @@ def simcol_pose_sequence(gt_poses: np.ndarray, pred_relative: np.ndarray) -> dic
         pred_relative: ``(N-1) x 4 x 4`` predicted ``Q'_i`` (frame ``i+1`` into frame ``i``).
 
     Returns:
-        ``scale``, ``ate``, ``rte`` (cm), ``rot`` (degrees), ``trajectory`` (the scaled predicted
-        ``N x 4 x 4`` chain from ``P_0``) and ``per_frame`` arrays ``rte``, ``rot`` (``N-1``) and ``ate`` (``N``).
+        ``scale``, ``ate`` (the challenge's, cm), ``ate_local`` (origin-independent, cm), ``rte`` (cm), ``rot``
+        (degrees), ``trajectory`` (the chain of scaled ``Q'_i`` from ``P_0``, ``N x 4 x 4``) and ``per_frame``
+        arrays ``rte``, ``rot`` (``N-1``), ``ate`` and ``ate_local`` (``N``). See the module docstring.
     """
     gt_poses = _pose_stack(gt_poses, "GT poses")
     pred_relative = _pose_stack(pred_relative, "predicted relative poses")
@@ -187,14 +193,17 @@ def simcol_pose_sequence(gt_poses: np.ndarray, pred_relative: np.ndarray) -> dic
     errors = np.linalg.inv(gt_relative) @ pred_scaled
     rte = np.linalg.norm(errors[:, :3, 3], axis=1)
     rot = rotation_angle_deg(errors[:, :3, :3])
-    ate = np.linalg.norm(gt_poses[:, :3, 3] - trajectory[:, :3, 3], axis=1)
+    challenge_positions = scale * chain_relative_poses(gt_poses[0], pred_relative)[:, :3, 3]
+    ate = np.linalg.norm(gt_poses[:, :3, 3] - challenge_positions, axis=1)
+    ate_local = np.linalg.norm(gt_poses[:, :3, 3] - trajectory[:, :3, 3], axis=1)
     return {
         "scale": scale,
         "ate": float(np.median(ate)),
+        "ate_local": float(np.median(ate_local)),
         "rte": float(np.median(rte)),
         "rot": float(np.median(rot)),
         "trajectory": trajectory,
-        "per_frame": {"ate": ate, "rte": rte, "rot": rot},
+        "per_frame": {"ate": ate, "ate_local": ate_local, "rte": rte, "rot": rot},
     }
 
 

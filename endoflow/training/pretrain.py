@@ -52,7 +52,7 @@ import torch.nn.functional as F
 from endoflow.config import SWD_MIN_RESOLUTION, Params
 from endoflow.data.base import DataFormatError
 from endoflow.data.loader import list_shards, raw_samples
-from endoflow.data.shard_format import decode_sample
+from endoflow.data.shard_format import decode_sample, manifest_location
 from endoflow.devices import autocast, compute_dtype, resolve_device, to_compute_layout
 from endoflow.evaluation.swd import multiscale_swd
 from endoflow.io import file_sha256, save_figure, save_torch, staged_directory, write_json
@@ -420,6 +420,7 @@ def pretrain_latent_bank(
     uri = tracking.tracking_uri(params, project_root)
     run_id = tracking.start_run(params, project_root, params.tracking.latent_bank_experiment,
                                 tracking.run_name_for("latent-bank", [f"seed{params.seed}"]))
+    tracking.log_shards_input(uri, run_id, manifest_location(str(shards_dir)), shards_dir.name, "training")
     try:
         spec = generator_spec(params)
         untrained = LatentBankGenerator(spec).to(device)

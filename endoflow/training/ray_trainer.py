@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import posixpath
+import tempfile
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Optional
@@ -44,7 +46,7 @@ from endoflow.locations import absolute_location, local_file
 from endoflow.models.mlflow_model import log_mlflow_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from endoflow.models.latent_bank import check_latent_bank_file
-from endoflow.ray_runtime import connect_ray
+from endoflow.ray_runtime import connect_ray, worker_logs_to
 from endoflow.training.checkpoint import TrainingCheckpoint, TrainState, latest_checkpoint, load_training_state
 from endoflow.training.worker_config import WorkerConfig
 
@@ -64,6 +66,9 @@ class TrainingError(RuntimeError):
 # what ``train.metrics`` holds for DVC (numbers a column can show; the run id and fingerprint are in the model
 # file and the MLflow run)
 TRAIN_DVC_METRICS = ("best_epoch", "val_abs_rel", "val_rmse", "final_train_loss")
+# every line Ray's processes printed while training (the terminal shows those that matter), in the MLflow run
+# as logs/ray-from-epoch-NNNN.log, one file per attempt (a resumed training adds one)
+RAY_LOG_FOLDER = "logs"
 
 
 def training_fingerprint(params: Params, train_shards: str, latent_bank: Optional[str]) -> str:
@@ -122,6 +127,8 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
     uri = tracking.tracking_uri(params, root)
     name = tracking.run_name_for("train", [*tracking.ablation_switches(params), f"seed{params.seed}"])
     run_id = tracking.start_run(params, root, params.tracking.experiment, name, fingerprint)
+    tracking.log_shards_input(uri, run_id, manifest_location(shards), posixpath.basename(shards.rstrip("/")),
+                              "training")
     if latent_bank:
         tracking.link_latent_bank(params, root, run_id, file_sha256(latent_bank))
     try:
@@ -144,13 +151,18 @@ def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: 
     if saved is not None:
         print(f"[train] resuming after epoch {saved.state.epoch + 1} from {resume_from}", flush=True)
     if saved is None or saved.state.epoch + 1 < params.train.epochs:
-        try:
-            saved = fit_on_ray(params, replace(config, resume_from=resume_from), storage, run_name)
-        except ConfigError:
-            raise  # a setting the cluster cannot hold: rerunning would not help, the message names the key
-        except Exception as exc:
-            raise TrainingError(f"training failed (rerun the stage to resume from the last checkpoint): "
-                                f"{worker_error(exc)}") from exc
+        with tempfile.TemporaryDirectory(prefix="endoflow-ray-log-") as folder:
+            ray_log = Path(folder) / f"ray-from-epoch-{(saved.state.epoch + 2 if saved else 1):04d}.log"
+            try:
+                saved = fit_on_ray(params, replace(config, resume_from=resume_from), storage, run_name, ray_log)
+            except ConfigError:
+                raise  # a setting the cluster cannot hold: rerunning would not help, the message names the key
+            except Exception as exc:
+                raise TrainingError(f"training failed (rerun the stage to resume from the last checkpoint): "
+                                    f"{worker_error(exc)}") from exc
+            finally:
+                if ray_log.exists():
+                    tracking.log_artifact(config.tracking_uri, config.run_id, ray_log, RAY_LOG_FOLDER)
     summary = write_training_outputs(params, root, saved.state, config.run_id, baselines, fingerprint)
     uri, run_id = config.tracking_uri, config.run_id
     tracking.log_metrics(uri, run_id, {f"best/{k}": v for k, v in summary.items()
@@ -168,8 +180,11 @@ def format_training_summary(summary: dict[str, Any], model_path: str) -> str:
             f"[train] model written to {model_path}; MLflow run {summary['mlflow_run_id']}\n")
 
 
-def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str) -> TrainingCheckpoint:
-    """Train with Ray Train's ``TorchTrainer`` (DDP); returns the final training state.
+def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str,
+               ray_log: Path) -> TrainingCheckpoint:
+    """Train with Ray Train's ``TorchTrainer`` (DDP); returns the final training state. Every line Ray's
+    processes print is appended to ``ray_log`` (the terminal gets those that matter, see
+    :func:`endoflow.ray_runtime.worker_logs_to`).
 
     Ray keeps the newest ``train.keep_checkpoints`` checkpoints (each carries the best epoch's weights). When a
     worker fails (its process or node lost, or an error), Ray Train restarts every worker, up to
@@ -196,7 +211,8 @@ def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str
                                  # its log files in the Ray session folder only; our progress lines stay
                                  logging_config=LoggingConfig(log_level="WARNING")),
         )
-        result = trainer.fit()
+        with worker_logs_to(ray_log):
+            result = trainer.fit()
     finally:
         if started_ray:
             import ray

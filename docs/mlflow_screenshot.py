@@ -1,0 +1,205 @@
+"""Retake the MLflow UI pictures in docs/img: the runs table of a project's training experiment (run names and
+headline metric columns) and its registered model.
+
+Usage, from the root of a project that has run (for example the smoke ablations of README's DVC section):
+``python docs/mlflow_screenshot.py [--project .] [--out docs/img]``. It starts ``mlflow server`` on the
+project's store (loopback, a free port), drives Debian's headless Chromium (``apt-get install chromium``) over
+the DevTools protocol on a pipe (no other package needed), picks the runs table's columns as a user would (the
+UI keeps them in the browser's local storage), and writes ``mlflow_runs.png`` and ``mlflow_model.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import os
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+from typing import Any, Callable
+
+from endoflow import tracking
+from endoflow.config import load_params
+from endoflow.io import write_bytes
+
+WINDOW = (1920, 960)
+PAGE_TIMEOUT_S = 60.0
+# the headline metrics (tracking's `<test set>/<metric>`) shown as columns by default (README's ablation table)
+HEADLINE = r"simcol_(12|3)/(abs_rel|rte|rot)"
+# the UI's own switch between its GenAI and model-training sidebars, as a link carries it
+MODEL_TRAINING_VIEW = "workflowType=machine_learning"
+CLOSE_ASSISTANT = ("document.querySelector('[data-component-id=\"mlflow.assistant.chat_panel.close\"]')"
+                   "?.click()")
+
+
+class DevTools:
+    """The Chrome DevTools protocol over ``--remote-debugging-pipe``: JSON messages ending in NUL, commands
+    on the browser's fd 3, replies and events on its fd 4."""
+
+    def __init__(self, chromium: str, user_data: str) -> None:
+        to_browser, self._commands = os.pipe()
+        self._replies, from_browser = os.pipe()
+
+        def browser_fds() -> None:
+            os.dup2(to_browser, 3)
+            os.dup2(from_browser, 4)
+
+        self.process = subprocess.Popen(
+            [chromium, "--headless=new", "--remote-debugging-pipe", "--no-sandbox", "--disable-gpu",
+             "--no-first-run", "--hide-scrollbars", f"--user-data-dir={user_data}",
+             f"--window-size={WINDOW[0]},{WINDOW[1]}", "about:blank"],
+            # the pipes must arrive as fds 3 and 4, which closing the parent's fds would undo
+            preexec_fn=browser_fds, close_fds=False,
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        os.close(to_browser)
+        os.close(from_browser)
+        self._buffer = b""
+        self._next_id = 0
+        self.session = ""
+
+    def call(self, method: str, **params: Any) -> dict:
+        self._next_id += 1
+        message = {"id": self._next_id, "method": method, "params": params}
+        if self.session:
+            message["sessionId"] = self.session
+        os.write(self._commands, json.dumps(message).encode() + b"\0")
+        while True:
+            reply = self._read()
+            if reply.get("id") == self._next_id:
+                if "error" in reply:
+                    raise RuntimeError(f"{method}: {reply['error']}")
+                return reply["result"]
+
+    def _read(self) -> dict:
+        while b"\0" not in self._buffer:
+            block = os.read(self._replies, 1 << 20)
+            if not block:
+                raise RuntimeError("Chromium closed the DevTools pipe")
+            self._buffer += block
+        message, self._buffer = self._buffer.split(b"\0", 1)
+        return json.loads(message)
+
+    def open_page(self) -> None:
+        target = self.call("Target.createTarget", url="about:blank")["targetId"]
+        self.session = self.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+        self.call("Emulation.setDeviceMetricsOverride", width=WINDOW[0], height=WINDOW[1], deviceScaleFactor=1,
+                  mobile=False)
+
+    def evaluate(self, expression: str) -> Any:
+        return self.call("Runtime.evaluate", expression=expression, returnByValue=True)["result"].get("value")
+
+    def show(self, url: str, ready: Callable[[], bool]) -> None:
+        self.call("Page.navigate", url=url)
+        deadline = time.monotonic() + PAGE_TIMEOUT_S
+        while not ready():
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{url}: the page did not show what was expected in {PAGE_TIMEOUT_S:.0f} s")
+            time.sleep(0.5)
+        time.sleep(2.0)  # fonts, icons and the table's column sizing settle after the data arrives
+
+    def screenshot(self, path: Path) -> None:
+        data = self.call("Page.captureScreenshot", format="png")["data"]
+        write_bytes(path, base64.b64decode(data))
+        print(f"wrote {path}")
+
+    def close(self) -> None:
+        self.session = ""
+        try:
+            self.call("Browser.close")
+        except RuntimeError:
+            pass
+        self.process.wait(timeout=30)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_server(store: str, artifacts: str, port: int) -> subprocess.Popen:
+    server = subprocess.Popen(
+        [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", store, "--default-artifact-root",
+         artifacts, "--host", "127.0.0.1", "--port", str(port), "--workers", "1"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + PAGE_TIMEOUT_S
+    while True:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=2):
+                return server
+        except OSError:
+            if server.poll() is not None or time.monotonic() > deadline:
+                server.kill()
+                raise RuntimeError(f"mlflow server on {store} did not start")
+            time.sleep(0.5)
+
+
+def runs_table_state(headline: list[str]) -> str:
+    """The runs table's saved view (what the "Columns" menu stores), with the headline metrics as columns."""
+    return json.dumps({"selectedColumns": [f"metrics.`{key}`" for key in headline]})
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--project", type=Path, default=Path("."), help="project root (default: .)")
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "img", help="folder for the PNGs")
+    parser.add_argument("--columns", default=HEADLINE, help=f"metrics shown as columns (default: {HEADLINE})")
+    args = parser.parse_args()
+    chromium = shutil.which("chromium")
+    if chromium is None:
+        sys.exit("Chromium is not on PATH; on Debian: apt-get install chromium")
+    project = args.project.resolve()
+    params = load_params(project / "params.yaml")
+    uri = tracking.tracking_uri(params, project)
+    if not uri.startswith("sqlite:///"):
+        sys.exit(f"tracking.uri is {uri}: open that server's UI instead")
+    client = tracking.client(uri)
+    experiment = client.get_experiment_by_name(params.tracking.experiment)
+    if experiment is None:
+        sys.exit(f"{uri} has no experiment {params.tracking.experiment!r}: run the pipeline first")
+    runs = client.search_runs([experiment.experiment_id])
+    headline = sorted({key for run in runs for key in run.data.metrics if re.fullmatch(args.columns, key)})
+    models = client.search_registered_models()
+
+    port = free_port()
+    base = f"http://127.0.0.1:{port}/"
+    server = start_server(uri, tracking.artifact_location(params, project) or str(project / "mlartifacts"), port)
+    try:
+        with tempfile.TemporaryDirectory(prefix="endoflow-chromium-") as user_data:
+            browser = DevTools(chromium, user_data)
+            try:
+                browser.open_page()
+                browser.show(base, lambda: browser.evaluate("document.readyState") == "complete")
+                key = f"MLflowLocalStorage-1.1-ExperimentPage-{json.dumps([experiment.experiment_id])}-" \
+                      "ReactComponentState"
+                browser.evaluate(f"localStorage.setItem({json.dumps(key)}, {json.dumps(runs_table_state(headline))})")
+                names = [run.info.run_name for run in runs]
+                browser.show(f"{base}#/experiments/{experiment.experiment_id}/runs?{MODEL_TRAINING_VIEW}",
+                             lambda: all(browser.evaluate(f"document.body.innerText.includes({json.dumps(n)})")
+                                         for n in names))
+                browser.evaluate(CLOSE_ASSISTANT)
+                time.sleep(1.0)
+                browser.screenshot(args.out / "mlflow_runs.png")
+                if models:
+                    name = models[0].name
+                    browser.show(f"{base}#/models/{name}?{MODEL_TRAINING_VIEW}",
+                                 lambda: browser.evaluate("document.body.innerText.includes('Version 1')"))
+                    browser.evaluate(CLOSE_ASSISTANT)
+                    time.sleep(1.0)
+                    browser.screenshot(args.out / "mlflow_model.png")
+            finally:
+                browser.close()
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+
+
+if __name__ == "__main__":
+    main()

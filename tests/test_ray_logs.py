@@ -1,0 +1,54 @@
+"""What Ray prints while training: every line reaches the run's Ray log; the terminal gets those that matter."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pytest
+from ray._private.worker import global_worker_stdstream_dispatcher as dispatcher
+
+from endoflow.ray_runtime import RAY_PRINT_HANDLER, without_token_auth_notice, worker_logs_to
+
+PREEMPTION_LINE = ("[2026-11-23 10:16:45,165 E 15215 15243] core_worker.cc:2465: Actor with class name: "
+                   "'PreemptionWatcher' and ID: '82f8' has constructor arguments in the object store and "
+                   "max_restarts > 0.")
+
+
+@pytest.fixture
+def printed() -> list[dict]:
+    """What Ray's own printer would print, registered as Ray registers it."""
+    seen: list[dict] = []
+    dispatcher.add_handler(RAY_PRINT_HANDLER, seen.append)
+    yield seen
+    dispatcher.remove_handler(RAY_PRINT_HANDLER)
+
+
+def test_every_line_goes_to_the_log_and_only_unactionable_ones_leave_the_terminal(printed, tmp_path: Path):
+    log = tmp_path / "ray.log"
+    progress = {"pid": 7, "actor_name": "RayTrainWorker", "is_err": False,
+                "lines": ["[train] epoch 1/2 step 1/1 loss 0.27"]}
+    controller = {"pid": 8, "actor_name": "TrainController", "is_err": True,
+                  "lines": [PREEMPTION_LINE, "Traceback (most recent call last):"]}
+    with worker_logs_to(log):
+        dispatcher.emit(progress)
+        dispatcher.emit(controller)
+        dispatcher.emit({**controller, "lines": [PREEMPTION_LINE]})
+    dispatcher.emit(controller)  # after: Ray's printer is back, unchanged
+
+    assert [d["lines"] for d in printed] == [progress["lines"], ["Traceback (most recent call last):"],
+                                              controller["lines"]]
+    assert log.read_text().splitlines() == [
+        "(RayTrainWorker pid=7) [train] epoch 1/2 step 1/1 loss 0.27",
+        f"(TrainController pid=8, stderr) {PREEMPTION_LINE}",
+        "(TrainController pid=8, stderr) Traceback (most recent call last):",
+        f"(TrainController pid=8, stderr) {PREEMPTION_LINE}"]
+
+
+def test_the_token_auth_enabled_notice_is_dropped_and_the_disabled_warning_kept(caplog):
+    from ray._private.authentication import authentication_token_setup as auth
+
+    with caplog.at_level(logging.WARNING, logger=auth.logger.name), without_token_auth_notice():
+        auth._warn_token_auth_enabled()
+        auth._warn_token_auth_disabled()
+    assert [r.getMessage()[:45] for r in caplog.records] == ["Token authentication is disabled for this Ray"]
