@@ -96,6 +96,13 @@ def build_parser() -> argparse.ArgumentParser:
     report = commands.add_parser("report", help="Markdown tables (paper Tables 1-3) of workspace + DVC experiments")
     report.add_argument("--no-experiments", action="store_true", help="only the workspace's metrics")
     report.set_defaults(handler=_report)
+
+    sweep = commands.add_parser("sweep", help="queue the four ablation configurations x seeds as DVC experiments "
+                                              "and run them (the paper's Table 3 with seed statistics)")
+    sweep.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default: 0 1 2)")
+    sweep.add_argument("--no-start", dest="start", action="store_false",
+                       help="only queue them (start later with `dvc queue start -j 1`)")
+    sweep.set_defaults(handler=_sweep)
     return parser
 
 
@@ -212,6 +219,13 @@ def _report(args: argparse.Namespace) -> int:
     params = _params_if_present(args.params)
     print(build_report(".", params.eval.predictions, params_to_dict(params), experiments=not args.no_experiments),
           end="")
+    return 0
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from endoflow.sweep import run_sweep
+
+    run_sweep(".", args.seeds, start=args.start)
     return 0
 
 

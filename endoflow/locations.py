@@ -2,14 +2,31 @@
 
 Ray workers run in their own session folders, so every local location crossing into a worker is made
 absolute first; URLs (``s3://...``, ``file:///...``) reach every node of a cluster as they are.
+
+What outlives a run (the MLflow store, Ray's checkpoints) belongs to the project a run was started in, which for
+a DVC experiment run in a temporary copy (``dvc exp run --queue`` then ``dvc queue start``, or ``--temp``) is
+not the folder the stage runs in: :func:`home_project` finds it.
 """
 
 from __future__ import annotations
 
+import os
 import tempfile
 from pathlib import Path
 
 import fsspec
+
+
+# DVC sets this for every stage it runs: the project root, and for an experiment run in a temporary copy, the root
+# of the project the experiment was queued in
+DVC_ROOT_ENV = "DVC_ROOT"
+
+
+def home_project(project_root: str | Path) -> Path:
+    """The project whose MLflow store and Ray checkpoints a run uses: the one DVC names in ``DVC_ROOT`` (for a
+    queued experiment, the project rather than its temporary copy, which DVC deletes after), else
+    ``project_root``."""
+    return Path(os.environ.get(DVC_ROOT_ENV) or project_root).resolve()
 
 
 def absolute_location(location: str, project_root: Path) -> str:

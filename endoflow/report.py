@@ -11,17 +11,25 @@ baseline commit that has them, listed through DVC's Python API and read at their
 
 ``endoflow report`` prints the four-way ablation. Each run is labelled with its name and its ablation
 switches (latent bank, pose VAE). The trivial baselines are shown once per test set, from the first run.
+
+With several seeds of a configuration (the sweep of README's "Seeds" section), a last section aggregates by
+configuration: mean and sample standard deviation over seeds of each headline figure, and for each ablation
+its difference from the full model, marked where it exceeds the seed spread (the two mean +- sd intervals do
+not overlap: ``|mean_a - mean_full| > sd_a + sd_full``). Runs with the same configuration and seed (the
+workspace and the experiment it came from) count once.
 """
 
 from __future__ import annotations
 
 import json
+import statistics
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional
 
-from endoflow.evaluation.results import EVALUATION_FILE, evaluation_path
+from endoflow.evaluation.results import EVALUATION_FILE, HEADLINE, evaluation_path, headline_metrics
+from endoflow.sweep import CONFIGURATIONS as SWEEP_CONFIGURATIONS
 
 PAPER_COLUMNS = (("abs_rel", "Abs Rel"), ("sq_rel", "Sq Rel"), ("rmse", "RMSE"), ("rmse_log", "RMSE log"),
                  ("l1", "L1"), ("a1", "δ<1.25"), ("a2", "δ<1.25²"), ("a3", "δ<1.25³"))
@@ -31,6 +39,9 @@ SIMCOL_POSE_COLUMNS = (("ate", "ATE (cm)"), ("ate_local", "ATE local (cm)"), ("r
 ENDOSLAM_POSE_COLUMNS = (("ate", "ATE (cm)"), ("rpe_trans", "RPE trans (cm)"), ("rpe_rot", "RPE rot (°)"))
 BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map": "baseline: mean depth map",
                    "constant_velocity": "baseline: constant velocity"}
+# the paper's Table 3 rows, by (latent bank, pose VAE), named as the sweep names its experiments
+CONFIGURATIONS = {(bank, vae): name for name, bank, vae in SWEEP_CONFIGURATIONS}
+HEADLINE_LABELS = {"abs_rel": "Abs Rel", "rte": "RTE", "rot": "ROT"}
 # (title, protocol key of the evaluation JSON, columns), in the order the tables are shown
 PROTOCOL_TABLES = (
     ("Depth, paper protocol (per-image median scaling, capped at 20 cm)", "depth_paper", PAPER_COLUMNS),
@@ -47,6 +58,14 @@ class RunResults:
     name: str
     params: dict[str, Any] = field(default_factory=dict)
     test_sets: dict[str, dict] = field(default_factory=dict)
+
+    @property
+    def configuration(self) -> Optional[str]:
+        """The ablation configuration's name (``full``, ``no-bank``, ``no-vae``, ``neither``), if known."""
+        model = self.params.get("model", {})
+        if "latent_bank" not in model or "pose_vae" not in model:
+            return None
+        return CONFIGURATIONS[(bool(model["latent_bank"]), bool(model["pose_vae"]))]
 
     @property
     def label(self) -> str:
@@ -193,7 +212,85 @@ def format_report(runs: list[RunResults], order: Iterable[str] = ()) -> str:
                 parts.append(f"### {title}\n\n{table}")
         sections.append("\n\n".join(parts))
     sections.append("## Ablation summary\n\n" + ablation_table(runs, test_sets))
+    seeds = seed_statistics(runs, test_sets)
+    if seeds:
+        sections.append(seeds)
     return "\n\n".join(sections) + "\n"
+
+
+def runs_by_configuration(runs: list[RunResults]) -> dict[str, list[RunResults]]:
+    """Runs of each known configuration, in the order of :data:`CONFIGURATIONS`, one per seed."""
+    groups: dict[str, dict[Any, RunResults]] = {name: {} for name in CONFIGURATIONS.values()}
+    for run in runs:
+        if run.configuration is not None:
+            groups[run.configuration].setdefault(run.params.get("seed"), run)
+    return {name: list(by_seed.values()) for name, by_seed in groups.items() if by_seed}
+
+
+def headline_samples(runs: list[RunResults], test_set: str, metric: str) -> list[float]:
+    return [value for run in runs
+            if (value := headline_metrics(run.test_sets.get(test_set, {})).get(metric)) is not None]
+
+
+# the trivial baseline of each headline figure: constant depth for depth, constant velocity for pose
+TRIVIAL_BASELINES = {"abs_rel": ("depth_paper", "constant_depth"), "rte": ("pose_simcol", "constant_velocity"),
+                     "rot": ("pose_simcol", "constant_velocity")}
+
+
+def trivial_baseline(runs: list[RunResults], test_set: str, metric: str) -> Optional[float]:
+    """The headline figure's trivial baseline (the same in every run: it depends on the data only)."""
+    for run in runs:
+        protocol, method = TRIVIAL_BASELINES[metric]
+        value = run.test_sets.get(test_set, {}).get(protocol, {}).get(method, {}).get(metric)
+        if value is not None:
+            return value
+    return None
+
+
+def mean_sd(values: list[float]) -> tuple[float, float]:
+    """Mean and sample standard deviation (0 for a single value)."""
+    return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0
+
+
+def seed_statistics(runs: list[RunResults], test_sets: list[str]) -> str:
+    """Markdown: per configuration mean +- sd over seeds of every headline figure, then each ablation's
+    difference from the full model (``*``: beyond the seed spread); empty unless a configuration has 2 seeds."""
+    groups = runs_by_configuration(runs)
+    if not any(len(group) > 1 for group in groups.values()):
+        return ""
+    metrics = [name for name, *_ in HEADLINE]
+    columns = [(t, m) for t in test_sets for m in metrics
+               if any(headline_samples(group, t, m) for group in groups.values())]
+    headers = ["configuration", "seeds"] + [f"{t} {HEADLINE_LABELS[m]}" for t, m in columns]
+    rows = []
+    for name, group in groups.items():
+        cells = []
+        for test_set, metric in columns:
+            values = headline_samples(group, test_set, metric)
+            cells.append("{:.4f} ± {:.4f}".format(*mean_sd(values)) if values else "–")
+        rows.append([name, str(len(group))] + cells)
+    rows.append(["trivial baselines", "–"] + [_number(trivial_baseline(runs, t, m)) for t, m in columns])
+    parts = ["## Seed statistics\n\nMean ± sample standard deviation over seeds.\n\n" +
+             markdown_table(headers, rows)]
+    if "full" in groups:
+        differences = []
+        for name, group in groups.items():
+            if name == "full":
+                continue
+            cells = []
+            for test_set, metric in columns:
+                full, other = headline_samples(groups["full"], test_set, metric), headline_samples(
+                    group, test_set, metric)
+                if not full or not other:
+                    cells.append("–")
+                    continue
+                (full_mean, full_sd), (mean, sd) = mean_sd(full), mean_sd(other)
+                beyond = abs(mean - full_mean) > sd + full_sd
+                cells.append(f"{mean - full_mean:+.4f}{' *' if beyond else ''}")
+            differences.append([f"{name} - full", str(len(group))] + cells)
+        parts.append("Difference of the means from the full model; `*` where it exceeds the seed spread (the "
+                     "mean ± sd intervals do not overlap).\n\n" + markdown_table(headers, differences))
+    return "\n\n".join(parts)
 
 
 def ablation_table(runs: list[RunResults], test_sets: list[str]) -> str:

@@ -33,6 +33,7 @@ from mlflow.protos.databricks_pb2 import RESOURCE_DOES_NOT_EXIST, ErrorCode
 
 from endoflow.config import Params, flatten_params
 from endoflow.io import file_sha256
+from endoflow.locations import home_project
 
 MLFLOW_PARAM_LIMIT = 6000  # characters MLflow accepts in one param value
 FINGERPRINT_TAG = "endoflow.fingerprint"
@@ -58,17 +59,18 @@ MLFLOW_DIGEST_CHARS = 32  # the store's digest column holds 36 characters
 
 
 def tracking_uri(params: Params, project_root: str | Path) -> str:
-    """``params.tracking.uri``, or the embedded SQLite store at the project root (absolute)."""
+    """``params.tracking.uri``, or the embedded SQLite store at the root of the project (absolute; for a queued
+    DVC experiment, the project it was queued in: :func:`endoflow.locations.home_project`)."""
     if params.tracking.uri:
         return params.tracking.uri
-    return f"sqlite:///{Path(project_root).resolve() / 'mlflow.db'}"
+    return f"sqlite:///{home_project(project_root) / 'mlflow.db'}"
 
 
 def artifact_location(params: Params, project_root: str | Path) -> Optional[str]:
     """Artifact root for new experiments: ``<project>/mlartifacts`` locally, the server's default remotely."""
     if params.tracking.uri:
         return None
-    return (Path(project_root).resolve() / "mlartifacts").as_uri()
+    return (home_project(project_root) / "mlartifacts").as_uri()
 
 
 def client(uri: str) -> MlflowClient:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from endoflow.cli import main
 from endoflow.report import (
+    RunResults,
     experiment_results,
     format_evaluation,
     format_report,
@@ -23,7 +24,8 @@ def evaluation(abs_rel: float, rte: float) -> dict:
                                   "a1": 0.8, "a2": 0.9, "a3": 0.95},
                         "constant_depth": {"abs_rel": 0.5, "a1": 0.3}},
         "depth_simcol": {"model": {"l1": 0.4, "rel": 9.0, "rmse": 0.7}},
-        "pose_simcol": {"model": {"ate": 2.0, "ate_local": 0.6, "rte": rte, "rot": 1.5}, "constant_velocity": {"rte": 0.9}},
+        "pose_simcol": {"model": {"ate": 2.0, "ate_local": 0.6, "rte": rte, "rot": 1.5},
+                        "constant_velocity": {"rte": 0.9}},
     }
 
 
@@ -133,3 +135,45 @@ def test_cli_report_on_a_workspace_without_metrics(tmp_path: Path, monkeypatch, 
     monkeypatch.chdir(tmp_path)
     assert main(["report", "--no-experiments"]) == 0
     assert "No evaluation metrics found" in capsys.readouterr().out
+
+
+def seeded_run(name: str, bank: bool, vae: bool, seed: int, abs_rel: float, rte: float) -> RunResults:
+    return RunResults(name, {"seed": seed, "model": {"latent_bank": bank, "pose_vae": vae}},
+                      {"simcol_12": evaluation(abs_rel, rte)})
+
+
+def test_seed_statistics_give_mean_and_sd_per_configuration_and_mark_differences_beyond_the_spread():
+    runs = [seeded_run("workspace", True, True, 0, 0.10, 0.50),
+            seeded_run("full-s0", True, True, 0, 0.10, 0.50),  # the workspace's own experiment: counted once
+            seeded_run("full-s1", True, True, 1, 0.12, 0.70),
+            seeded_run("full-s2", True, True, 2, 0.14, 0.60),
+            seeded_run("nobank-s0", False, True, 0, 0.20, 0.55),
+            seeded_run("nobank-s1", False, True, 1, 0.22, 0.65),
+            seeded_run("nobank-s2", False, True, 2, 0.24, 0.75)]
+    text = format_report(runs)
+    section = text[text.index("## Seed statistics"):]
+    rows = table_rows(section)
+    assert rows[0] == ["configuration", "seeds", "simcol_12 Abs Rel", "simcol_12 RTE", "simcol_12 ROT"]
+    # full: Abs Rel 0.10, 0.12, 0.14 -> 0.12 ± 0.02; RTE 0.5, 0.7, 0.6 -> 0.6 ± 0.1
+    assert rows[2] == ["full", "3", "0.1200 ± 0.0200", "0.6000 ± 0.1000", "1.5000 ± 0.0000"]
+    assert rows[3] == ["no-bank", "3", "0.2200 ± 0.0200", "0.6500 ± 0.1000", "1.5000 ± 0.0000"]
+    assert rows[4] == ["trivial baselines", "–", "0.5000", "0.9000", "–"]
+    # Abs Rel +0.10 > 0.02 + 0.02: beyond the spread; RTE +0.05 < 0.1 + 0.1: within it
+    assert rows[7] == ["no-bank - full", "3", "+0.1000 *", "+0.0500", "+0.0000"]
+
+
+def test_one_seed_per_configuration_gives_no_seed_section():
+    runs = [seeded_run("full", True, True, 0, 0.1, 0.5), seeded_run("neither", False, False, 0, 0.2, 0.6)]
+    assert "Seed statistics" not in format_report(runs)
+
+
+def test_the_sweep_queues_every_configuration_with_every_seed_naming_each_switch():
+    from endoflow.sweep import sweep_commands
+
+    commands = sweep_commands([0, 1, 2])
+    assert len(commands) == 12
+    assert commands[0] == ["exp", "run", "--queue", "-n", "full-seed0", "-S", "model.latent_bank=true",
+                           "-S", "model.pose_vae=true", "-S", "seed=0"]
+    assert commands[-1] == ["exp", "run", "--queue", "-n", "neither-seed2", "-S", "model.latent_bank=false",
+                            "-S", "model.pose_vae=false", "-S", "seed=2"]
+    assert len({tuple(c) for c in commands}) == 12

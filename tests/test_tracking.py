@@ -14,6 +14,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from endoflow import tracking  # noqa: E402
 from endoflow.config import Params  # noqa: E402
+from endoflow.locations import home_project  # noqa: E402
 
 
 def test_default_store_is_an_absolute_sqlite_file_with_artifacts_beside_it(tmp_path: Path, monkeypatch):
@@ -133,3 +134,15 @@ def test_a_shard_folder_is_a_dataset_input_named_by_its_manifest_and_digest_once
     inputs = tracking.client(uri).get_run(run_id).inputs.dataset_inputs
     assert sorted((i.dataset.source_type, i.tags[0].value) for i in inputs) == [("file", "evaluation"),
                                                                                ("local", "training")]
+
+
+def test_a_queued_dvc_experiment_uses_the_store_of_the_project_it_was_queued_in(tmp_path: Path, monkeypatch):
+    """DVC runs a queued experiment in a temporary copy, which it deletes after; DVC_ROOT names the project."""
+    project, copy = tmp_path / "project", tmp_path / "project" / ".dvc" / "tmp" / "exps" / "run" / "abc"
+    copy.mkdir(parents=True)
+    params = Params()
+    assert tracking.tracking_uri(params, copy) == f"sqlite:///{copy / 'mlflow.db'}"
+    monkeypatch.setenv("DVC_ROOT", str(project))
+    assert tracking.tracking_uri(params, copy) == f"sqlite:///{project / 'mlflow.db'}"
+    assert tracking.artifact_location(params, copy) == (project / "mlartifacts").as_uri()
+    assert home_project(copy) == project

@@ -42,7 +42,7 @@ from endoflow.data.shard_format import (
 from endoflow.evaluation import plots
 from endoflow.geometry.pose import matrix_to_pose_vec, pose_vec_to_matrix
 from endoflow.io import file_sha256, save_figure, staged_directory, write_csv, write_json
-from endoflow.locations import absolute_location, local_file
+from endoflow.locations import absolute_location, home_project, local_file
 from endoflow.models.mlflow_model import log_mlflow_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from endoflow.models.latent_bank import check_latent_bank_file
@@ -144,7 +144,7 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
 def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: str) -> dict[str, Any]:
     """Train (or resume) on Ray and write the outputs, inside the open MLflow run of ``config``."""
     baselines = training_baselines(list(config.train_shards))
-    storage = absolute_location(params.ray.storage_path, root)
+    storage = absolute_location(params.ray.storage_path, home_project(root))
     run_name = f"{params.ray.run_name}-{fingerprint}"
     resume_from = latest_checkpoint(f"{storage.rstrip('/')}/{run_name}", params.ray.num_workers)
     saved = load_training_state(resume_from) if resume_from else None

@@ -1,0 +1,37 @@
+"""The paper's Table 3 as DVC experiments: each ablation configuration with each seed, queued in DVC's
+experiment queue and run one after another by ``dvc queue start``.
+
+Each experiment is named ``<configuration>-seed<k>`` and sets every switch it relies on (``-S`` edits the
+queued copy's ``params.yaml`` only). DVC runs queued experiments in temporary copies of the project; the MLflow
+store and Ray's checkpoints stay in the project (:func:`endoflow.locations.home_project`). One worker at a time
+(``-j 1``): the embedded MLflow store is one SQLite file, and one training already uses every core. When the
+queue is done, ``endoflow report`` aggregates the runs by configuration over seeds.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+from typing import Iterable
+
+# (experiment name prefix, model.latent_bank, model.pose_vae): the paper's Table 3 rows
+CONFIGURATIONS = (("full", True, True), ("no-bank", False, True), ("no-vae", True, False), ("neither", False, False))
+
+
+def sweep_commands(seeds: Iterable[int]) -> list[list[str]]:
+    """The ``dvc`` arguments that queue every configuration with every seed, seed by seed."""
+    return [["exp", "run", "--queue", "-n", f"{name}-seed{seed}", "-S", f"model.latent_bank={str(bank).lower()}",
+             "-S", f"model.pose_vae={str(vae).lower()}", "-S", f"seed={seed}"]
+            for seed in seeds for name, bank, vae in CONFIGURATIONS]
+
+
+def run_sweep(project_root: str | Path, seeds: Iterable[int], start: bool = True) -> None:
+    """Queue the sweep in the DVC project at ``project_root`` and, with ``start``, start one queue worker."""
+    dvc = [sys.executable, "-m", "dvc"]
+    commands = sweep_commands(seeds) + ([["queue", "start", "-j", "1"]] if start else [])
+    for arguments in commands:
+        print(f"[sweep] dvc {' '.join(arguments)}", flush=True)
+        subprocess.run(dvc + arguments, cwd=project_root, check=True)
+    print("[sweep] follow with `dvc queue status` and `dvc queue logs <name>`; when the queue is done, "
+          "`endoflow report` gives mean ± sd per configuration", flush=True)
