@@ -160,6 +160,7 @@ def _model_summary(args: argparse.Namespace) -> int:
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
+    from endoflow.devices import use_cpu_threads
     from endoflow.models.model_file import load_model_file
     from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
     from endoflow.reconstruction.reconstruct import ReconstructOptions, log_reconstruction, reconstruct
@@ -172,6 +173,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
         return 2
     with _model_file(args.model, args.params) as model_path:
         record = load_model_file(model_path)
+        use_cpu_threads(record.params.threads)  # the model's training count: the same depth on any machine
         frames = open_frames(args.input, args.sequence, record.params)
         summary = reconstruct(frames, intrinsics_for(args.intrinsics, frames), model_path, args.out, options)
     if args.mlflow:

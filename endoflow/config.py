@@ -333,6 +333,10 @@ DEPTH_ONLY_DATASETS = frozenset({"scenenet"})
 @dataclass
 class Params:
     seed: int = 0
+    # torch's CPU threads in every process that computes (pretraining, each training worker, evaluation,
+    # reconstruction): float sums split over threads add in another order, so the same seed gives other numbers
+    # with another count; a fixed count, not the machine's cores, makes them the same on any machine
+    threads: int = 2
     data: DataConfig = field(default_factory=DataConfig)
     synth: SynthConfig = field(default_factory=SynthConfig)
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
@@ -558,6 +562,7 @@ _RAY_MIN_OBJECT_STORE_MB = 75
 _TOP_RULES: tuple[tuple[str, _Check | _Each], ...] = (
     # numpy seeds (the loader's shard order, the synthetic scenes) must be non-negative.
     ("seed", _NON_NEGATIVE),
+    ("threads", _COUNT),
 )
 
 _DATA_RULES: tuple[tuple[str, _Check | _Each], ...] = (

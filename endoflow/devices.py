@@ -14,6 +14,9 @@ the tests run the bf16 code path) but no faster there. Geometry stays float32 wh
 Channels-last memory layout goes with bf16 on CUDA only, where tensor-core convolutions want it; elsewhere
 tensors keep the default layout, so CPU numbers stay what they were.
 
+CPU threads (``threads``): every process that computes sets torch's thread count from params
+(:func:`use_cpu_threads`), since the count changes float results.
+
 Images travel as 8-bit colour (``uint8``, a quarter of float32's bytes through loader processes' shared memory
 and the host-to-device copy) and become float32 in [0, 1] on their device (:func:`unit_float_images`, the one
 definition of that scaling).
@@ -28,6 +31,13 @@ from endoflow.config import DEVICE_NAME, ConfigError, Precision
 
 # The first CUDA compute capability with native bf16 arithmetic (Ampere); older GPUs emulate it slowly.
 NATIVE_BF16_CAPABILITY = (8, 0)
+
+
+def use_cpu_threads(count: int) -> None:
+    """torch computes on ``count`` CPU threads in this process from now on (``threads`` in params): a sum split
+    over threads adds in another order with another count, so a fixed count, rather than this machine's number
+    of cores, gives the same numbers on any machine."""
+    torch.set_num_threads(count)
 
 
 def resolve_device(name: str, key: str) -> torch.device:

@@ -20,6 +20,7 @@ frames) pass ``durable=False``, as the folder swap is what makes them visible.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import posixpath
@@ -134,11 +135,16 @@ def save_figure(path: str | Path, figure: Any, dpi: int = 100) -> None:
 
 
 def save_torch(path: str | Path, payload: Any) -> None:
-    """``torch.save`` of tensors and plain data, atomically (load it back with ``weights_only=True``)."""
+    """``torch.save`` of tensors and plain data, atomically (load it back with ``weights_only=True``).
+
+    Saved to memory first: torch names the zip's folder after the file it writes, which here would be the
+    random temporary, so the same payload gives the same bytes only when saved to a buffer (folder ``archive``).
+    """
     import torch
 
-    with atomic_path(path) as temporary:
-        torch.save(payload, temporary)
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    write_bytes(path, buffer.getvalue())
 
 
 @contextmanager

@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Optional
 
 from endoflow.evaluation.results import EVALUATION_FILE, HEADLINE, evaluation_path, headline_metrics
-from endoflow.sweep import CONFIGURATIONS as SWEEP_CONFIGURATIONS
 
 PAPER_COLUMNS = (("abs_rel", "Abs Rel"), ("sq_rel", "Sq Rel"), ("rmse", "RMSE"), ("rmse_log", "RMSE log"),
                  ("l1", "L1"), ("a1", "δ<1.25"), ("a2", "δ<1.25²"), ("a3", "δ<1.25³"))
@@ -39,8 +38,9 @@ SIMCOL_POSE_COLUMNS = (("ate", "ATE (cm)"), ("ate_local", "ATE local (cm)"), ("r
 ENDOSLAM_POSE_COLUMNS = (("ate", "ATE (cm)"), ("rpe_trans", "RPE trans (cm)"), ("rpe_rot", "RPE rot (°)"))
 BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map": "baseline: mean depth map",
                    "constant_velocity": "baseline: constant velocity"}
-# the paper's Table 3 rows, by (latent bank, pose VAE), named as the sweep names its experiments
-CONFIGURATIONS = {(bank, vae): name for name, bank, vae in SWEEP_CONFIGURATIONS}
+# the paper's Table 3 rows: (name, model.latent_bank, model.pose_vae); `endoflow sweep` names its experiments so
+ABLATIONS = (("full", True, True), ("no-bank", False, True), ("no-vae", True, False), ("neither", False, False))
+CONFIGURATIONS = {(bank, vae): name for name, bank, vae in ABLATIONS}
 HEADLINE_LABELS = {"abs_rel": "Abs Rel", "rte": "RTE", "rot": "ROT"}
 # (title, protocol key of the evaluation JSON, columns), in the order the tables are shown
 PROTOCOL_TABLES = (

@@ -15,15 +15,14 @@ import sys
 from pathlib import Path
 from typing import Iterable
 
-# (experiment name prefix, model.latent_bank, model.pose_vae): the paper's Table 3 rows
-CONFIGURATIONS = (("full", True, True), ("no-bank", False, True), ("no-vae", True, False), ("neither", False, False))
+from endoflow.report import ABLATIONS
 
 
 def sweep_commands(seeds: Iterable[int]) -> list[list[str]]:
     """The ``dvc`` arguments that queue every configuration with every seed, seed by seed."""
     return [["exp", "run", "--queue", "-n", f"{name}-seed{seed}", "-S", f"model.latent_bank={str(bank).lower()}",
              "-S", f"model.pose_vae={str(vae).lower()}", "-S", f"seed={seed}"]
-            for seed in seeds for name, bank, vae in CONFIGURATIONS]
+            for seed in seeds for name, bank, vae in ABLATIONS]
 
 
 def run_sweep(project_root: str | Path, seeds: Iterable[int], start: bool = True) -> None:

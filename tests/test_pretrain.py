@@ -203,3 +203,32 @@ def test_progress_lines_come_every_few_seconds_with_the_time_left_for_the_whole_
     progress.finish(losses())
     assert lines[-1] == ("[pretrain] trained 13 generator steps over 3 resolutions (4, 8, 16 px) in 0m19s "
                          "(0.7 steps/s); last losses: critic -1.500, W 2.250, generator 0.500")
+
+
+def small_pretraining(tmp_path: Path, threads: int) -> tuple[str, float]:
+    """(bank file SHA-256, final SWD) of a short pretraining with params ``threads``, in a fresh folder."""
+    shards = tmp_path / "shards"
+    if not shards.exists():
+        write_depth_shards(shards, {"train": 32, "val": 16})
+    params = Params()
+    params.threads = threads
+    cfg = params.latent_bank
+    cfg.resolution, cfg.start_resolution, cfg.steps_per_stage, cfg.batch_size, cfg.swd_samples = 16, 4, 4, 8, 16
+    run = tmp_path / f"run{len(list(tmp_path.glob('run*')))}"
+    metrics = pretrain_latent_bank(params, shards, run / "bank.pt", run / "m.json", run / "plots", project_root=run)
+    return file_sha256(run / "bank.pt"), metrics["swd_final"]
+
+
+def test_the_same_seed_and_thread_count_give_the_same_bank_whatever_the_machines_thread_default(tmp_path):
+    """A machine's default is its core count; 'threads' replaces it, since the count changes float sums."""
+    default = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)  # a 1-core machine
+        first = small_pretraining(tmp_path, threads=2)
+        torch.set_num_threads(3)  # a 3-core machine
+        second = small_pretraining(tmp_path, threads=2)
+        assert torch.get_num_threads() == 2
+        assert first == second  # the bank file byte for byte, and the SWD
+        assert small_pretraining(tmp_path, threads=1) != first  # the count matters
+    finally:
+        torch.set_num_threads(default)

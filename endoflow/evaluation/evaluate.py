@@ -48,7 +48,7 @@ from endoflow.io import save_figure, staged_directory, write_csv, write_json
 from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
 from endoflow.data.shard_format import manifest_location, read_manifest
-from endoflow.devices import autocast, images_to_device, resolve_device, to_compute_layout
+from endoflow.devices import autocast, images_to_device, resolve_device, to_compute_layout, use_cpu_threads
 from endoflow.locations import absolute_location
 from endoflow.models.mlflow_model import is_model_uri, local_model_file
 from endoflow.models.model_file import TrainingBaselines, load_trained_model
@@ -478,6 +478,7 @@ def run_evaluation(params: Params, name: str, project_root: str | Path = ".") ->
     from endoflow.data.loader import triplet_dataset
 
     root = Path(project_root).resolve()
+    use_cpu_threads(params.threads)
     urls = eval_set_shards(absolute_location(params.eval.shards, root), eval_set(params, name))
     plots_dir = root / params.eval.plots / name
     model = params.eval.model if is_model_uri(params.eval.model) else root / params.eval.model

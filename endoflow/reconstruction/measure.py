@@ -42,6 +42,7 @@ from endoflow.config import Params
 from endoflow.data.imageio import read_png16
 from endoflow.data.shards import resize_depth, resize_rgb
 from endoflow.data.trajectory_files import read_tum
+from endoflow.devices import use_cpu_threads
 from endoflow.io import write_bytes, write_csv, write_json
 from endoflow.models.model_file import TrainingBaselines, load_model_file
 from endoflow.reconstruction.frames import DatasetFrames, FrameRange, FrameSource, InputFrame
@@ -272,6 +273,7 @@ def run_reconstruction(params: Params, name: str, project_root: str | Path = "."
     cfg = params.reconstruct
     item = cfg.sequences[name]
     root = Path(project_root).resolve()
+    use_cpu_threads(params.threads)
     model_path = root / cfg.model
     record = load_model_file(model_path)
     source = DatasetFrames(root / getattr(params.data, item.dataset).root, item.sequence, params)

@@ -46,7 +46,13 @@ from endoflow import tracking  # noqa: E402
 from endoflow.config import Params, Precision, TrainConfig  # noqa: E402
 from endoflow.data.loader import batches_per_epoch, rank_batches, triplet_dataset  # noqa: E402
 from endoflow.data.shard_format import ShardEntry, shard_entries  # noqa: E402
-from endoflow.devices import autocast, batch_to_device, images_to_device, wants_channels_last  # noqa: E402
+from endoflow.devices import (  # noqa: E402
+    autocast,
+    batch_to_device,
+    images_to_device,
+    use_cpu_threads,
+    wants_channels_last,
+)
 from endoflow.evaluation import metrics, plots  # noqa: E402
 from endoflow.locations import local_file  # noqa: E402
 from endoflow.models.endoflow_model import EndoflowModel, build_model  # noqa: E402
@@ -110,6 +116,7 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
     context = ray.train.get_context()
     rank, world = context.get_world_rank(), context.get_world_size()
     device = ray.train.torch.get_device()
+    use_cpu_threads(params.threads)  # not Ray's OMP_NUM_THREADS, which follows the worker's CPUs
     torch.manual_seed(params.seed)  # identical initial weights on every rank (DDP also broadcasts them)
 
     model = build_model(params, local_file(config.latent_bank) if config.latent_bank else None)

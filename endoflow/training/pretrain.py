@@ -53,7 +53,7 @@ from endoflow.config import SWD_MIN_RESOLUTION, Params
 from endoflow.data.base import DataFormatError
 from endoflow.data.loader import list_shards, raw_samples
 from endoflow.data.shard_format import decode_sample, manifest_location
-from endoflow.devices import autocast, compute_dtype, resolve_device, to_compute_layout
+from endoflow.devices import autocast, compute_dtype, resolve_device, to_compute_layout, use_cpu_threads
 from endoflow.evaluation.swd import multiscale_swd
 from endoflow.io import file_sha256, save_figure, save_torch, staged_directory, write_json
 from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
@@ -404,6 +404,7 @@ def pretrain_latent_bank(
     from endoflow import tracking
 
     started = time.time()
+    use_cpu_threads(params.threads)
     torch.manual_seed(params.seed)
     cfg = params.latent_bank
     shards_dir, out_path, metrics_path, plots_dir = map(Path, (shards_dir, out_path, metrics_path, plots_dir))
