@@ -121,3 +121,17 @@ def test_cli_inspect_json_and_error_exit(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["dataset"] == "scenenet"
     assert main(["--params", str(tmp_path / "none.yaml"), "data", "inspect", str(tmp_path / "missing")]) == 2
     assert "dataset root folder not found" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not SIMCOL_SAMPLE.is_dir(), reason=f"real SimCol3D sample not found at {SIMCOL_SAMPLE}")
+def test_inspect_gives_the_real_colonoscope_motion_per_frame():
+    """The figures the built-in renderer's camera paths are calibrated on (docs/synthetic_data.md)."""
+    (sequence,) = inspect_dataset(SIMCOL_SAMPLE, "simcol", Params())["sequences"]
+    motion = sequence["poses"]["motion"]
+    assert motion["step_mm"] == pytest.approx(1.351, abs=1e-3)
+    assert motion["rotation_deg"] == pytest.approx(0.1155, abs=1e-3)
+    assert motion["step_change_mm"] == pytest.approx(0.0091, abs=1e-4)
+    assert motion["rotation_change_deg"] == pytest.approx(0.0166, abs=1e-3)
+    assert motion["forward_share"] == 1.0
+    assert "motion per frame (medians): step 1.351 mm, rotation 0.116 deg" in format_inspection(
+        inspect_dataset(SIMCOL_SAMPLE, "simcol", Params()))

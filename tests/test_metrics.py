@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from endoflow.evaluation import metrics
+from endoflow.geometry.pose import motion_statistics
 
 
 def translation(x: float, y: float, z: float) -> np.ndarray:
@@ -205,3 +206,30 @@ def test_mean_over_averages_each_key_and_refuses_nothing():
     assert metrics.mean_over([{"a": 1.0, "b": 4.0}, {"a": 3.0, "b": 0.0}], ("a",)) == {"a": 2.0}
     with pytest.raises(ValueError, match="nothing to average"):
         metrics.mean_over([], ("a",))
+
+
+# --------------------------------------------------------------------------------- motion statistics
+def test_motion_statistics_of_constant_velocity_have_no_change():
+    step = translation(0, 0, 0.135) @ rotation_y(0.1)
+    poses = [translation(5.0, -3.0, 28.0) @ rotation_z(40.0)]
+    for _ in range(9):
+        poses.append(poses[-1] @ step)
+    stats = motion_statistics(np.stack(poses))
+    assert stats["step_mm"] == pytest.approx(1.35)
+    assert stats["rotation_deg"] == pytest.approx(0.1)
+    assert stats["step_change_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert stats["rotation_change_deg"] == pytest.approx(0.0, abs=1e-5)
+    assert stats["forward_share"] == 1.0
+
+
+def test_motion_statistics_hand_computed_changes_and_a_backward_step():
+    steps = [translation(0, 0, 0.1), translation(0, 0, 0.12) @ rotation_z(2.0), translation(0, 0, -0.1)]
+    poses = [np.eye(4)]
+    for step in steps:
+        poses.append(poses[-1] @ step)
+    stats = motion_statistics(np.stack(poses))
+    assert stats["step_mm"] == pytest.approx(1.0)  # median of 1.0, 1.2, 1.0 mm
+    assert stats["rotation_deg"] == pytest.approx(0.0, abs=1e-6)  # median of 0, 2, 0
+    assert stats["step_change_mm"] == pytest.approx((0.2 + 2.2) / 2)  # |0.12 - 0.1|, |-0.1 - 0.12| cm
+    assert stats["rotation_change_deg"] == pytest.approx(2.0)  # 0 -> 2 -> 0 degrees
+    assert stats["forward_share"] == pytest.approx(2 / 3)

@@ -107,7 +107,9 @@ def test_hits_lie_on_their_slab_wall_and_fast_path_equals_exhaustive_search(styl
     rays = pixel_rays(simcol_intrinsics(40), 40, 40, 1, CPU) @ torch.as_tensor(pose[:3, :3].T, dtype=torch.float32)
     hits = intersect(view, rays)
     exhaustive_t, exhaustive_slab = _exhaustive_hits(view, rays)
-    np.testing.assert_allclose(hits.t.numpy(), exhaustive_t.numpy(), rtol=0, atol=2e-4)  # float32 rounding
+    # float32 rounding: the two paths solve the same quadratics in another order, which at grazing incidence
+    # moves a root by up to about 1e-4 of its depth
+    np.testing.assert_allclose(hits.t.numpy(), exhaustive_t.numpy(), rtol=2e-4, atol=2e-4)
 
     wall = hits.slab >= 0
     assert wall.float().mean() > 0.5

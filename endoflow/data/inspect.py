@@ -16,6 +16,7 @@ from endoflow.config import Params
 from endoflow.data.base import DataFormatError, Sequence
 from endoflow.data.layout import shown_numbers
 from endoflow.data.registry import open_reader
+from endoflow.geometry.pose import motion_statistics
 
 DEFAULT_SAMPLED_FRAMES = 3
 
@@ -102,6 +103,8 @@ def _pose_summary(sequence: Sequence) -> Optional[dict[str, Any]]:
         "unknown": [sequence.frame_ids[i] for i in unknown],
         "first": entry(known[0]) if known else None,
         "last": entry(known[-1]) if known else None,
+        # per-frame motion, where every frame has a pose (a gap would make two frames' motion one step)
+        "motion": motion_statistics(sequence.poses) if not unknown and len(known) >= 3 else None,
     }
 
 
@@ -143,6 +146,12 @@ def _format_sequence(entry: dict[str, Any]) -> list[str]:
         lines.append(
             f"  poses: {poses['known']} of {entry['frames']} frames known{unknown} (T_world_cam: OpenCV, cm)"
         )
+        if poses.get("motion"):
+            motion = poses["motion"]
+            lines.append(f"    motion per frame (medians): step {motion['step_mm']:.3f} mm, rotation "
+                         f"{motion['rotation_deg']:.3f} deg; change from the last step {motion['step_change_mm']:.4f} "
+                         f"mm, {motion['rotation_change_deg']:.4f} deg; {100 * motion['forward_share']:.0f}% "
+                         "forward")
         for label in ("first", "last"):
             if poses[label] is not None:
                 lines.append(f"    {label} known, frame {poses[label]['frame']} (top 3 rows):")

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from endoflow.geometry.pose import rotation_angle_deg
+
 PAPER_MIN_DEPTH_CM = 1e-3
 PAPER_MAX_DEPTH_CM = 20.0
 SIMCOL_DEPTH_RANGE_CM = 20.0  # challenge predictions are depth / 20 cm in [0, 1]
@@ -154,12 +156,6 @@ def fit_translation_scale(gt_translations: np.ndarray, pred_translations: np.nda
     if denominator <= 0:
         return 1.0  # nothing predicted moves: any scale gives the same (zero) trajectory
     return float(np.sum(gt_translations * pred_translations) / denominator)
-
-
-def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
-    """Rotation angle of ``... x 3 x 3`` matrices in degrees, trace clipped so rounding never gives NaN."""
-    trace = np.trace(rotations, axis1=-2, axis2=-1)
-    return np.degrees(np.arccos((np.clip(trace, -1.0, 3.0) - 1.0) / 2.0))
 
 
 def scaled_relative_poses(relative: np.ndarray, scale: float) -> np.ndarray:

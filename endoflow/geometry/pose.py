@@ -119,6 +119,37 @@ def chain_step(T_world_prev: np.ndarray, T_cur_prev: np.ndarray) -> np.ndarray:
     return pose
 
 
+def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
+    """Rotation angle of ``... x 3 x 3`` matrices in degrees, trace clipped so rounding never gives NaN."""
+    trace = np.trace(rotations, axis1=-2, axis2=-1)
+    return np.degrees(np.arccos((np.clip(trace, -1.0, 3.0) - 1.0) / 2.0))
+
+
+MOTION_KEYS = ("step_mm", "rotation_deg", "step_change_mm", "rotation_change_deg", "forward_share")
+
+
+def motion_statistics(T_world_cam: np.ndarray) -> dict[str, float]:
+    """How a camera moves from frame to frame, the figures a pose network's task depends on (medians over the
+    ``N - 1`` steps ``Q_i = inv(P_i) @ P_{i+1}`` of ``N x 4 x 4`` camera-to-world poses in cm):
+    ``step_mm`` ``|t(Q_i)|``, ``rotation_deg`` the angle of ``R(Q_i)``, ``step_change_mm``
+    ``|t(Q_{i+1}) - t(Q_i)|`` and ``rotation_change_deg`` the angle of ``R(Q_i)^T R(Q_{i+1})`` (how far the
+    motion departs from constant velocity), and ``forward_share`` the share of steps along the camera's view
+    (positive z)."""
+    _check_last_dims(T_world_cam, (4, 4), "T_world_cam")
+    if len(T_world_cam) < 3:
+        raise ValueError(f"motion statistics need at least 3 poses, got {len(T_world_cam)}")
+    steps = relative_pose(T_world_cam[:-1], T_world_cam[1:])
+    translation, rotation = steps[:, :3, 3], steps[:, :3, :3]
+    return {
+        "step_mm": float(np.median(np.linalg.norm(translation, axis=1)) * 10),
+        "rotation_deg": float(np.median(rotation_angle_deg(rotation))),
+        "step_change_mm": float(np.median(np.linalg.norm(np.diff(translation, axis=0), axis=1)) * 10),
+        "rotation_change_deg": float(np.median(rotation_angle_deg(
+            np.swapaxes(rotation[:-1], 1, 2) @ rotation[1:]))),
+        "forward_share": float(np.mean(translation[:, 2] > 0)),
+    }
+
+
 def quaternion_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrices ``[..., 3, 3]`` from quaternions ``[..., 4]`` (qx, qy, qz, qw; scalar last).
 

@@ -1,9 +1,12 @@
 """A colonoscope-like camera trajectory along a tube: poses ``T_world_cam`` (OpenCV, cm), exact by construction.
 
-The camera advances along a smoothed copy of the centreline (mostly forward, 1 to 2 mm per frame with a
-smoothly varying speed), drifts gently off it, and turns a little around the local direction of the tube
-(yaw and pitch of a few degrees, a slow roll). Every motion is a sum of slow sinusoids, so consecutive
-frames differ by small, smooth rigid motions as in a real withdrawal or insertion.
+Calibrated on real SimCol3D poses (docs/synthetic_data.md has the statistics side by side): a colonoscope moves
+about 1.35 mm and turns about 0.1 degree per frame, nearly at constant velocity. The camera here moves along a
+smoothed copy of the centreline in phases (advancing, withdrawing with the view still down the lumen, or
+pausing), each at a speed of its own, with gentle ramps between them; it drifts slowly off the centreline,
+sways and rolls slowly, and now and then turns deliberately (the view swings a few degrees over a second or
+two). Every motion is smooth, so consecutive frames differ by small rigid motions that change little from one
+frame to the next.
 """
 
 from __future__ import annotations
@@ -15,42 +18,66 @@ import numpy as np
 from endoflow.synth.tube import Tube
 
 CENTRELINE_STEP_CM = 0.05
+# the camera moves along the centreline smoothed over the first length, and looks along it smoothed over the
+# second: a scope's tip does not turn with every bend of the lumen
 CENTRELINE_SMOOTHING_CM = 1.0
+VIEW_SMOOTHING_CM = 6.0
+RAMP_FRAMES = 12  # speed changes between phases spread over this many frames
+PHASES = ("advance", "withdraw", "pause")
 
 
 @dataclass
 class MotionStyle:
-    speed: tuple[float, float]  # cm per frame (range of the smoothly varying speed)
+    """How the camera moves; lengths in cm, angles in degrees, durations in frames."""
+
+    speed: tuple[float, float]  # cm per frame while advancing or withdrawing (drawn per phase)
+    phase_shares: tuple[float, float, float]  # chance of a phase advancing, withdrawing, pausing
+    phase_frames: tuple[int, int]  # length of one phase
     lateral: float  # largest drift off the centreline, as a fraction of the narrowest nearby radius
-    turn_deg: float  # largest yaw / pitch away from the tube's direction
-    roll_deg: float  # largest roll around the tube's direction
+    sway_deg: float  # largest slow yaw / pitch away from the tube's direction
+    roll_deg: float  # largest slow roll around the tube's direction
+    turn_deg: tuple[float, float]  # how far one deliberate turn swings the view
+    turn_frames: tuple[int, int]  # how long one turn takes
+    turns_per_100_frames: float
 
 
 def trajectory_arcs(frames: int, motion: MotionStyle, start: float, rng: np.random.Generator) -> np.ndarray:
-    """Arc length of the camera at each frame: a smoothly varying forward speed within ``motion.speed``."""
-    low, high = motion.speed
-    wave = _slow_wave(frames, rng, periods=(25.0, 90.0))
-    speeds = low + (high - low) * (0.5 + 0.5 * wave)
-    return start + np.concatenate([[0.0], np.cumsum(speeds[:-1])])
+    """Arc length of the camera at each frame, never behind ``start``: phases of advancing, withdrawing and
+    pausing (the first advances), each at its own speed within ``motion.speed``, with ramps between."""
+    speeds = np.zeros(frames)
+    position, phase = 0, "advance"
+    while position < frames:
+        length = int(rng.integers(motion.phase_frames[0], motion.phase_frames[1] + 1))
+        speed = rng.uniform(*motion.speed)
+        speeds[position:position + length] = {"advance": speed, "withdraw": -speed, "pause": 0.0}[phase]
+        position += length
+        phase = PHASES[int(rng.choice(3, p=np.asarray(motion.phase_shares) / np.sum(motion.phase_shares)))]
+    ramp = np.hanning(RAMP_FRAMES + 2)[1:-1]
+    smooth = np.convolve(np.pad(speeds, RAMP_FRAMES, mode="edge"), ramp / ramp.sum(), mode="same")
+    arcs = np.concatenate([[0.0], np.cumsum(smooth[RAMP_FRAMES:RAMP_FRAMES + frames - 1])])
+    return start + arcs - min(arcs.min(), 0.0)
 
 
 def camera_poses(tube: Tube, arcs: np.ndarray, motion: MotionStyle, rng: np.random.Generator) -> np.ndarray:
     """``[F, 4, 4]`` camera-to-world poses at arc lengths ``arcs`` (OpenCV: x right, y down, z forward)."""
     frames = len(arcs)
-    path = _smoothed_centreline(tube, arcs.min() - 3.0, arcs.max() + 3.0)
+    path = _smoothed_centreline(tube, arcs.min() - 3.0, arcs.max() + 3.0, CENTRELINE_SMOOTHING_CM)
+    view = _smoothed_centreline(tube, arcs.min() - 3.0, arcs.max() + 3.0, VIEW_SMOOTHING_CM)
     centre = path(arcs)
-    tangent = path(arcs + CENTRELINE_STEP_CM) - path(arcs - CENTRELINE_STEP_CM)
+    tangent = view(arcs + CENTRELINE_STEP_CM) - view(arcs - CENTRELINE_STEP_CM)
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
     across, down = _transported_frames(tangent, tube.e1[tube.slab_containing(centre[0])])
 
     narrowest = np.array([tube.radius_at(np.linspace(s - 1.0, s + 1.0, 41)).min() for s in arcs])
-    drift_x = motion.lateral * narrowest * _slow_wave(frames, rng, periods=(40.0, 150.0))
-    drift_y = motion.lateral * narrowest * _slow_wave(frames, rng, periods=(40.0, 150.0))
+    drift_x = motion.lateral * narrowest * _slow_wave(frames, rng, periods=(200.0, 600.0))
+    drift_y = motion.lateral * narrowest * _slow_wave(frames, rng, periods=(200.0, 600.0))
     position = centre + drift_x[:, None] * across + drift_y[:, None] * down
 
-    roll = np.radians(motion.roll_deg) * _slow_wave(frames, rng, periods=(60.0, 200.0))
-    yaw = np.radians(motion.turn_deg) * _slow_wave(frames, rng, periods=(20.0, 60.0))
-    pitch = np.radians(motion.turn_deg) * _slow_wave(frames, rng, periods=(20.0, 60.0))
+    roll = np.radians(motion.roll_deg) * _slow_wave(frames, rng, periods=(300.0, 900.0))
+    yaw = np.radians(motion.sway_deg) * _slow_wave(frames, rng, periods=(200.0, 600.0))
+    pitch = np.radians(motion.sway_deg) * _slow_wave(frames, rng, periods=(200.0, 600.0))
+    turn_yaw, turn_pitch = _turns(frames, motion, rng)
+    yaw, pitch = yaw + turn_yaw, pitch + turn_pitch
     poses = np.tile(np.eye(4), (frames, 1, 1))
     for f in range(frames):
         x = np.cos(roll[f]) * across[f] + np.sin(roll[f]) * down[f]
@@ -59,6 +86,23 @@ def camera_poses(tube: Tube, arcs: np.ndarray, motion: MotionStyle, rng: np.rand
         poses[f, :3, :3] = base @ _rotation_y(yaw[f]) @ _rotation_x(pitch[f])
         poses[f, :3, 3] = position[f]
     return poses
+
+
+def _turns(frames: int, motion: MotionStyle, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Yaw and pitch (rad) of the deliberate turns: each swings the view by a drawn angle in a drawn direction
+    over a drawn number of frames (a smooth S-curve) and stays there."""
+    yaw, pitch = np.zeros(frames), np.zeros(frames)
+    count = rng.poisson(motion.turns_per_100_frames * frames / 100.0)
+    for _ in range(count):
+        begin = rng.uniform(0, frames)
+        duration = rng.uniform(*motion.turn_frames)
+        angle = np.radians(rng.uniform(*motion.turn_deg))
+        direction = rng.uniform(0, 2 * np.pi)
+        progress = np.clip((np.arange(frames) - begin) / duration, 0.0, 1.0)
+        swing = angle * (0.5 - 0.5 * np.cos(np.pi * progress))
+        yaw += np.cos(direction) * swing
+        pitch += np.sin(direction) * swing
+    return yaw, pitch
 
 
 def _slow_wave(frames: int, rng: np.random.Generator, periods: tuple[float, float]) -> np.ndarray:
@@ -71,11 +115,12 @@ def _slow_wave(frames: int, rng: np.random.Generator, periods: tuple[float, floa
     return wave / weight.sum()
 
 
-def _smoothed_centreline(tube: Tube, start: float, stop: float):
-    """The centreline polyline low-pass filtered along its arc length, as an interpolating function."""
+def _smoothed_centreline(tube: Tube, start: float, stop: float, smoothing_cm: float):
+    """The centreline polyline low-pass filtered (Gaussian of ``smoothing_cm``) along its arc length, as an
+    interpolating function."""
     grid = np.arange(start, stop + CENTRELINE_STEP_CM, CENTRELINE_STEP_CM)
     points = tube.centreline_at(np.clip(grid, 0, tube.length))
-    sigma = CENTRELINE_SMOOTHING_CM / CENTRELINE_STEP_CM
+    sigma = smoothing_cm / CENTRELINE_STEP_CM
     offsets = np.arange(-int(3 * sigma), int(3 * sigma) + 1)
     kernel = np.exp(-0.5 * (offsets / sigma) ** 2)
     kernel /= kernel.sum()

@@ -7,7 +7,7 @@ are the narrower, small-intestine-like variants (the stomach is wide with shallo
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -40,7 +40,10 @@ _COLON = TubeShape(
     curvature=0.3,
     bend_spacing=0.35,
 )
-_COLON_MOTION = MotionStyle(speed=(0.1, 0.2), lateral=0.3, turn_deg=8.0, roll_deg=25.0)
+# calibrated on real SimCol3D poses (camera_path.py, docs/synthetic_data.md): ~1.35 mm and ~0.1 degree per frame
+_COLON_MOTION = MotionStyle(speed=(0.1, 0.17), phase_shares=(0.6, 0.25, 0.15), phase_frames=(30, 120), lateral=0.25,
+                            sway_deg=1.5, roll_deg=6.0, turn_deg=(4.0, 10.0), turn_frames=(30, 60),
+                            turns_per_100_frames=0.5)
 _LIGHT = LightStyle(exposure=12.0, diffuse=1.0, specular=0.08, shininess=40.0, vignetting=1.0, ambient=0.002)
 
 STYLES: dict[str, SceneStyle] = {
@@ -104,7 +107,7 @@ STYLES: dict[str, SceneStyle] = {
             curvature=0.15,
             bend_spacing=0.35,
         ),
-        motion=MotionStyle(speed=(0.1, 0.18), lateral=0.25, turn_deg=4.0, roll_deg=20.0),
+        motion=replace(_COLON_MOTION, speed=(0.1, 0.16)),
         mucosa=MucosaStyle(
             base=(0.88, 0.45, 0.38),
             mottle=(0.78, 0.35, 0.30),
@@ -126,7 +129,7 @@ STYLES: dict[str, SceneStyle] = {
             curvature=0.2,
             bend_spacing=0.2,
         ),
-        motion=MotionStyle(speed=(0.1, 0.16), lateral=0.25, turn_deg=4.0, roll_deg=20.0),
+        motion=replace(_COLON_MOTION, speed=(0.08, 0.14)),
         mucosa=MucosaStyle(
             base=(0.90, 0.55, 0.45),
             mottle=(0.95, 0.70, 0.55),
@@ -148,7 +151,7 @@ STYLES: dict[str, SceneStyle] = {
             curvature=0.06,
             bend_spacing=0.5,
         ),
-        motion=MotionStyle(speed=(0.1, 0.2), lateral=0.3, turn_deg=6.0, roll_deg=20.0),
+        motion=replace(_COLON_MOTION, speed=(0.1, 0.17), lateral=0.3),
         mucosa=MucosaStyle(
             base=(0.90, 0.52, 0.45),
             mottle=(0.80, 0.40, 0.36),
@@ -172,7 +175,7 @@ class TubeSequence:
 def make_tube_sequence(style: SceneStyle, frames: int, rng: np.random.Generator, device: torch.device) -> TubeSequence:
     """A random tube, texture and camera trajectory for ``frames`` frames, placed at a random world pose."""
     arcs = trajectory_arcs(frames, style.motion, LEAD_IN_CM, rng)
-    tube = build_tube(style.shape, float(arcs[-1]) + VIEW_AHEAD_CM, rng)
+    tube = build_tube(style.shape, float(arcs.max()) + VIEW_AHEAD_CM, rng)
     poses = camera_poses(tube, arcs, style.motion, rng)
     width = 8 * int(round(2 * np.pi * np.mean(style.shape.radius) / TEXEL_CM / 8))
     texel_cm = 2 * np.pi * np.mean(style.shape.radius) / width
