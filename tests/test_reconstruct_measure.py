@@ -31,7 +31,7 @@ from endoflow.synth.writers import synthesize_layout
 from tests.small_model import small_model_params
 
 SIZE = 64
-FRAMES = 12
+FRAMES = 24  # 3 cm of a real-speed path: few frames see the surface from too few places to carve the fusion
 UNIT_CM = 0.001
 
 
