@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import fcntl
 import json
 import os
 import re
@@ -48,8 +49,10 @@ class DevTools:
         self._replies, from_browser = os.pipe()
 
         def browser_fds() -> None:
-            os.dup2(to_browser, 3)
-            os.dup2(from_browser, 4)
+            # via fds above 4 first: a pipe end may itself be fd 3 or 4, and dup2 onto itself keeps close-on-exec
+            high = [fcntl.fcntl(fd, fcntl.F_DUPFD, 10) for fd in (to_browser, from_browser)]
+            for fd, target in zip(high, (3, 4)):
+                os.dup2(fd, target)
 
         self.process = subprocess.Popen(
             [chromium, "--headless=new", "--remote-debugging-pipe", "--no-sandbox", "--disable-gpu",
@@ -165,6 +168,8 @@ def main() -> None:
     if experiment is None:
         sys.exit(f"{uri} has no experiment {params.tracking.experiment!r}: run the pipeline first")
     runs = client.search_runs([experiment.experiment_id])
+    if not runs:
+        sys.exit(f"experiment {params.tracking.experiment!r} has no runs: run the pipeline first")
     headline = sorted({key for run in runs for key in run.data.metrics if re.fullmatch(args.columns, key)})
     models = client.search_registered_models()
 
@@ -189,8 +194,9 @@ def main() -> None:
                 browser.screenshot(args.out / "mlflow_runs.png")
                 if models:
                     name = models[0].name
+                    newest = max(int(v.version) for v in client.search_model_versions(f"name = '{name}'"))
                     browser.show(f"{base}#/models/{name}?{MODEL_TRAINING_VIEW}",
-                                 lambda: browser.evaluate("document.body.innerText.includes('Version 1')"))
+                                 lambda: browser.evaluate(f"document.body.innerText.includes('Version {newest}')"))
                     browser.evaluate(CLOSE_ASSISTANT)
                     time.sleep(1.0)
                     browser.screenshot(args.out / "mlflow_model.png")

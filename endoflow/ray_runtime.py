@@ -105,8 +105,13 @@ def connect_ray(cfg: RayConfig) -> bool:
 
 @contextmanager
 def without_token_auth_notice() -> Iterator[None]:
-    """Within: Ray's "token authentication is enabled" notice is not printed (other auth warnings are)."""
-    from ray._private.authentication import authentication_token_setup
+    """Within: Ray's "token authentication is enabled" notice is not printed (other auth warnings are). Ray
+    versions without token authentication have neither the notice nor the module."""
+    try:
+        from ray._private.authentication import authentication_token_setup
+    except ImportError:
+        yield
+        return
 
     def keep(record: logging.LogRecord) -> bool:
         return not record.getMessage().startswith(TOKEN_AUTH_ENABLED_NOTICE)

@@ -14,9 +14,10 @@ switches (latent bank, pose VAE). The trivial baselines are shown once per test 
 
 With several seeds of a configuration (the sweep of README's "Seeds" section), a last section aggregates by
 configuration: mean and sample standard deviation over seeds of each headline figure, and for each ablation
-its difference from the full model, marked where it exceeds the seed spread (the two mean +- sd intervals do
-not overlap: ``|mean_a - mean_full| > sd_a + sd_full``). Runs with the same configuration and seed (the
-workspace and the experiment it came from) count once.
+its difference from the full model, marked where it exceeds the seed spread (both have at least two seeds and
+the two mean +- sd intervals do not overlap: ``|mean_a - mean_full| > sd_a + sd_full``). Runs with the same
+configuration and seed (the workspace and the experiment it came from) count once; runs are grouped by the two
+switches and the seed only, so compare experiments of one preset.
 """
 
 from __future__ import annotations
@@ -285,7 +286,8 @@ def seed_statistics(runs: list[RunResults], test_sets: list[str]) -> str:
                     cells.append("–")
                     continue
                 (full_mean, full_sd), (mean, sd) = mean_sd(full), mean_sd(other)
-                beyond = abs(mean - full_mean) > sd + full_sd
+                # a single seed has no spread to compare with
+                beyond = min(len(full), len(other)) > 1 and abs(mean - full_mean) > sd + full_sd
                 cells.append(f"{mean - full_mean:+.4f}{' *' if beyond else ''}")
             differences.append([f"{name} - full", str(len(group))] + cells)
         parts.append("Difference of the means from the full model; `*` where it exceeds the seed spread (the "

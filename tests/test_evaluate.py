@@ -200,6 +200,8 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     params.model = replace(params.model, latent_bank=False)
     uri = tracking.tracking_uri(params, tmp_path)
     run_id = tracking.start_run(params, tmp_path, "endoflow", "train")
+    manifest = oracle_shards / "simcol" / "manifest.parquet"
+    tracking.log_shards_input(uri, run_id, str(manifest), "simcol", "training")  # trained on the same folder
     tracking.end_run(uri, run_id)
     write_untrained_model(tmp_path / "endoflow.pt", params, run_id)
     samples = triplet_dataset(eval_set_shards(str(oracle_shards), params.eval.test_sets["simcol_3"]))
@@ -231,10 +233,10 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     assert {"simcol_3/abs_rel", "simcol_3/rte", "simcol_3/rot"} <= set(run.data.metrics)
     artifacts = [a.path for a in tracking.client(uri).list_artifacts(run_id, "eval/simcol_3")]
     assert "eval/simcol_3/trajectory_O1.png" in artifacts
-    (test_shards,) = run.inputs.dataset_inputs
-    manifest = oracle_shards / "simcol" / "manifest.parquet"
-    assert (test_shards.dataset.name, test_shards.dataset.digest) == ("simcol", file_sha256(manifest)[:32])
-    assert [(tag.key, tag.value) for tag in test_shards.tags] == [("mlflow.data.context", "evaluation")]
+    # the test set beside the training shards, though both are the same folder (one manifest, one digest)
+    inputs = {i.dataset.name: (i.dataset.digest, [(t.key, t.value) for t in i.tags]) for i in run.inputs.dataset_inputs}
+    assert inputs == {"simcol": (file_sha256(manifest)[:32], [("mlflow.data.context", "training")]),
+                      "simcol_3": (file_sha256(manifest)[:32], [("mlflow.data.context", "evaluation")])}
 
 
 def test_a_model_whose_training_run_is_not_in_the_store_logs_into_one_new_run_with_a_warning(

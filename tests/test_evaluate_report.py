@@ -162,6 +162,13 @@ def test_seed_statistics_give_mean_and_sd_per_configuration_and_mark_differences
     assert rows[7] == ["no-bank - full", "3", "+0.1000 *", "+0.0500", "+0.0000"]
 
 
+def test_a_configuration_with_one_seed_has_no_spread_to_exceed():
+    runs = [seeded_run("full-s0", True, True, 0, 0.10, 0.5), seeded_run("full-s1", True, True, 1, 0.12, 0.6),
+            seeded_run("neither-s0", False, False, 0, 0.30, 0.9)]
+    rows = table_rows(format_report(runs)[format_report(runs).index("## Seed statistics"):])
+    assert rows[-1][:4] == ["neither - full", "1", "+0.1900", "+0.3500"]  # far off, yet unmarked
+
+
 def test_one_seed_per_configuration_gives_no_seed_section():
     runs = [seeded_run("full", True, True, 0, 0.1, 0.5), seeded_run("neither", False, False, 0, 0.2, 0.6)]
     assert "Seed statistics" not in format_report(runs)

@@ -470,7 +470,9 @@ def log_evaluation(params: Params, project_root: str | Path, result: dict, plots
     tracking.log_artifact(uri, run_id, plots_dir, prefix)
     test_set = eval_set(params, result["test_set"])
     shards = eval_set_folder(absolute_location(params.eval.shards, project_root), test_set)
-    tracking.log_shards_input(uri, run_id, manifest_location(shards), test_set.dataset, "evaluation")
+    # named after the test set: MLflow keeps one input per name and digest, and the training shards may be
+    # the same folder
+    tracking.log_shards_input(uri, run_id, manifest_location(shards), result["test_set"], "evaluation")
 
 
 def run_evaluation(params: Params, name: str, project_root: str | Path = ".") -> dict:

@@ -421,8 +421,8 @@ def pretrain_latent_bank(
     uri = tracking.tracking_uri(params, project_root)
     run_id = tracking.start_run(params, project_root, params.tracking.latent_bank_experiment,
                                 tracking.run_name_for("latent-bank", [f"seed{params.seed}"]))
-    tracking.log_shards_input(uri, run_id, manifest_location(str(shards_dir)), shards_dir.name, "training")
     try:
+        tracking.log_shards_input(uri, run_id, manifest_location(str(shards_dir)), shards_dir.name, "training")
         spec = generator_spec(params)
         untrained = LatentBankGenerator(spec).to(device)
         fake_untrained = generate(untrained, swd_count, spec.latent_dim, params.seed + 1, device)

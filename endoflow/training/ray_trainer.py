@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import json
 import posixpath
+import sys
 import tempfile
 from dataclasses import replace
 from pathlib import Path
@@ -127,11 +128,11 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
     uri = tracking.tracking_uri(params, root)
     name = tracking.run_name_for("train", [*tracking.ablation_switches(params), f"seed{params.seed}"])
     run_id = tracking.start_run(params, root, params.tracking.experiment, name, fingerprint)
-    tracking.log_shards_input(uri, run_id, manifest_location(shards), posixpath.basename(shards.rstrip("/")),
-                              "training")
-    if latent_bank:
-        tracking.link_latent_bank(params, root, run_id, file_sha256(latent_bank))
     try:
+        tracking.log_shards_input(uri, run_id, manifest_location(shards), posixpath.basename(shards.rstrip("/")),
+                                  "training")
+        if latent_bank:
+            tracking.link_latent_bank(params, root, run_id, file_sha256(latent_bank))
         summary = train_in_run(params, root, WorkerConfig(params, tuple(train_urls), tuple(val_urls), latent_bank,
                                                           uri, run_id, resume_from=None), fingerprint)
     except BaseException:
@@ -161,8 +162,7 @@ def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: 
                 raise TrainingError(f"training failed (rerun the stage to resume from the last checkpoint): "
                                     f"{worker_error(exc)}") from exc
             finally:
-                if ray_log.exists():
-                    tracking.log_artifact(config.tracking_uri, config.run_id, ray_log, RAY_LOG_FOLDER)
+                log_ray_lines(config, ray_log)
     summary = write_training_outputs(params, root, saved.state, config.run_id, baselines, fingerprint)
     uri, run_id = config.tracking_uri, config.run_id
     tracking.log_metrics(uri, run_id, {f"best/{k}": v for k, v in summary.items()
@@ -178,6 +178,16 @@ def format_training_summary(summary: dict[str, Any], model_path: str) -> str:
             f"{summary['best_epoch']}: val Abs Rel {summary['val_abs_rel']:.4f}, val RMSE "
             f"{summary['val_rmse']:.4f}; final train loss {summary['final_train_loss']:.4f}\n"
             f"[train] model written to {model_path}; MLflow run {summary['mlflow_run_id']}\n")
+
+
+def log_ray_lines(config: WorkerConfig, ray_log: Path) -> None:
+    """Upload the attempt's Ray log into the run; a failed upload is a warning, never the training's outcome."""
+    if not ray_log.exists():
+        return
+    try:
+        tracking.log_artifact(config.tracking_uri, config.run_id, ray_log, RAY_LOG_FOLDER)
+    except Exception as exc:  # the training's own result or error is what the caller must see
+        print(f"[train] warning: Ray's log {ray_log.name} was not logged to MLflow: {exc}", file=sys.stderr)
 
 
 def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str,
