@@ -22,6 +22,7 @@ switches and the seed only, so compare experiments of one preset.
 
 from __future__ import annotations
 
+import functools
 import json
 import statistics
 import sys
@@ -43,6 +44,9 @@ BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map
 ABLATIONS = (("full", True, True), ("no-bank", False, True), ("no-vae", True, False), ("neither", False, False))
 CONFIGURATIONS = {(bank, vae): name for name, bank, vae in ABLATIONS}
 HEADLINE_LABELS = {"abs_rel": "Abs Rel", "rte": "RTE", "rot": "ROT"}
+# the trivial baseline of each headline figure: constant depth for depth, constant velocity for pose
+TRIVIAL_BASELINES = {"abs_rel": ("depth_paper", "constant_depth"), "rte": ("pose_simcol", "constant_velocity"),
+                     "rot": ("pose_simcol", "constant_velocity")}
 # (title, protocol key of the evaluation JSON, columns), in the order the tables are shown
 PROTOCOL_TABLES = (
     ("Depth, paper protocol (per-image median scaling, capped at 20 cm)", "depth_paper", PAPER_COLUMNS),
@@ -153,8 +157,12 @@ def _finished_states(states: Iterable[dict]) -> Iterable[dict]:
 def _dvc_reader(project_root: str | Path) -> Callable[[str, str], Optional[str]]:
     from dvc.api import DVCFileSystem
 
+    @functools.lru_cache(maxsize=None)
+    def file_system(rev: str) -> DVCFileSystem:  # opening a revision reads its tree: once per revision
+        return DVCFileSystem(str(project_root), rev=rev)
+
     def read(rev: str, path: str) -> Optional[str]:
-        fs = DVCFileSystem(str(project_root), rev=rev)
+        fs = file_system(rev)
         try:
             return fs.read_text(path) if fs.exists(path) else None
         except FileNotFoundError:  # listed in the revision's dvc.lock, but gone from this cache
@@ -233,15 +241,10 @@ def headline_samples(runs: list[RunResults], test_set: str, metric: str) -> list
             if (value := headline_metrics(run.test_sets.get(test_set, {})).get(metric)) is not None]
 
 
-# the trivial baseline of each headline figure: constant depth for depth, constant velocity for pose
-TRIVIAL_BASELINES = {"abs_rel": ("depth_paper", "constant_depth"), "rte": ("pose_simcol", "constant_velocity"),
-                     "rot": ("pose_simcol", "constant_velocity")}
-
-
 def trivial_baseline(runs: list[RunResults], test_set: str, metric: str) -> Optional[float]:
     """The headline figure's trivial baseline (the same in every run: it depends on the data only)."""
+    protocol, method = TRIVIAL_BASELINES[metric]
     for run in runs:
-        protocol, method = TRIVIAL_BASELINES[metric]
         value = run.test_sets.get(test_set, {}).get(protocol, {}).get(method, {}).get(metric)
         if value is not None:
             return value

@@ -125,9 +125,6 @@ def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos((np.clip(trace, -1.0, 3.0) - 1.0) / 2.0))
 
 
-MOTION_KEYS = ("step_mm", "rotation_deg", "step_change_mm", "rotation_change_deg", "forward_share")
-
-
 def motion_statistics(T_world_cam: np.ndarray) -> dict[str, float]:
     """How a camera moves from frame to frame, the figures a pose network's task depends on (medians over the
     ``N - 1`` steps ``Q_i = inv(P_i) @ P_{i+1}`` of ``N x 4 x 4`` camera-to-world poses in cm):
