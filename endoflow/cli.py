@@ -225,9 +225,13 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from endoflow.sweep import run_sweep
+    from endoflow.sweep import SweepError, run_sweep
 
-    run_sweep(".", args.seeds, start=args.start)
+    try:
+        run_sweep(".", args.seeds, start=args.start)
+    except SweepError as exc:
+        print(f"endoflow sweep: error: {exc}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -18,6 +18,10 @@ from typing import Iterable
 from endoflow.report import ABLATIONS
 
 
+class SweepError(RuntimeError):
+    """A ``dvc`` command of the sweep failed; DVC has printed why."""
+
+
 def sweep_commands(seeds: Iterable[int]) -> list[list[str]]:
     """The ``dvc`` arguments that queue every configuration with every seed, seed by seed."""
     return [["exp", "run", "--queue", "-n", f"{name}-seed{seed}", "-S", f"model.latent_bank={str(bank).lower()}",
@@ -31,6 +35,10 @@ def run_sweep(project_root: str | Path, seeds: Iterable[int], start: bool = True
     commands = sweep_commands(seeds) + ([["queue", "start", "-j", "1"]] if start else [])
     for arguments in commands:
         print(f"[sweep] dvc {' '.join(arguments)}", flush=True)
-        subprocess.run(dvc + arguments, cwd=project_root, check=True)
+        exit_code = subprocess.run(dvc + arguments, cwd=project_root).returncode
+        if exit_code != 0:
+            raise SweepError(f"`dvc {' '.join(arguments)}` failed with exit code {exit_code} in "
+                             f"{Path(project_root).resolve()} (DVC says why above); run the sweep at the root of a "
+                             "DVC project (experiments queued before the failure stay queued: `dvc queue status`)")
     print("[sweep] follow with `dvc queue status` and `dvc queue logs <name>`; when the queue is done, "
           "`endoflow report` gives mean ± sd per configuration", flush=True)

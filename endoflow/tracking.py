@@ -19,6 +19,7 @@ Browse with ``mlflow ui --backend-store-uri sqlite:///$PWD/mlflow.db`` from the 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -56,6 +57,9 @@ MODEL_RUN_TAG = "endoflow.model_run_id"
 # what MLflow's UI shows beside a dataset input: what the run used it for
 DATASET_CONTEXT_TAG = "mlflow.data.context"
 MLFLOW_DIGEST_CHARS = 32  # the store's digest column holds 36 characters
+
+# MLflow announces at INFO, on the terminal, each table it creates in a new store: library noise
+logging.getLogger("mlflow.store.db.utils").setLevel(logging.WARNING)
 
 
 def tracking_uri(params: Params, project_root: str | Path) -> str:

@@ -184,3 +184,10 @@ def test_the_sweep_queues_every_configuration_with_every_seed_naming_each_switch
     assert commands[-1] == ["exp", "run", "--queue", "-n", "neither-seed2", "-S", "model.latent_bank=false",
                             "-S", "model.pose_vae=false", "-S", "seed=2"]
     assert len({tuple(c) for c in commands}) == 12
+
+
+def test_the_sweep_outside_a_dvc_project_fails_naming_the_command_and_the_folder(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["sweep", "--seeds", "0", "--no-start"]) == 1
+    error = capsys.readouterr().err
+    assert "endoflow sweep: error: `dvc exp run --queue -n full-seed0" in error and str(tmp_path) in error
