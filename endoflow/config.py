@@ -140,7 +140,10 @@ class LatentBankConfig:
     # Critic steps per generator step: one number for all resolutions, or a list like steps_per_stage.
     n_critic: Union[int, list[int]] = 1
     gp_gamma: float = 10.0
-    ema_decay: float = 0.999
+    # Decay of the generator's weight average; its horizon (about 1 / (1 - decay) steps) must be short beside
+    # the last stage, or the average still holds coarser stages' weights: 0.999 over 300-step stages left the
+    # SWD ratio at 0.50-0.60 for seeds 0-2, 0.99 gives 0.43-0.45 (docs/method.md).
+    ema_decay: float = 0.99
     # Initial scale of the synthesis convolutions relative to PyTorch's default; they are scale-free (AdaIN
     # follows), so below 1 they learn faster at the fixed lr (see endoflow.models.latent_bank.InitScaled).
     conv_init_scale: float = 0.25

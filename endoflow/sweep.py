@@ -1,6 +1,9 @@
 """The paper's Table 3 as DVC experiments: each ablation configuration with each seed, queued in DVC's
 experiment queue and run one after another by ``dvc queue start``.
 
+Each experiment reproduces the pipeline up to the ``evaluate`` stages (:data:`SWEEP_TARGET`), Table 3's
+metrics; reconstruction is left out (``dvc exp apply`` then ``dvc repro`` makes it for a chosen run).
+
 Each experiment is named ``<configuration>-seed<k>`` and sets every switch it relies on (``-S`` edits the
 queued copy's ``params.yaml`` only). DVC runs queued experiments in temporary copies of the project; the MLflow
 store and Ray's checkpoints stay in the project (:func:`endoflow.locations.home_project`). One worker at a time
@@ -17,6 +20,8 @@ from typing import Iterable
 
 from endoflow.report import ABLATIONS
 
+SWEEP_TARGET = "evaluate"
+
 
 class SweepError(RuntimeError):
     """A ``dvc`` command of the sweep failed; DVC has printed why."""
@@ -25,7 +30,7 @@ class SweepError(RuntimeError):
 def sweep_commands(seeds: Iterable[int]) -> list[list[str]]:
     """The ``dvc`` arguments that queue every configuration with every seed, seed by seed."""
     return [["exp", "run", "--queue", "-n", f"{name}-seed{seed}", "-S", f"model.latent_bank={str(bank).lower()}",
-             "-S", f"model.pose_vae={str(vae).lower()}", "-S", f"seed={seed}"]
+             "-S", f"model.pose_vae={str(vae).lower()}", "-S", f"seed={seed}", SWEEP_TARGET]
             for seed in seeds for name, bank, vae in ABLATIONS]
 
 

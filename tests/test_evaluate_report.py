@@ -180,9 +180,9 @@ def test_the_sweep_queues_every_configuration_with_every_seed_naming_each_switch
     commands = sweep_commands([0, 1, 2])
     assert len(commands) == 12
     assert commands[0] == ["exp", "run", "--queue", "-n", "full-seed0", "-S", "model.latent_bank=true",
-                           "-S", "model.pose_vae=true", "-S", "seed=0"]
+                           "-S", "model.pose_vae=true", "-S", "seed=0", "evaluate"]
     assert commands[-1] == ["exp", "run", "--queue", "-n", "neither-seed2", "-S", "model.latent_bank=false",
-                            "-S", "model.pose_vae=false", "-S", "seed=2"]
+                            "-S", "model.pose_vae=false", "-S", "seed=2", "evaluate"]
     assert len({tuple(c) for c in commands}) == 12
 
 

@@ -23,7 +23,7 @@ from endoflow.geometry.warp import warp_frame
 from endoflow.synth.render import ATLAS_PAD, MAX_DEPTH_CM, pixel_rays, render_tube_frame
 from endoflow.synth.rooms import Room, render_room
 from endoflow.synth.scenes import STYLES, make_tube_sequence
-from endoflow.synth.tube import Tube, _exhaustive_hits, intersect, surface_points, tube_view
+from endoflow.synth.tube import Hits, Tube, _exhaustive_hits, intersect, surface_points, tube_view
 from endoflow.synth.writers import (
     SIMCOL_CAM_TXT,
     plan_jobs,
@@ -108,8 +108,15 @@ def test_hits_lie_on_their_slab_wall_and_fast_path_equals_exhaustive_search(styl
     hits = intersect(view, rays)
     exhaustive_t, exhaustive_slab = _exhaustive_hits(view, rays)
     # float32 rounding: the two paths solve the same quadratics in another order, which at grazing incidence
-    # moves a root by up to about 1e-4 of its depth
-    np.testing.assert_allclose(hits.t.numpy(), exhaustive_t.numpy(), rtol=2e-4, atol=2e-4)
+    # moves a root by up to about 1e-4 of its depth. A ray that grazes a fold's crest ring (within rounding)
+    # may pass it on one path and stop on it on the other: a silhouette pixel, rare, and only on a ring.
+    differ = ~torch.isclose(hits.t, exhaustive_t, rtol=2e-4, atol=2e-4)
+    assert differ.float().mean() < 2e-3
+    graze = exhaustive_slab[differ] + view.first
+    grazing = (rays[differ] * exhaustive_t[differ, None]).double().numpy() + origin
+    along = ((grazing - tube.joints[graze]) * tube.directions[graze]).sum(1)
+    on_ring = np.minimum(np.abs(along), np.abs(along - tube.lengths[graze])) < 2e-4
+    assert on_ring.all(), "fast and exhaustive paths disagree away from a joint ring"
 
     wall = hits.slab >= 0
     assert wall.float().mean() > 0.5
@@ -121,6 +128,29 @@ def test_hits_lie_on_their_slab_wall_and_fast_path_equals_exhaustive_search(styl
     np.testing.assert_allclose(rho, tube.radii[j] + tube.slopes[j] * a, atol=2e-4)
     assert ((rel * tube.normals[j]).sum(1) >= -2e-4).all()
     assert (((points - tube.joints[j + 1]) * tube.normals[j + 1]).sum(1) <= 2e-4).all()
+
+
+@pytest.mark.parametrize("style", ["SyntheticColon_I", "SyntheticColon_III"])
+def test_shading_normals_are_continuous_across_joint_planes_where_the_walls_crease(style):
+    # Points on joint plane j belong to both slab j - 1 and slab j: both must shade them alike, although
+    # the two cones' own normals there differ by the crease between them.
+    sequence = _sequence(style)
+    tube, pose = sequence.scene.tube, sequence.poses[1]
+    origin = pose[:3, 3]
+    camera = tube.slab_containing(origin)
+    view = tube_view(tube, origin, max(camera - 1, 0), camera + 30, CPU)
+    rays = pixel_rays(simcol_intrinsics(40), 40, 40, 1, CPU) @ torch.as_tensor(pose[:3, :3].T, dtype=torch.float32)
+    hits = intersect(view, rays)
+    on_wall = hits.slab > 0
+    rays, slab = rays[on_wall], hits.slab[on_wall]
+    # move each hit along its ray onto the plane of its slab's first joint, where the slab before meets it
+    t_plane = (view.joints[slab] * view.normals[slab]).sum(-1) / (rays * view.normals[slab]).sum(-1)
+    from_here = surface_points(view, rays, Hits(t=t_plane, slab=slab))
+    from_before = surface_points(view, rays, Hits(t=t_plane, slab=slab - 1))
+    crease = torch.rad2deg(torch.acos((from_here.normals * from_before.normals).sum(-1).clamp(-1, 1)))
+    assert crease.max() > 5.0
+    np.testing.assert_allclose(from_here.shading_normals.numpy(), from_before.shading_normals.numpy(), atol=2e-5)
+    np.testing.assert_allclose(from_here.along.numpy(), from_before.along.numpy(), atol=2e-5)
 
 
 def test_depth_is_z_of_the_hit_in_the_camera_frame():

@@ -1,8 +1,11 @@
 """A picture of synthetic frames beside their depth maps (``docs/img/synthetic_frames.png``).
 
-Usage: ``python -m endoflow.synth.preview docs/img/synthetic_frames.png [--size 192] [--seed 0]``.
+Usage: ``python -m endoflow.synth.preview docs/img/synthetic_frames.png [--size 192] [--seed 0]
+[--real ../shared/samples/simcol3d]``.
 One row per scene (SimCol3D I, II, III, two EndoSLAM organs, a SceneNet room): two frames of a sequence
-with their depth maps, rendered exactly as the writers render them.
+with their depth maps, rendered exactly as the writers render them. With ``--real`` (a SimCol3D root), the
+first row shows the first and last frame of its first sequence, read by the SimCol3D reader, beside the
+built-in SimCol3D rows.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from endoflow.config import Params  # noqa: E402
+from endoflow.data.simcol import SimColReader  # noqa: E402
 from endoflow.data.scenenet import scenenet_intrinsics  # noqa: E402
 from endoflow.io import save_figure  # noqa: E402
 from endoflow.synth.render import MAX_DEPTH_CM, render_tube_frame  # noqa: E402
@@ -53,8 +57,16 @@ def preview_rows(size: int, seed: int) -> list[tuple[str, list[np.ndarray], list
     return rows
 
 
-def save_preview(path: Path, size: int = 192, seed: int = 0) -> None:
-    rows = preview_rows(size, seed)
+def real_simcol_row(root: Path) -> tuple[str, list[np.ndarray], list[np.ndarray], str]:
+    """The first and last frame of the first sequence of the SimCol3D root ``root``, as a preview row."""
+    sequence = SimColReader(root, Params().data.simcol).sequences()[0]
+    frames = [sequence.frame(i) for i in (0, len(sequence) - 1)]
+    title = f"real SimCol3D {sequence.group} {sequence.name}"
+    return title, [f.rgb.astype(np.float32) / 255 for f in frames], [f.depth_cm for f in frames], "z-depth, cm"
+
+
+def save_preview(path: Path, size: int = 192, seed: int = 0, real_simcol: Path | None = None) -> None:
+    rows = ([real_simcol_row(real_simcol)] if real_simcol is not None else []) + preview_rows(size, seed)
     figure, axes = plt.subplots(len(rows), 4, figsize=(10, 2.6 * len(rows)), constrained_layout=True)
     for row, (title, images, depths, unit) in zip(axes, rows):
         top = MAX_DEPTH_CM if unit.endswith("cm") else max(float(d.max()) for d in depths)
@@ -74,8 +86,9 @@ def main() -> None:
     parser.add_argument("out", type=Path)
     parser.add_argument("--size", type=int, default=192)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--real", type=Path, default=None, help="a SimCol3D root to show beside the built-in data")
     args = parser.parse_args()
-    save_preview(args.out, args.size, args.seed)
+    save_preview(args.out, args.size, args.seed, args.real)
 
 
 if __name__ == "__main__":

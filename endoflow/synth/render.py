@@ -139,7 +139,7 @@ def _shade(
 
 def _bumped_normals(surface: SurfacePoints, slopes: torch.Tensor) -> torch.Tensor:
     """Shading normals tilted by the bump slopes (geometry and depth stay those of the smooth wall)."""
-    bumped = surface.normals - slopes[:, :1] * surface.along - slopes[:, 1:] * surface.around
+    bumped = surface.shading_normals - slopes[:, :1] * surface.along - slopes[:, 1:] * surface.around
     return bumped / bumped.norm(dim=-1, keepdim=True)
 
 

@@ -35,6 +35,7 @@ SLAB_MARGIN = 1.3  # the planes of a slab may meet no closer to the axis than th
 PLANES_PER_CHUNK = 12
 FIRST_CHUNK = 8
 RING_TOLERANCE = 1e-4  # relative (of r^2): crossings this close to a ring count as outside it
+FOLD_PIECES = 8  # cones per haustral fold
 
 
 @dataclass
@@ -165,9 +166,11 @@ def _profile_pieces(shape: TubeShape, length: float, rng: np.random.Generator) -
         wave += 0.4 * np.sin(2 * np.pi * s / (0.37 * shape.radius_wavelength) + phase[1])
         return low + (high - low) * (0.5 + 0.5 * wave)
 
-    # Ridge profile: fractions of the fold width and of the ridge height (a rounded crest).
-    ridge_at = np.array([0.0, 0.25, 0.42, 0.58, 0.75, 1.0])
-    ridge_height = np.array([0.0, 0.55, 1.0, 1.0, 0.55, 0.0])
+    # A fold is a smooth bump (zero slope at both ends and at the crest) on a smooth step between the two
+    # flat radii, sampled by FOLD_PIECES cones; shading normals hide the creases between them.
+    ridge_at = np.linspace(0.0, 1.0, FOLD_PIECES + 1)
+    ridge_height = np.sin(np.pi * ridge_at) ** 2
+    ridge_step = ridge_at * ridge_at * (3 - 2 * ridge_at)
 
     r_flat = radius(0.0)
     pieces: list[tuple] = [(1.0, r_flat, r_flat, 0.0)]  # a straight lead-in before the first fold
@@ -176,7 +179,7 @@ def _profile_pieces(shape: TubeShape, length: float, rng: np.random.Generator) -
         period = rng.uniform(*shape.fold_period)
         r_next = radius(s + period)
         height = rng.uniform(*shape.fold_depth) * min(r_flat, r_next)
-        profile = r_flat + (r_next - r_flat) * ridge_at - height * ridge_height
+        profile = r_flat + (r_next - r_flat) * ridge_step - height * ridge_height
         steps = np.diff(ridge_at) * shape.fold_width
         for step, r0, r1 in zip(steps, profile[:-1], profile[1:]):
             pieces.append((step, r0, r1, 0.0))
@@ -497,10 +500,11 @@ class SurfacePoints:
     """Hit points (camera-relative), unit normals facing the camera, and texture coordinates."""
 
     points: torch.Tensor  # [N, 3]
-    normals: torch.Tensor  # [N, 3]
+    normals: torch.Tensor  # [N, 3] the wall's own (one cone's) normals
+    shading_normals: torch.Tensor  # [N, 3] continuous across joints: see _blended_frame
     arc: torch.Tensor  # [N] cm along the wall's profile (texture row coordinate)
     angle: torch.Tensor  # [N] radians in [-pi, pi]
-    along: torch.Tensor  # [N, 3] unit direction of growing arc (the slab's axis)
+    along: torch.Tensor  # [N, 3] unit direction of growing arc (the axis, blended across joints like the normals)
     around: torch.Tensor  # [N, 3] unit direction of growing angle
 
 
@@ -508,8 +512,38 @@ def surface_points(view: TubeView, rays: torch.Tensor, hits: Hits) -> SurfacePoi
     """Geometry and texture coordinates at the hits (cap hits: the cap plane, arc of the cap joint)."""
     wall = hits.slab >= 0
     # Cap points take their angle around the last segment's axis.
-    g = slab_constants(view, torch.where(wall, hits.slab, torch.full_like(hits.slab, len(view.lengths) - 1)))
+    slab = torch.where(wall, hits.slab, torch.full_like(hits.slab, len(view.lengths) - 1))
+    g = slab_constants(view, slab)
     p = tuple(rays.T * hits.t)
+    normal, radial, distance = _cone_normal(p, g)
+    cap = -view.normals[-1]
+    normal = tuple(torch.where(wall, n, cap[i]) for i, n in enumerate(normal))
+    angle = torch.atan2(_dot(radial, g, "e2"), _dot(radial, g, "e1"))
+    # Profile length interpolated between the joint planes (continuous across joints, unlike a projection).
+    before = _dot(p, g, "n0") + g["side0"]
+    after = _dot(p, g, "n1") + g["side1"]
+    fraction = (before / (before - after).clamp_min(1e-9)).clamp(0, 1)
+    # The cap is textured as if the wall continued radially inwards (arc grows with distance from the axis).
+    arc = torch.where(wall, g["wall"] + fraction * g["wall_length"], view.cap_wall + distance)
+    shading, along = _blended_frame(view, p, slab, g, fraction, torch.stack(normal, -1))
+    shading = torch.where(wall[:, None], shading, torch.stack(normal, -1))
+    around = torch.linalg.cross(along, torch.stack(radial, -1))
+    return SurfacePoints(
+        points=torch.stack(p, -1),
+        normals=torch.stack(normal, -1),
+        shading_normals=shading,
+        arc=arc,
+        angle=angle,
+        along=along,
+        around=around,
+    )
+
+
+def _cone_normal(
+    p: tuple[torch.Tensor, ...], g: dict[str, torch.Tensor]
+) -> tuple[tuple[torch.Tensor, ...], tuple[torch.Tensor, ...], torch.Tensor]:
+    """Inward unit normal of each ray's cone ``g`` at points ``p``, the unit radial direction, and the distance
+    of ``p`` from the cone's axis."""
     rel = (p[0] - g["cx"], p[1] - g["cy"], p[2] - g["cz"])
     a = _dot(rel, g, "u")
     radial = (rel[0] - a * g["ux"], rel[1] - a * g["uy"], rel[2] - a * g["uz"])
@@ -518,19 +552,29 @@ def surface_points(view: TubeView, rays: torch.Tensor, hits: Hits) -> SurfacePoi
     radial = tuple(r * scale for r in radial)
     k = g["slope"]
     norm = torch.rsqrt(1 + k * k)
-    cap = -view.normals[-1]
-    normal = tuple(
-        torch.where(wall, (k * g[axis] - r) * norm, cap[i]) for i, (axis, r) in enumerate(zip(("ux", "uy", "uz"), radial))
-    )
-    angle = torch.atan2(_dot(radial, g, "e2"), _dot(radial, g, "e1"))
-    # Profile length interpolated between the joint planes (continuous across joints, unlike a projection).
-    before = _dot(p, g, "n0") + g["side0"]
-    after = _dot(p, g, "n1") + g["side1"]
-    fraction = (before / (before - after).clamp_min(1e-9)).clamp(0, 1)
-    # The cap is textured as if the wall continued radially inwards (arc grows with distance from the axis).
-    arc = torch.where(wall, g["wall"] + fraction * g["wall_length"], view.cap_wall + distance)
-    along = torch.stack([g["ux"], g["uy"], g["uz"]], -1)
-    around = torch.linalg.cross(along, torch.stack(radial, -1))
-    return SurfacePoints(
-        points=torch.stack(p, -1), normals=torch.stack(normal, -1), arc=arc, angle=angle, along=along, around=around
-    )
+    normal = tuple((k * g[axis] - r) * norm for axis, r in zip(("ux", "uy", "uz"), radial))
+    return normal, radial, distance
+
+
+def _blended_frame(
+    view: TubeView,
+    p: tuple[torch.Tensor, ...],
+    slab: torch.Tensor,
+    g: dict[str, torch.Tensor],
+    fraction: torch.Tensor,
+    normal: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Shading normals and axis directions ``[N, 3]`` that are continuous across joint planes (Phong shading
+    along the tube): on joint plane ``j`` both neighbouring cones shade with the mean of their normals at the
+    point, and across a slab the value moves linearly from its first plane's mean to its second's.
+    """
+    last = len(view.lengths) - 1
+    previous = slab_constants(view, (slab - 1).clamp_min(0))
+    following = slab_constants(view, (slab + 1).clamp_max(last))
+    axis = lambda c: torch.stack([c["ux"], c["uy"], c["uz"]], -1)  # noqa: E731
+    normal_before = torch.stack(_cone_normal(p, previous)[0], -1)
+    normal_after = torch.stack(_cone_normal(p, following)[0], -1)
+    weight = fraction[:, None]
+    shading = (1 - weight) * (normal_before + normal) + weight * (normal + normal_after)
+    along = (1 - weight) * (axis(previous) + axis(g)) + weight * (axis(g) + axis(following))
+    return shading / shading.norm(dim=-1, keepdim=True), along / along.norm(dim=-1, keepdim=True)
