@@ -23,7 +23,7 @@ from endoflow.geometry.warp import warp_frame
 from endoflow.synth.render import ATLAS_PAD, MAX_DEPTH_CM, pixel_rays, render_tube_frame
 from endoflow.synth.rooms import Room, render_room
 from endoflow.synth.scenes import STYLES, make_tube_sequence
-from endoflow.synth.tube import Hits, Tube, _exhaustive_hits, intersect, surface_points, tube_view
+from endoflow.synth.tube import Hits, Tube, TubeView, _exhaustive_hits, intersect, surface_points, tube_view
 from endoflow.synth.writers import (
     SIMCOL_CAM_TXT,
     plan_jobs,
@@ -97,14 +97,20 @@ def _sequence(style: str, frames: int = 3, seed: int = 0):
     return make_tube_sequence(STYLES[style], frames, np.random.default_rng(seed), CPU)
 
 
-@pytest.mark.parametrize("style", ["SyntheticColon_I", "SyntheticColon_III", "Small Intestine"])
-def test_hits_lie_on_their_slab_wall_and_fast_path_equals_exhaustive_search(style):
+def _view_from_second_frame(style: str) -> tuple[Tube, np.ndarray, TubeView, torch.Tensor]:
+    """The tube, the camera centre, a 30-slab view and world-frame 40x40 pixel rays of a sequence's frame 1."""
     sequence = _sequence(style)
     tube, pose = sequence.scene.tube, sequence.poses[1]
     origin = pose[:3, 3]
     camera = tube.slab_containing(origin)
     view = tube_view(tube, origin, max(camera - 1, 0), camera + 30, CPU)
     rays = pixel_rays(simcol_intrinsics(40), 40, 40, 1, CPU) @ torch.as_tensor(pose[:3, :3].T, dtype=torch.float32)
+    return tube, origin, view, rays
+
+
+@pytest.mark.parametrize("style", ["SyntheticColon_I", "SyntheticColon_III", "Small Intestine"])
+def test_hits_lie_on_their_slab_wall_and_fast_path_equals_exhaustive_search(style):
+    tube, origin, view, rays = _view_from_second_frame(style)
     hits = intersect(view, rays)
     exhaustive_t, exhaustive_slab = _exhaustive_hits(view, rays)
     # float32 rounding: the two paths solve the same quadratics in another order, which at grazing incidence
@@ -134,12 +140,7 @@ def test_hits_lie_on_their_slab_wall_and_fast_path_equals_exhaustive_search(styl
 def test_shading_normals_are_continuous_across_joint_planes_where_the_walls_crease(style):
     # Points on joint plane j belong to both slab j - 1 and slab j: both must shade them alike, although
     # the two cones' own normals there differ by the crease between them.
-    sequence = _sequence(style)
-    tube, pose = sequence.scene.tube, sequence.poses[1]
-    origin = pose[:3, 3]
-    camera = tube.slab_containing(origin)
-    view = tube_view(tube, origin, max(camera - 1, 0), camera + 30, CPU)
-    rays = pixel_rays(simcol_intrinsics(40), 40, 40, 1, CPU) @ torch.as_tensor(pose[:3, :3].T, dtype=torch.float32)
+    tube, origin, view, rays = _view_from_second_frame(style)
     hits = intersect(view, rays)
     on_wall = hits.slab > 0
     rays, slab = rays[on_wall], hits.slab[on_wall]
@@ -323,3 +324,16 @@ def test_more_unitycam_sequences_than_organs_is_refused_naming_the_key(tmp_path:
 
     with pytest.raises(ConfigError, match="synth.endoslam.sequences must be at most 3"):
         plan_jobs("endoslam", tmp_path, 4, 4, 48, 3, "cpu", Params())
+
+
+def test_the_preview_shows_the_real_sample_as_read_by_the_simcol_reader():
+    if not SAMPLE.is_dir():
+        pytest.skip(f"real SimCol3D sample not found at {SAMPLE}")
+    from endoflow.synth.preview import real_simcol_row
+
+    title, images, depths, unit = real_simcol_row(SAMPLE.parent)
+    assert title == "real SimCol3D SyntheticColon_I S1" and unit == "z-depth, cm"
+    assert [image.shape for image in images] == [(475, 475, 3)] * 2
+    assert all(0 <= image.min() and image.max() <= 1 for image in images)
+    # the sample's README: depth from 0.63 to 13.3 cm in these frames
+    assert all(0.6 < depth.min() and depth.max() < 13.4 for depth in depths)
