@@ -13,9 +13,11 @@ baseline commit that has them, listed through DVC's Python API and read at their
 switches (latent bank, pose VAE). The trivial baselines are shown once per test set, from the first run.
 
 With several seeds of a configuration (the sweep of README's "Seeds" section), a last section aggregates by
-configuration: mean and sample standard deviation over seeds of each headline figure, and for each ablation
-its difference from the full model, marked where it exceeds the seed spread (both have at least two seeds and
-the two mean +- sd intervals do not overlap: ``|mean_a - mean_full| > sd_a + sd_full``). Runs with the same
+configuration, per test set: mean and sample standard deviation over seeds of Abs Rel and the SimCol3D pose
+figures (:data:`SEED_METRICS`), and for each ablation its difference from the full model, marked where it
+exceeds the seed spread (both have at least two seeds and the two mean +- sd intervals do not overlap:
+``|mean_a - mean_full| > sd_a + sd_full``); then each configuration's pose against constant velocity, marked
+where the model is better by more than its spread (``mean + sd < constant velocity``). Runs with the same
 configuration and seed (the workspace and the experiment it came from) count once; runs are grouped by the two
 switches and the seed only, so compare experiments of one preset.
 """
@@ -30,7 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional
 
-from endoflow.evaluation.results import EVALUATION_FILE, HEADLINE, evaluation_path, headline_metrics
+from endoflow.evaluation.results import EVALUATION_FILE, evaluation_path
 
 PAPER_COLUMNS = (("abs_rel", "Abs Rel"), ("sq_rel", "Sq Rel"), ("rmse", "RMSE"), ("rmse_log", "RMSE log"),
                  ("l1", "L1"), ("a1", "δ<1.25"), ("a2", "δ<1.25²"), ("a3", "δ<1.25³"))
@@ -43,10 +45,13 @@ BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map
 # the paper's Table 3 rows: (name, model.latent_bank, model.pose_vae); `endoflow sweep` names its experiments so
 ABLATIONS = (("full", True, True), ("no-bank", False, True), ("no-vae", True, False), ("neither", False, False))
 CONFIGURATIONS = {(bank, vae): name for name, bank, vae in ABLATIONS}
-HEADLINE_LABELS = {"abs_rel": "Abs Rel", "rte": "RTE", "rot": "ROT"}
-# the trivial baseline of each headline figure: constant depth for depth, constant velocity for pose
-TRIVIAL_BASELINES = {"abs_rel": ("depth_paper", "constant_depth"), "rte": ("pose_simcol", "constant_velocity"),
-                     "rot": ("pose_simcol", "constant_velocity")}
+# the seed statistics' figures: column title, protocol of the evaluation JSON, and the trivial baseline in it
+SEED_METRICS = {"abs_rel": ("Abs Rel", "depth_paper", "constant_depth"),
+                "rte": ("RTE (cm)", "pose_simcol", "constant_velocity"),
+                "rot": ("ROT (°)", "pose_simcol", "constant_velocity"),
+                "ate": ("ATE (cm)", "pose_simcol", "constant_velocity"),
+                "ate_local": ("ATE local (cm)", "pose_simcol", "constant_velocity")}
+POSE_TARGET_METRICS = ("rte", "rot", "ate", "ate_local")
 # (title, protocol key of the evaluation JSON, columns), in the order the tables are shown
 PROTOCOL_TABLES = (
     ("Depth, paper protocol (per-image median scaling, capped at 20 cm)", "depth_paper", PAPER_COLUMNS),
@@ -236,18 +241,20 @@ def runs_by_configuration(runs: list[RunResults]) -> dict[str, list[RunResults]]
     return {name: list(by_seed.values()) for name, by_seed in groups.items() if by_seed}
 
 
-def headline_samples(runs: list[RunResults], test_set: str, metric: str) -> list[float]:
-    return [value for run in runs
-            if (value := headline_metrics(run.test_sets.get(test_set, {})).get(metric)) is not None]
+def seed_samples(runs: list[RunResults], test_set: str, metric: str) -> list[float]:
+    """The model's ``metric`` (a key of :data:`SEED_METRICS`) on ``test_set`` in each run that has it."""
+    protocol, key = SEED_METRICS[metric][1], metric
+    values = [run.test_sets.get(test_set, {}).get(protocol, {}).get("model", {}).get(key) for run in runs]
+    return [float(value) for value in values if isinstance(value, (int, float))]
 
 
 def trivial_baseline(runs: list[RunResults], test_set: str, metric: str) -> Optional[float]:
-    """The headline figure's trivial baseline (the same in every run: it depends on the data only)."""
-    protocol, method = TRIVIAL_BASELINES[metric]
+    """The figure's trivial baseline (the same in every run: it depends on the data only)."""
+    _, protocol, method = SEED_METRICS[metric]
     for run in runs:
         value = run.test_sets.get(test_set, {}).get(protocol, {}).get(method, {}).get(metric)
-        if value is not None:
-            return value
+        if isinstance(value, (int, float)):
+            return float(value)
     return None
 
 
@@ -257,45 +264,78 @@ def mean_sd(values: list[float]) -> tuple[float, float]:
 
 
 def seed_statistics(runs: list[RunResults], test_sets: list[str]) -> str:
-    """Markdown: per configuration mean +- sd over seeds of every headline figure, then each ablation's
-    difference from the full model (``*``: beyond the seed spread); empty unless a configuration has 2 seeds."""
+    """Markdown: per test set, each configuration's mean +- sd over seeds, the trivial baselines and each
+    ablation's difference from the full model (``*``: beyond the seed spread); then every configuration's pose
+    against constant velocity. Empty unless a configuration has 2 seeds."""
     groups = runs_by_configuration(runs)
     if not any(len(group) > 1 for group in groups.values()):
         return ""
-    metrics = [name for name, *_ in HEADLINE]
-    columns = [(t, m) for t in test_sets for m in metrics
-               if any(headline_samples(group, t, m) for group in groups.values())]
-    headers = ["configuration", "seeds"] + [f"{t} {HEADLINE_LABELS[m]}" for t, m in columns]
+    parts = ["## Seed statistics\n\nMean ± sample standard deviation over seeds; lower is better for every "
+             "figure. Trivial baselines: constant depth for Abs Rel, constant velocity for pose. Differences "
+             "are of the means from the full model, marked `*` where they exceed the seed spread (the mean ± sd "
+             "intervals do not overlap)."]
+    for test_set in test_sets:
+        metrics = [m for m in SEED_METRICS if any(seed_samples(group, test_set, m) for group in groups.values())]
+        if metrics:
+            parts.append(f"### {test_set}\n\n" + _seed_table(runs, groups, test_set, metrics))
+    pose = _pose_against_constant_velocity(runs, groups, test_sets)
+    if pose:
+        parts.append(pose)
+    return "\n\n".join(parts)
+
+
+def _seed_table(runs: list[RunResults], groups: dict[str, list[RunResults]], test_set: str,
+                metrics: list[str]) -> str:
+    headers = ["configuration", "seeds"] + [SEED_METRICS[m][0] for m in metrics]
     rows = []
     for name, group in groups.items():
         cells = []
-        for test_set, metric in columns:
-            values = headline_samples(group, test_set, metric)
+        for metric in metrics:
+            values = seed_samples(group, test_set, metric)
             cells.append("{:.4f} ± {:.4f}".format(*mean_sd(values)) if values else "–")
         rows.append([name, str(len(group))] + cells)
-    rows.append(["trivial baselines", "–"] + [_number(trivial_baseline(runs, t, m)) for t, m in columns])
-    parts = ["## Seed statistics\n\nMean ± sample standard deviation over seeds.\n\n" +
-             markdown_table(headers, rows)]
-    if "full" in groups:
-        differences = []
-        for name, group in groups.items():
-            if name == "full":
+    rows.append(["trivial baseline", "–"] + [_number(trivial_baseline(runs, test_set, m)) for m in metrics])
+    for name, group in groups.items():
+        if name == "full" or "full" not in groups:
+            continue
+        cells = []
+        for metric in metrics:
+            full, other = seed_samples(groups["full"], test_set, metric), seed_samples(group, test_set, metric)
+            if not full or not other:
+                cells.append("–")
                 continue
+            (full_mean, full_sd), (mean, sd) = mean_sd(full), mean_sd(other)
+            # a single seed has no spread to compare with
+            beyond = min(len(full), len(other)) > 1 and abs(mean - full_mean) > sd + full_sd
+            cells.append(f"{mean - full_mean:+.4f}{' *' if beyond else ''}")
+        rows.append([f"{name} - full", str(len(group))] + cells)
+    return markdown_table(headers, rows)
+
+
+def _pose_against_constant_velocity(runs: list[RunResults], groups: dict[str, list[RunResults]],
+                                    test_sets: list[str]) -> str:
+    """Per configuration and test set, each pose figure's mean relative to constant velocity's; ``*`` where the
+    model is better by more than its seed spread (constant velocity depends on the data only: no spread)."""
+    rows = []
+    for name, group in groups.items():
+        for test_set in test_sets:
             cells = []
-            for test_set, metric in columns:
-                full, other = headline_samples(groups["full"], test_set, metric), headline_samples(
-                    group, test_set, metric)
-                if not full or not other:
+            for metric in POSE_TARGET_METRICS:
+                values, baseline = seed_samples(group, test_set, metric), trivial_baseline(runs, test_set, metric)
+                if not values or not baseline:
                     cells.append("–")
                     continue
-                (full_mean, full_sd), (mean, sd) = mean_sd(full), mean_sd(other)
-                # a single seed has no spread to compare with
-                beyond = min(len(full), len(other)) > 1 and abs(mean - full_mean) > sd + full_sd
-                cells.append(f"{mean - full_mean:+.4f}{' *' if beyond else ''}")
-            differences.append([f"{name} - full", str(len(group))] + cells)
-        parts.append("Difference of the means from the full model; `*` where it exceeds the seed spread (the "
-                     "mean ± sd intervals do not overlap).\n\n" + markdown_table(headers, differences))
-    return "\n\n".join(parts)
+                mean, sd = mean_sd(values)
+                beyond = len(values) > 1 and mean + sd < baseline
+                cells.append(f"{100 * (mean / baseline - 1):+.1f} %{' *' if beyond else ''}")
+            if any(cell != "–" for cell in cells):
+                rows.append([name, test_set, str(len(group))] + cells)
+    if not rows:
+        return ""
+    headers = ["configuration", "test set", "seeds"] + [SEED_METRICS[m][0] for m in POSE_TARGET_METRICS]
+    return ("### Pose against constant velocity\n\nThe mean over seeds relative to constant velocity's figure "
+            "(negative: the model is better); `*` where the model is better by more than its seed spread "
+            "(mean + sd below constant velocity's).\n\n" + markdown_table(headers, rows))
 
 
 def ablation_table(runs: list[RunResults], test_sets: list[str]) -> str:

@@ -151,22 +151,40 @@ def test_seed_statistics_give_mean_and_sd_per_configuration_and_mark_differences
             seeded_run("nobank-s1", False, True, 1, 0.22, 0.65),
             seeded_run("nobank-s2", False, True, 2, 0.24, 0.75)]
     text = format_report(runs)
-    section = text[text.index("## Seed statistics"):]
+    section = text[text.index("### simcol_12"):text.index("### Pose against constant velocity")]
     rows = table_rows(section)
-    assert rows[0] == ["configuration", "seeds", "simcol_12 Abs Rel", "simcol_12 RTE", "simcol_12 ROT"]
+    assert rows[0] == ["configuration", "seeds", "Abs Rel", "RTE (cm)", "ROT (°)", "ATE (cm)", "ATE local (cm)"]
     # full: Abs Rel 0.10, 0.12, 0.14 -> 0.12 ± 0.02; RTE 0.5, 0.7, 0.6 -> 0.6 ± 0.1
-    assert rows[2] == ["full", "3", "0.1200 ± 0.0200", "0.6000 ± 0.1000", "1.5000 ± 0.0000"]
-    assert rows[3] == ["no-bank", "3", "0.2200 ± 0.0200", "0.6500 ± 0.1000", "1.5000 ± 0.0000"]
-    assert rows[4] == ["trivial baselines", "–", "0.5000", "0.9000", "–"]
+    assert rows[2] == ["full", "3", "0.1200 ± 0.0200", "0.6000 ± 0.1000", "1.5000 ± 0.0000", "2.0000 ± 0.0000",
+                       "0.6000 ± 0.0000"]
+    assert rows[3] == ["no-bank", "3", "0.2200 ± 0.0200", "0.6500 ± 0.1000", "1.5000 ± 0.0000", "2.0000 ± 0.0000",
+                       "0.6000 ± 0.0000"]
+    assert rows[4] == ["trivial baseline", "–", "0.5000", "0.9000", "–", "–", "–"]
     # Abs Rel +0.10 > 0.02 + 0.02: beyond the spread; RTE +0.05 < 0.1 + 0.1: within it
-    assert rows[7] == ["no-bank - full", "3", "+0.1000 *", "+0.0500", "+0.0000"]
+    assert rows[5] == ["no-bank - full", "3", "+0.1000 *", "+0.0500", "+0.0000", "+0.0000", "+0.0000"]
+
+
+def test_pose_is_compared_with_constant_velocity_beyond_the_seed_spread():
+    runs = [seeded_run("full-s0", True, True, 0, 0.10, 0.50), seeded_run("full-s1", True, True, 1, 0.12, 0.70),
+            seeded_run("full-s2", True, True, 2, 0.14, 0.60),
+            seeded_run("nobank-s0", False, True, 0, 0.20, 0.70), seeded_run("nobank-s1", False, True, 1, 0.22, 1.10)]
+    text = format_report(runs)
+    rows = table_rows(text[text.index("### Pose against constant velocity"):])
+    assert rows[0] == ["configuration", "test set", "seeds", "RTE (cm)", "ROT (°)", "ATE (cm)", "ATE local (cm)"]
+    # constant velocity's RTE is 0.9 (ROT and ATE unknown). full: 0.6 ± 0.1, 0.7 < 0.9: better beyond its spread;
+    # no-bank: 0.9 ± 0.28, not below 0.9 whatever its spread
+    assert rows[2] == ["full", "simcol_12", "3", "-33.3 % *", "–", "–", "–"]
+    assert rows[3] == ["no-bank", "simcol_12", "2", "+0.0 %", "–", "–", "–"]
 
 
 def test_a_configuration_with_one_seed_has_no_spread_to_exceed():
     runs = [seeded_run("full-s0", True, True, 0, 0.10, 0.5), seeded_run("full-s1", True, True, 1, 0.12, 0.6),
             seeded_run("neither-s0", False, False, 0, 0.30, 0.9)]
-    rows = table_rows(format_report(runs)[format_report(runs).index("## Seed statistics"):])
+    text = format_report(runs)
+    rows = table_rows(text[text.index("### simcol_12"):text.index("### Pose against constant velocity")])
     assert rows[-1][:4] == ["neither - full", "1", "+0.1900", "+0.3500"]  # far off, yet unmarked
+    pose = table_rows(text[text.index("### Pose against constant velocity"):])
+    assert pose[-1][:4] == ["neither", "simcol_12", "1", "+0.0 %"]
 
 
 def test_one_seed_per_configuration_gives_no_seed_section():
