@@ -1,0 +1,125 @@
+"""How well two frames can pin down the camera motion at a given resolution: the upper bound for a PoseNet.
+
+    python benchmarks/bench_pose_alignment.py [--sizes 64 128 256] [--sequences S5 B5] [--frames 20]
+                                              [--iterations 1000] [--stride 1] [--threads 2]
+
+For the built-in SimCol3D test sequences named (the default data: ``Params().synth`` and its seed), each
+pair of frames is rendered at every size and its relative pose is found by photometric alignment with the
+*ground-truth* depth: the 6-DoF pose that minimises the training loss (SSIM + L1, the same warp; Adam with
+a cosine-decayed step, converged at the defaults: 2000 steps give the same figures as 1000), started from
+constant velocity (the mean relative pose of the built-in SimCol3D I/II training sequences, as the
+evaluation's baseline). It is the pose the training loss itself prefers when depth is perfect, what a
+PoseNet trained on that loss aims at. ``--stride k`` pairs frame t with frame t + k (constant velocity: k
+mean steps). Prints, per size, the median rotation error (degrees) and translation error (cm, metric: the
+depth is the true one) of constant velocity and of the alignment, and how many pixels the median pair's
+rotation moves the image centre.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from endoflow.config import Params
+from endoflow.geometry.pose import matrix_to_pose_vec, pose_vec_to_matrix, rotation_angle_deg
+from endoflow.geometry.warp import warp_frame
+from endoflow.losses.photometric import photometric_error
+from endoflow.synth.render import render_tube_frame
+from endoflow.synth.writers import plan_jobs, simcol_intrinsics, tube_sequence
+
+
+def builtin_simcol_jobs(params: Params, frames: int) -> dict:
+    """The built-in SimCol3D jobs by sequence name, with ``frames`` frames (the path does not depend on it
+    beyond its length)."""
+    synth = params.synth
+    jobs = plan_jobs("simcol", Path("unused"), synth.simcol.sequences, frames, synth.size, synth.seed, "cpu", params)
+    return {job.name: job for job in jobs}
+
+
+def constant_velocity(params: Params, jobs: dict, stride: int) -> np.ndarray:
+    """``T_src_tgt`` (source = ``stride`` frames later) of the mean relative pose over the I/II training
+    sequences."""
+    held_out = set(params.data.simcol.val) | set(params.data.simcol.test)
+    vectors = []
+    for name, job in jobs.items():
+        if name in held_out or name.startswith("O"):
+            continue
+        poses = tube_sequence(job).poses
+        relative = np.linalg.inv(poses[:-1]) @ poses[1:]  # inv(T_cur) @ T_next, as training_baselines
+        vectors.append(matrix_to_pose_vec(torch.from_numpy(relative)).numpy())
+    mean_next_cur = pose_vec_to_matrix(torch.from_numpy(np.concatenate(vectors).mean(0))).numpy()
+    return np.linalg.inv(np.linalg.matrix_power(mean_next_cur, stride))
+
+
+def align(target: torch.Tensor, source: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, start: np.ndarray,
+          iterations: int, lr: float) -> np.ndarray:
+    """Poses ``T_src_tgt [B, 4, 4]`` minimising the masked SSIM + L1 error of the warp, from ``start``."""
+    vector = matrix_to_pose_vec(torch.from_numpy(start)).float().repeat(len(target), 1).requires_grad_(True)
+    optimiser = torch.optim.Adam([vector], lr=lr)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, iterations)
+    for _ in range(iterations):
+        warped, valid = warp_frame(source, depth, pose_vec_to_matrix(vector), K)
+        error = photometric_error(warped, target, "ssim_l1")
+        # one pair's loss does not depend on another's pose: the sum keeps their gradients apart
+        loss = ((error * valid).sum(dim=(1, 2, 3)) / valid.sum(dim=(1, 2, 3)).clamp_min(1)).sum()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        schedule.step()
+    return pose_vec_to_matrix(vector.detach().double()).numpy()
+
+
+def pose_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation error (degrees) and translation error (cm) of ``[N, 4, 4]`` poses."""
+    difference = np.linalg.inv(truth) @ estimate
+    return rotation_angle_deg(difference[:, :3, :3]), np.linalg.norm(estimate[:, :3, 3] - truth[:, :3, 3], axis=1)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
+    parser.add_argument("--sequences", nargs="+", default=["S5", "B5"])
+    parser.add_argument("--frames", type=int, default=20, help="frames per sequence (the paths' first ones)")
+    parser.add_argument("--iterations", type=int, default=1000)
+    parser.add_argument("--lr", type=float, default=1e-3, help="Adam's step size (cosine decay to 0)")
+    parser.add_argument("--stride", type=int, default=1, help="frames between the two frames of a pair")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.manual_seed(0)
+    torch.set_num_threads(args.threads)
+    params = Params()
+    jobs = builtin_simcol_jobs(params, params.synth.simcol.frames)
+    start = constant_velocity(params, jobs, args.stride)
+    sequences = [tube_sequence(jobs[name]) for name in args.sequences]
+    poses = [s.poses[: args.frames] for s in sequences]
+    k = args.stride
+    truth = np.concatenate([np.linalg.inv(p[k:]) @ p[:-k] for p in poses])  # T_src_tgt, source = k frames later
+    rotation_per_pair = float(np.median(rotation_angle_deg(truth[:, :3, :3])))
+    cv_rotation, cv_translation = pose_errors(np.repeat(start[None], len(truth), 0), truth)
+    print(f"{len(truth)} pairs of {', '.join(args.sequences)}, {k} frame(s) apart; median motion per pair "
+          f"{np.median(np.linalg.norm(truth[:, :3, 3], axis=1)) * 10:.3f} mm, {rotation_per_pair:.3f} deg")
+    print(f"constant velocity: rotation error {np.median(cv_rotation):.4f} deg, translation error "
+          f"{np.median(cv_translation):.4f} cm (medians)")
+    for size in args.sizes:
+        began = time.perf_counter()
+        K = simcol_intrinsics(size)
+        frames = [[render_tube_frame(s.scene, pose, K, size, size) for pose in p] for s, p in zip(sequences, poses)]
+        rgb = torch.from_numpy(np.stack([f[0] for seq in frames for f in seq])).permute(0, 3, 1, 2)
+        depth = torch.from_numpy(np.stack([f[1] for seq in frames for f in seq]))[:, None]
+        pair = np.concatenate([np.arange(len(p) - k) + sum(len(q) for q in poses[:i]) for i, p in enumerate(poses)])
+        estimate = align(rgb[pair], rgb[pair + k], depth[pair],
+                         torch.from_numpy(K).float().expand(len(pair), 3, 3), start, args.iterations, args.lr)
+        rotation, translation = pose_errors(estimate, truth)
+        print(f"{size:4d} px: one degree moves the image centre {K[0, 0] * np.pi / 180:.2f} px "
+              f"(the median pair's rotation {K[0, 0] * np.deg2rad(rotation_per_pair):.3f} px); alignment with "
+              f"GT depth: rotation error {np.median(rotation):.4f} deg ({np.median(rotation) / np.median(cv_rotation):.2f}"
+              f" of constant velocity's), translation error {np.median(translation):.4f} cm "
+              f"({np.median(translation) / np.median(cv_translation):.2f}); {time.perf_counter() - began:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
