@@ -113,12 +113,12 @@ def main() -> None:
         pair = np.concatenate([np.arange(len(p) - k) + sum(len(q) for q in poses[:i]) for i, p in enumerate(poses)])
         estimate = align(rgb[pair], rgb[pair + k], depth[pair],
                          torch.from_numpy(K).float().expand(len(pair), 3, 3), start, args.iterations, args.lr)
-        rotation, translation = pose_errors(estimate, truth)
+        rotation, translation = (float(np.median(e)) for e in pose_errors(estimate, truth))
         print(f"{size:4d} px: one degree moves the image centre {K[0, 0] * np.pi / 180:.2f} px "
               f"(the median pair's rotation {K[0, 0] * np.deg2rad(rotation_per_pair):.3f} px); alignment with "
-              f"GT depth: rotation error {np.median(rotation):.4f} deg ({np.median(rotation) / np.median(cv_rotation):.2f}"
-              f" of constant velocity's), translation error {np.median(translation):.4f} cm "
-              f"({np.median(translation) / np.median(cv_translation):.2f}); {time.perf_counter() - began:.0f} s")
+              f"GT depth: rotation error {rotation:.4f} deg ({rotation / np.median(cv_rotation):.2f} of constant "
+              f"velocity's), translation error {translation:.4f} cm ({translation / np.median(cv_translation):.2f}); "
+              f"{time.perf_counter() - began:.0f} s")
 
 
 if __name__ == "__main__":
