@@ -1,7 +1,7 @@
 """How well two frames can pin down the camera motion at a given resolution: the upper bound for a PoseNet.
 
     python benchmarks/bench_pose_alignment.py [--sizes 64 128 256] [--sequences S5 B5] [--frames 20]
-                                              [--iterations 1000] [--stride 1] [--threads 2]
+                                              [--iterations 1000] [--lr 1e-3] [--stride 1] [--threads 2]
 
 For the built-in SimCol3D test sequences named (the default data: ``Params().synth`` and its seed), each
 pair of frames is rendered at every size and its relative pose is found by photometric alignment with the
@@ -51,8 +51,8 @@ def constant_velocity(params: Params, jobs: dict, stride: int) -> np.ndarray:
         poses = tube_sequence(job).poses
         relative = np.linalg.inv(poses[:-1]) @ poses[1:]  # inv(T_cur) @ T_next, as training_baselines
         vectors.append(matrix_to_pose_vec(torch.from_numpy(relative)).numpy())
-    mean_next_cur = pose_vec_to_matrix(torch.from_numpy(np.concatenate(vectors).mean(0))).numpy()
-    return np.linalg.inv(np.linalg.matrix_power(mean_next_cur, stride))
+    mean_cur_next = pose_vec_to_matrix(torch.from_numpy(np.concatenate(vectors).mean(0))).numpy()
+    return np.linalg.inv(np.linalg.matrix_power(mean_cur_next, stride))
 
 
 def align(target: torch.Tensor, source: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, start: np.ndarray,
@@ -89,6 +89,8 @@ def main() -> None:
     parser.add_argument("--stride", type=int, default=1, help="frames between the two frames of a pair")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
+    if args.stride < 1 or args.frames <= args.stride:
+        parser.error(f"--stride must be at least 1 and below --frames, got {args.stride} and {args.frames}")
     torch.manual_seed(0)
     torch.set_num_threads(args.threads)
     params = Params()

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional
 
-from endoflow.evaluation.results import EVALUATION_FILE, evaluation_path
+from endoflow.evaluation.results import EVALUATION_FILE, HEADLINE, evaluation_path
 
 PAPER_COLUMNS = (("abs_rel", "Abs Rel"), ("sq_rel", "Sq Rel"), ("rmse", "RMSE"), ("rmse_log", "RMSE log"),
                  ("l1", "L1"), ("a1", "δ<1.25"), ("a2", "δ<1.25²"), ("a3", "δ<1.25³"))
@@ -45,12 +45,14 @@ BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map
 # the paper's Table 3 rows: (name, model.latent_bank, model.pose_vae); `endoflow sweep` names its experiments so
 ABLATIONS = (("full", True, True), ("no-bank", False, True), ("no-vae", True, False), ("neither", False, False))
 CONFIGURATIONS = {(bank, vae): name for name, bank, vae in ABLATIONS}
-# the seed statistics' figures: column title, protocol of the evaluation JSON, and the trivial baseline in it
-SEED_METRICS = {"abs_rel": ("Abs Rel", "depth_paper", "constant_depth"),
-                "rte": ("RTE (cm)", "pose_simcol", "constant_velocity"),
-                "rot": ("ROT (°)", "pose_simcol", "constant_velocity"),
-                "ate": ("ATE (cm)", "pose_simcol", "constant_velocity"),
-                "ate_local": ("ATE local (cm)", "pose_simcol", "constant_velocity")}
+_HEADLINE_PROTOCOL = {name: protocol for name, protocol, _, _ in HEADLINE}
+# the seed statistics' figures: column title, protocol of the evaluation JSON (the headline figures' own, the
+# ATEs beside RTE's), and the trivial baseline in it
+SEED_METRICS = {"abs_rel": ("Abs Rel", _HEADLINE_PROTOCOL["abs_rel"], "constant_depth"),
+                "rte": ("RTE (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity"),
+                "rot": ("ROT (°)", _HEADLINE_PROTOCOL["rot"], "constant_velocity"),
+                "ate": ("ATE (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity"),
+                "ate_local": ("ATE local (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity")}
 POSE_TARGET_METRICS = ("rte", "rot", "ate", "ate_local")
 # (title, protocol key of the evaluation JSON, columns), in the order the tables are shown
 PROTOCOL_TABLES = (
@@ -243,8 +245,8 @@ def runs_by_configuration(runs: list[RunResults]) -> dict[str, list[RunResults]]
 
 def seed_samples(runs: list[RunResults], test_set: str, metric: str) -> list[float]:
     """The model's ``metric`` (a key of :data:`SEED_METRICS`) on ``test_set`` in each run that has it."""
-    protocol, key = SEED_METRICS[metric][1], metric
-    values = [run.test_sets.get(test_set, {}).get(protocol, {}).get("model", {}).get(key) for run in runs]
+    protocol = SEED_METRICS[metric][1]
+    values = [run.test_sets.get(test_set, {}).get(protocol, {}).get("model", {}).get(metric) for run in runs]
     return [float(value) for value in values if isinstance(value, (int, float))]
 
 

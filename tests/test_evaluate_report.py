@@ -25,7 +25,7 @@ def evaluation(abs_rel: float, rte: float) -> dict:
                         "constant_depth": {"abs_rel": 0.5, "a1": 0.3}},
         "depth_simcol": {"model": {"l1": 0.4, "rel": 9.0, "rmse": 0.7}},
         "pose_simcol": {"model": {"ate": 2.0, "ate_local": 0.6, "rte": rte, "rot": 1.5},
-                        "constant_velocity": {"rte": 0.9}},
+                        "constant_velocity": {"ate": 4.0, "ate_local": 0.6, "rte": 0.9}},
     }
 
 
@@ -87,7 +87,7 @@ def test_report_has_a_table_per_protocol_with_baselines_and_an_ablation_summary(
     assert ["workspace (bank on, VAE on)", "0.1234", "0.1000", "1.0000", "0.2000", "0.5000", "0.8000", "0.9000",
             "0.9500"] in rows
     assert ["baseline: constant depth", "0.5000", "–", "–", "–", "–", "0.3000", "–", "–"] in rows
-    assert ["baseline: constant velocity", "–", "–", "0.9000", "–"] in rows
+    assert ["baseline: constant velocity", "4.0000", "0.6000", "0.9000", "–"] in rows
     assert ["no-bank (bank off, VAE on)", "0.2000", "0.3000"] in table_rows(report.split("## Ablation summary")[1])
     assert "EndoSLAM protocol" not in report  # absent protocols get no empty table
 
@@ -122,7 +122,7 @@ def test_evaluation_summary_shows_the_model_beside_its_baselines_per_protocol():
     pose = sections["Pose, SimCol3D challenge protocol (medians)"]
     assert pose[0] == ["method", "ATE (cm)", "ATE local (cm)", "RTE (cm)", "ROT (°)"]
     assert pose[2:] == [["model", "2.0000", "0.6000", "0.2500", "1.5000"],
-                        ["baseline: constant velocity", "–", "–", "0.9000", "–"]]
+                        ["baseline: constant velocity", "4.0000", "0.6000", "0.9000", "–"]]
 
 
 def test_evaluation_summary_without_metrics_says_so():
@@ -159,7 +159,7 @@ def test_seed_statistics_give_mean_and_sd_per_configuration_and_mark_differences
                        "0.6000 ± 0.0000"]
     assert rows[3] == ["no-bank", "3", "0.2200 ± 0.0200", "0.6500 ± 0.1000", "1.5000 ± 0.0000", "2.0000 ± 0.0000",
                        "0.6000 ± 0.0000"]
-    assert rows[4] == ["trivial baseline", "–", "0.5000", "0.9000", "–", "–", "–"]
+    assert rows[4] == ["trivial baseline", "–", "0.5000", "0.9000", "–", "4.0000", "0.6000"]
     # Abs Rel +0.10 > 0.02 + 0.02: beyond the spread; RTE +0.05 < 0.1 + 0.1: within it
     assert rows[5] == ["no-bank - full", "3", "+0.1000 *", "+0.0500", "+0.0000", "+0.0000", "+0.0000"]
 
@@ -167,24 +167,24 @@ def test_seed_statistics_give_mean_and_sd_per_configuration_and_mark_differences
 def test_pose_is_compared_with_constant_velocity_beyond_the_seed_spread():
     runs = [seeded_run("full-s0", True, True, 0, 0.10, 0.50), seeded_run("full-s1", True, True, 1, 0.12, 0.70),
             seeded_run("full-s2", True, True, 2, 0.14, 0.60),
-            seeded_run("nobank-s0", False, True, 0, 0.20, 0.70), seeded_run("nobank-s1", False, True, 1, 0.22, 1.10)]
+            seeded_run("nobank-s0", False, True, 0, 0.20, 0.70), seeded_run("nobank-s1", False, True, 1, 0.22, 1.00)]
     text = format_report(runs)
     rows = table_rows(text[text.index("### Pose against constant velocity"):])
     assert rows[0] == ["configuration", "test set", "seeds", "RTE (cm)", "ROT (°)", "ATE (cm)", "ATE local (cm)"]
-    # constant velocity's RTE is 0.9 (ROT and ATE unknown). full: 0.6 ± 0.1, 0.7 < 0.9: better beyond its spread;
-    # no-bank: 0.9 ± 0.28, not below 0.9 whatever its spread
-    assert rows[2] == ["full", "simcol_12", "3", "-33.3 % *", "–", "–", "–"]
-    assert rows[3] == ["no-bank", "simcol_12", "2", "+0.0 %", "–", "–", "–"]
+    # constant velocity: RTE 0.9, ATE 4.0, ATE local 0.6, no ROT. full: RTE 0.6 ± 0.1, 0.7 < 0.9, better beyond
+    # its spread; ATE 2.0 ± 0 < 4.0, too; ATE local equal. no-bank: RTE 0.85 ± 0.21, below 0.9 but within its spread
+    assert rows[2] == ["full", "simcol_12", "3", "-33.3 % *", "–", "-50.0 % *", "+0.0 %"]
+    assert rows[3] == ["no-bank", "simcol_12", "2", "-5.6 %", "–", "-50.0 % *", "+0.0 %"]
 
 
 def test_a_configuration_with_one_seed_has_no_spread_to_exceed():
     runs = [seeded_run("full-s0", True, True, 0, 0.10, 0.5), seeded_run("full-s1", True, True, 1, 0.12, 0.6),
-            seeded_run("neither-s0", False, False, 0, 0.30, 0.9)]
+            seeded_run("neither-s0", False, False, 0, 0.30, 0.5)]
     text = format_report(runs)
     rows = table_rows(text[text.index("### simcol_12"):text.index("### Pose against constant velocity")])
-    assert rows[-1][:4] == ["neither - full", "1", "+0.1900", "+0.3500"]  # far off, yet unmarked
+    assert rows[-1][:4] == ["neither - full", "1", "+0.1900", "-0.0500"]  # Abs Rel far off, yet unmarked
     pose = table_rows(text[text.index("### Pose against constant velocity"):])
-    assert pose[-1][:4] == ["neither", "simcol_12", "1", "+0.0 %"]
+    assert pose[-1][:4] == ["neither", "simcol_12", "1", "-44.4 %"]  # well below constant velocity, yet unmarked
 
 
 def test_one_seed_per_configuration_gives_no_seed_section():

@@ -505,7 +505,9 @@ class SurfacePoints:
     arc: torch.Tensor  # [N] cm along the wall's profile (texture row coordinate)
     angle: torch.Tensor  # [N] radians in [-pi, pi]
     along: torch.Tensor  # [N, 3] unit direction of growing arc (the axis, blended across joints like the normals)
-    around: torch.Tensor  # [N, 3] unit direction of growing angle
+    # [N, 3] direction of growing angle: along x the cone's radial direction (unit up to the small angle between
+    # the blended and the cone's own axis)
+    around: torch.Tensor
 
 
 def surface_points(view: TubeView, rays: torch.Tensor, hits: Hits) -> SurfacePoints:
@@ -515,9 +517,8 @@ def surface_points(view: TubeView, rays: torch.Tensor, hits: Hits) -> SurfacePoi
     slab = torch.where(wall, hits.slab, torch.full_like(hits.slab, len(view.lengths) - 1))
     g = slab_constants(view, slab)
     p = tuple(rays.T * hits.t)
-    normal, radial, distance = _cone_normal(p, g)
-    cap = -view.normals[-1]
-    normal = tuple(torch.where(wall, n, cap[i]) for i, n in enumerate(normal))
+    cone_normal, radial, distance = _cone_normal(p, g)
+    normal = torch.where(wall[:, None], torch.stack(cone_normal, -1), -view.normals[-1])
     angle = torch.atan2(_dot(radial, g, "e2"), _dot(radial, g, "e1"))
     # Profile length interpolated between the joint planes (continuous across joints, unlike a projection).
     before = _dot(p, g, "n0") + g["side0"]
@@ -525,12 +526,12 @@ def surface_points(view: TubeView, rays: torch.Tensor, hits: Hits) -> SurfacePoi
     fraction = (before / (before - after).clamp_min(1e-9)).clamp(0, 1)
     # The cap is textured as if the wall continued radially inwards (arc grows with distance from the axis).
     arc = torch.where(wall, g["wall"] + fraction * g["wall_length"], view.cap_wall + distance)
-    shading, along = _blended_frame(view, p, slab, g, fraction, torch.stack(normal, -1))
-    shading = torch.where(wall[:, None], shading, torch.stack(normal, -1))
+    shading, along = _blended_frame(view, p, slab, g, fraction, normal)
+    shading = torch.where(wall[:, None], shading, normal)
     around = torch.linalg.cross(along, torch.stack(radial, -1))
     return SurfacePoints(
         points=torch.stack(p, -1),
-        normals=torch.stack(normal, -1),
+        normals=normal,
         shading_normals=shading,
         arc=arc,
         angle=angle,
