@@ -173,4 +173,5 @@ def test_synthetic_poses_read_as_world_to_camera_are_flagged(synthetic_roots: di
     # (A handedness error shows only in sequences that move along or turn about y; the real sample does.)
     for sequence in open_reader(synthetic_roots["simcol"], "simcol", Params()).sequences():
         inverted = dataclasses.replace(sequence, poses=np.linalg.inv(sequence.poses))
-        assert check_sequence(inverted)["ratio"] > 1, sequence.name
+        # (the inverted motion of a short step can still explain some of the change: O1 reads 0.82, B1 and S1 1.13 and 1.14)
+        assert check_sequence(sequence)["flagged"] is False and check_sequence(inverted)["flagged"], sequence.name
