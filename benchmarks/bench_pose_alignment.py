@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from endoflow.config import Params
-from endoflow.geometry.pose import matrix_to_pose_vec, pose_vec_to_matrix, rotation_angle_deg
+from endoflow.geometry.pose import matrix_to_pose_vec, mean_step, pose_vec_to_matrix, relative_pose, rotation_angle_deg
 from endoflow.geometry.warp import warp_frame
 from endoflow.losses.photometric import photometric_error
 from endoflow.synth.render import render_tube_frame
@@ -44,14 +44,9 @@ def constant_velocity(params: Params, jobs: dict, stride: int) -> np.ndarray:
     """``T_src_tgt`` (source = ``stride`` frames later) of the mean relative pose over the I/II training
     sequences."""
     held_out = set(params.data.simcol.val) | set(params.data.simcol.test)
-    vectors = []
-    for name, job in jobs.items():
-        if name in held_out or name.startswith("O"):
-            continue
-        poses = tube_sequence(job).poses
-        relative = np.linalg.inv(poses[:-1]) @ poses[1:]  # inv(T_cur) @ T_next, as training_baselines
-        vectors.append(matrix_to_pose_vec(torch.from_numpy(relative)).numpy())
-    mean_cur_next = pose_vec_to_matrix(torch.from_numpy(np.concatenate(vectors).mean(0))).numpy()
+    training = [tube_sequence(job).poses for name, job in jobs.items()
+                if name not in held_out and not name.startswith("O")]
+    mean_cur_next = mean_step(np.concatenate([relative_pose(p[:-1], p[1:]) for p in training]))
     return np.linalg.inv(np.linalg.matrix_power(mean_cur_next, stride))
 
 
@@ -99,7 +94,7 @@ def main() -> None:
     sequences = [tube_sequence(jobs[name]) for name in args.sequences]
     poses = [s.poses[: args.frames] for s in sequences]
     k = args.stride
-    truth = np.concatenate([np.linalg.inv(p[k:]) @ p[:-k] for p in poses])  # T_src_tgt, source = k frames later
+    truth = np.concatenate([relative_pose(p[k:], p[:-k]) for p in poses])  # T_src_tgt, source = k frames later
     rotation_per_pair = float(np.median(rotation_angle_deg(truth[:, :3, :3])))
     cv_rotation, cv_translation = pose_errors(np.repeat(start[None], len(truth), 0), truth)
     print(f"{len(truth)} pairs of {', '.join(args.sequences)}, {k} frame(s) apart; median motion per pair "

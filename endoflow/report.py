@@ -318,12 +318,13 @@ def _pose_against_constant_velocity(runs: list[RunResults], groups: dict[str, li
                                     test_sets: list[str]) -> str:
     """Per configuration and test set, each pose figure's mean relative to constant velocity's; ``*`` where the
     model is better by more than its seed spread (constant velocity depends on the data only: no spread)."""
+    baselines = {(t, m): trivial_baseline(runs, t, m) for t in test_sets for m in POSE_TARGET_METRICS}
     rows = []
     for name, group in groups.items():
         for test_set in test_sets:
             cells = []
             for metric in POSE_TARGET_METRICS:
-                values, baseline = seed_samples(group, test_set, metric), trivial_baseline(runs, test_set, metric)
+                values, baseline = seed_samples(group, test_set, metric), baselines[test_set, metric]
                 if not values or not baseline:
                     cells.append("–")
                     continue

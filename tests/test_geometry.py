@@ -16,6 +16,7 @@ from endoflow.geometry.pose import (
     axis_angle_to_matrix,
     invert_pose,
     matrix_to_pose_vec,
+    mean_step,
     matrix_to_quaternion_xyzw,
     opencv_to_unity,
     pose_vec_to_matrix,
@@ -299,3 +300,12 @@ def test_chain_step_is_the_inverse_step_composed_and_stays_rigid():
     rotation = nearest_rotation(noisy)
     np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(rotation) == pytest.approx(1.0) and np.abs(rotation - step[:3, :3]).max() < 1e-3
+
+
+def test_the_mean_step_of_equal_steps_is_that_step_and_of_no_steps_the_identity():
+    step = pose_vec_to_matrix(torch.tensor([0.01, -0.02, 0.005, 0.1, 0.0, 0.13], dtype=torch.float64)).numpy()
+    np.testing.assert_allclose(mean_step(np.stack([step] * 5)), step, atol=1e-12)
+    np.testing.assert_array_equal(mean_step(np.zeros((0, 4, 4))), np.eye(4))
+    # a turn and the same turn back average to no motion (the mean is over axis-angle and translation vectors)
+    turn = pose_vec_to_matrix(torch.tensor([0.01, -0.02, 0.005, 0.0, 0.0, 0.0], dtype=torch.float64)).numpy()
+    np.testing.assert_allclose(mean_step(np.stack([turn, np.linalg.inv(turn)])), np.eye(4), atol=1e-12)

@@ -119,6 +119,16 @@ def chain_step(T_world_prev: np.ndarray, T_cur_prev: np.ndarray) -> np.ndarray:
     return pose
 
 
+def mean_step(steps: np.ndarray) -> np.ndarray:
+    """The constant-velocity step of ``N x 4 x 4`` relative poses: their mean pose vector (axis-angle,
+    translation) as a ``4 x 4`` transform; the identity when ``N`` is 0."""
+    _check_last_dims(steps, (4, 4), "steps")
+    if len(steps) == 0:
+        return np.eye(4)
+    vectors = matrix_to_pose_vec(torch.from_numpy(np.asarray(steps, np.float64))).numpy()
+    return pose_vec_to_matrix(torch.from_numpy(np.mean(vectors, axis=0))).numpy()
+
+
 def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
     """Rotation angle of ``... x 3 x 3`` matrices in degrees, trace clipped so rounding never gives NaN."""
     trace = np.trace(rotations, axis1=-2, axis2=-1)

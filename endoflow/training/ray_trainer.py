@@ -28,7 +28,6 @@ from typing import Any, Optional
 import fsspec
 import numpy as np
 import pandas as pd
-import torch
 
 from endoflow import tracking
 from endoflow.config import ConfigError, Params, flatten_params
@@ -41,7 +40,7 @@ from endoflow.data.shard_format import (
     manifest_location,
 )
 from endoflow.evaluation import plots
-from endoflow.geometry.pose import matrix_to_pose_vec, pose_vec_to_matrix
+from endoflow.geometry.pose import mean_step
 from endoflow.io import file_sha256, save_figure, staged_directory, write_csv, write_json
 from endoflow.locations import absolute_location, home_project, local_file
 from endoflow.models.mlflow_model import log_mlflow_model
@@ -88,7 +87,7 @@ def training_baselines(train_urls: list[str]) -> TrainingBaselines:
     """Mean GT depth (scalar and per pixel) and mean relative pose ``inv(T_cur) @ T_next`` of the train shards."""
     depth_sum: Optional[np.ndarray] = None
     depth_count: Optional[np.ndarray] = None
-    pose_vectors = []
+    steps = []
     for sample in raw_samples(train_urls):
         meta = decode_meta(sample[META_MEMBER], sample["__url__"])
         depth = decode_depth(sample[DEPTH_MEMBER], meta["depth_unit"], sample["__url__"]).astype(np.float64)
@@ -100,14 +99,12 @@ def training_baselines(train_urls: list[str]) -> TrainingBaselines:
         poses = meta["T_world_cam"]
         if poses.get("cur") is not None and poses.get("next") is not None:
             relative = np.linalg.inv(np.array(poses["cur"])) @ np.array(poses["next"])
-            pose_vectors.append(matrix_to_pose_vec(torch.from_numpy(relative)).numpy())
+            steps.append(relative)
     if depth_sum is None or depth_count.sum() == 0:
         raise ValueError(f"train shards {train_urls[:1]}...: no GT depth to compute the baselines from")
     mean_depth = float(depth_sum.sum() / depth_count.sum())
     mean_map = np.where(depth_count > 0, depth_sum / np.maximum(depth_count, 1), mean_depth)
-    mean_relative = (pose_vec_to_matrix(torch.from_numpy(np.mean(pose_vectors, axis=0))).numpy()
-                     if pose_vectors else np.eye(4))
-    return TrainingBaselines(mean_depth, mean_map.astype(np.float32), mean_relative)
+    return TrainingBaselines(mean_depth, mean_map.astype(np.float32), mean_step(np.array(steps).reshape(-1, 4, 4)))
 
 
 def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
