@@ -337,3 +337,14 @@ def test_the_preview_shows_the_real_sample_as_read_by_the_simcol_reader():
     assert all(0 <= image.min() and image.max() <= 1 for image in images)
     # the sample's README: depth from 0.63 to 13.3 cm in these frames
     assert all(0.6 < depth.min() and depth.max() < 13.4 for depth in depths)
+
+
+def test_the_preview_names_a_folder_that_is_no_simcol3d_root(tmp_path, monkeypatch, capsys):
+    from endoflow.synth import preview
+
+    monkeypatch.setattr("sys.argv", ["preview", str(tmp_path / "picture.png"), "--real", str(tmp_path)])
+    with pytest.raises(SystemExit) as stop:
+        preview.main()
+    assert stop.value.code == 2
+    assert f"--real: {tmp_path}: no SimCol3D scene folder found" in capsys.readouterr().err
+    assert not (tmp_path / "picture.png").exists()

@@ -20,6 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from endoflow.config import Params  # noqa: E402
+from endoflow.data.base import DataFormatError  # noqa: E402
 from endoflow.data.simcol import SimColReader  # noqa: E402
 from endoflow.data.scenenet import scenenet_intrinsics  # noqa: E402
 from endoflow.io import save_figure  # noqa: E402
@@ -88,7 +89,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--real", type=Path, default=None, help="a SimCol3D root to show beside the built-in data")
     args = parser.parse_args()
-    save_preview(args.out, args.size, args.seed, args.real)
+    try:
+        save_preview(args.out, args.size, args.seed, args.real)
+    except DataFormatError as exc:
+        parser.error(f"--real: {exc}")
 
 
 if __name__ == "__main__":
