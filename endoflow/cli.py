@@ -11,6 +11,7 @@ from typing import Any, Iterator, Optional, Sequence
 
 from endoflow.config import ConfigError, load_params
 from endoflow.data.base import DATASETS, DataFormatError
+from endoflow.sweep import STUDIES
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -100,6 +101,9 @@ def build_parser() -> argparse.ArgumentParser:
     sweep = commands.add_parser("sweep", help="queue the four ablation configurations x seeds as DVC experiments "
                                               "and run them (the paper's Table 3 with seed statistics)")
     sweep.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default: 0 1 2)")
+    sweep.add_argument("--study", choices=STUDIES, default="ablation",
+                       help="ablation: the four configurations (default); vae: the full model without the warp's "
+                            "sampling and with beta over decades (docs/method.md, 'What the VAE contributes')")
     sweep.add_argument("--no-start", dest="start", action="store_false",
                        help="only queue them (start later with `dvc queue start -j 1`)")
     sweep.set_defaults(handler=_sweep)
@@ -228,7 +232,7 @@ def _sweep(args: argparse.Namespace) -> int:
     from endoflow.sweep import SweepError, run_sweep
 
     try:
-        run_sweep(".", args.seeds, start=args.start)
+        run_sweep(".", args.seeds, start=args.start, study=args.study)
     except SweepError as exc:
         print(f"endoflow sweep: error: {exc}", file=sys.stderr)
         return 1

@@ -174,6 +174,9 @@ class ModelConfig:
     # Initial log-variance of the pose VAE (std exp(-4.5) ~ 0.011 rad / cm): small, so early samples
     # do not swamp the warp; the KL term then pulls it up against the reprojection loss.
     pose_logvar_init: float = -9.0
+    # With pose_vae, training warps with the reparameterised sample (true, the paper) or with the mean (false:
+    # the KL still applies); the VAE study in docs/method.md separates the two. Evaluation always uses the mean.
+    pose_sample: bool = True
 
 
 @dataclass

@@ -18,8 +18,10 @@ figures (:data:`SEED_METRICS`), and for each ablation its difference from the fu
 exceeds the seed spread (both have at least two seeds and the two mean +- sd intervals do not overlap:
 ``|mean_a - mean_full| > sd_a + sd_full``); then each configuration's pose against constant velocity, marked
 where the model is better by more than its spread (``mean + sd < constant velocity``). Runs with the same
-configuration and seed (the workspace and the experiment it came from) count once; runs are grouped by the two
-switches and the seed only, so compare experiments of one preset.
+configuration and seed (the workspace and the experiment it came from) count once. A configuration is the two
+switches plus, with the VAE, the VAE study's settings where they differ from the defaults (``model.pose_sample``
+and ``loss.kl_weight``: ``full, β=0.001``, ``full, mean warp``); nothing else, so compare experiments of one
+preset.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional
 
+from endoflow.config import LossConfig, ModelConfig
 from endoflow.evaluation.results import EVALUATION_FILE, HEADLINE, evaluation_path
 
 PAPER_COLUMNS = (("abs_rel", "Abs Rel"), ("sq_rel", "Sq Rel"), ("rmse", "RMSE"), ("rmse_log", "RMSE log"),
@@ -45,6 +48,10 @@ BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map
 # the paper's Table 3 rows: (name, model.latent_bank, model.pose_vae); `endoflow sweep` names its experiments so
 ABLATIONS = (("full", True, True), ("no-bank", False, True), ("no-vae", True, False), ("neither", False, False))
 CONFIGURATIONS = {(bank, vae): name for name, bank, vae in ABLATIONS}
+# the VAE study's settings (docs/method.md): with the VAE, a run whose setting differs from the default is its own
+# configuration, named after the ablation and the setting
+DEFAULT_KL_WEIGHT = LossConfig().kl_weight
+DEFAULT_POSE_SAMPLE = ModelConfig().pose_sample
 _HEADLINE_PROTOCOL = {name: protocol for name, protocol, _, _ in HEADLINE}
 # the seed statistics' figures: column title, protocol of the evaluation JSON (the headline figures' own, the
 # ATEs beside RTE's), and the trivial baseline in it
@@ -77,7 +84,18 @@ class RunResults:
         model = self.params.get("model", {})
         if "latent_bank" not in model or "pose_vae" not in model:
             return None
-        return CONFIGURATIONS[(bool(model["latent_bank"]), bool(model["pose_vae"]))]
+        name = CONFIGURATIONS[(bool(model["latent_bank"]), bool(model["pose_vae"]))]
+        return ", ".join([name] + self._vae_study_settings())
+
+    def _vae_study_settings(self) -> list[str]:
+        """The VAE study's settings where they differ from the defaults; none without the VAE, which neither
+        samples nor has a KL term."""
+        model, loss = self.params.get("model", {}), self.params.get("loss", {})
+        if not model.get("pose_vae"):
+            return []
+        settings = [] if bool(model.get("pose_sample", DEFAULT_POSE_SAMPLE)) else ["mean warp"]
+        beta = float(loss.get("kl_weight", DEFAULT_KL_WEIGHT))
+        return settings + ([f"β={beta:g}"] if beta != DEFAULT_KL_WEIGHT else [])
 
     @property
     def label(self) -> str:
@@ -235,11 +253,11 @@ def format_report(runs: list[RunResults], order: Iterable[str] = ()) -> str:
 
 
 def runs_by_configuration(runs: list[RunResults]) -> dict[str, list[RunResults]]:
-    """Runs of each known configuration, in the order of :data:`CONFIGURATIONS`, one per seed."""
+    """Runs of each known configuration, one per seed: the four of :data:`CONFIGURATIONS` in their order, then
+    the VAE study's in name order."""
     groups: dict[str, dict[Any, RunResults]] = {name: {} for name in CONFIGURATIONS.values()}
-    for run in runs:
-        if run.configuration is not None:
-            groups[run.configuration].setdefault(run.params.get("seed"), run)
+    for run in sorted((run for run in runs if run.configuration is not None), key=lambda run: run.configuration):
+        groups.setdefault(run.configuration, {}).setdefault(run.params.get("seed"), run)
     return {name: list(by_seed.values()) for name, by_seed in groups.items() if by_seed}
 
 

@@ -18,26 +18,47 @@ import sys
 from pathlib import Path
 from typing import Iterable
 
-from endoflow.report import ABLATIONS
+from endoflow.report import ABLATIONS, DEFAULT_KL_WEIGHT
 
 SWEEP_TARGET = "evaluate"
+# The VAE study (docs/method.md): the full model with the warp's sampling or the KL taken away, and beta over
+# decades: (name, model.pose_sample, loss.kl_weight). Beside the ablation sweep's full and no-vae runs of the same
+# seeds it tells what the VAE contributes.
+VAE_STUDY = (("vae-mean-warp", False, DEFAULT_KL_WEIGHT), ("vae-beta0", True, 0.0), ("vae-beta1e-4", True, 1e-4),
+             ("vae-beta1e-3", True, 1e-3))
+STUDIES = ("ablation", "vae")
 
 
 class SweepError(RuntimeError):
     """A ``dvc`` command of the sweep failed; DVC has printed why."""
 
 
-def sweep_commands(seeds: Iterable[int]) -> list[list[str]]:
-    """The ``dvc`` arguments that queue every configuration with every seed, seed by seed."""
-    return [["exp", "run", "--queue", "-n", f"{name}-seed{seed}", "-S", f"model.latent_bank={str(bank).lower()}",
-             "-S", f"model.pose_vae={str(vae).lower()}", "-S", f"seed={seed}", SWEEP_TARGET]
-            for seed in seeds for name, bank, vae in ABLATIONS]
+def sweep_commands(seeds: Iterable[int], study: str = "ablation") -> list[list[str]]:
+    """The ``dvc`` arguments that queue every configuration of ``study`` (:data:`STUDIES`) with every seed,
+    seed by seed."""
+    if study not in STUDIES:
+        raise ValueError(f"study: expected one of {', '.join(STUDIES)}, got {study!r}")
+    if study == "ablation":
+        configurations = [(name, {"model.latent_bank": bank, "model.pose_vae": vae}) for name, bank, vae in ABLATIONS]
+    else:
+        # beta in YAML's float form (1.0e-04): `-S` values are parsed as YAML, where 1e-04 would be a string
+        configurations = [(name, {"model.latent_bank": True, "model.pose_vae": True, "model.pose_sample": sample,
+                                  "loss.kl_weight": f"{beta:.1e}"}) for name, sample, beta in VAE_STUDY]
+    return [["exp", "run", "--queue", "-n", f"{name}-seed{seed}"]
+            + [part for key, value in settings.items() for part in ("-S", f"{key}={_yaml(value)}")]
+            + ["-S", f"seed={seed}", SWEEP_TARGET]
+            for seed in seeds for name, settings in configurations]
 
 
-def run_sweep(project_root: str | Path, seeds: Iterable[int], start: bool = True) -> None:
-    """Queue the sweep in the DVC project at ``project_root`` and, with ``start``, start one queue worker."""
+def _yaml(value: bool | str) -> str:
+    return str(value).lower() if isinstance(value, bool) else value
+
+
+def run_sweep(project_root: str | Path, seeds: Iterable[int], start: bool = True, study: str = "ablation") -> None:
+    """Queue ``study``'s sweep in the DVC project at ``project_root`` and, with ``start``, start one queue
+    worker."""
     dvc = [sys.executable, "-m", "dvc"]
-    commands = sweep_commands(seeds) + ([["queue", "start", "-j", "1"]] if start else [])
+    commands = sweep_commands(seeds, study) + ([["queue", "start", "-j", "1"]] if start else [])
     for arguments in commands:
         print(f"[sweep] dvc {' '.join(arguments)}", flush=True)
         exit_code = subprocess.run(dvc + arguments, cwd=project_root).returncode

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from endoflow.cli import main
 from endoflow.report import (
     RunResults,
@@ -209,3 +211,60 @@ def test_the_sweep_outside_a_dvc_project_fails_naming_the_command_and_the_folder
     assert main(["sweep", "--seeds", "0", "--no-start"]) == 1
     error = capsys.readouterr().err
     assert "endoflow sweep: error: `dvc exp run --queue -n full-seed0" in error and str(tmp_path) in error
+
+
+def test_the_vae_study_queues_the_full_model_without_sampling_and_with_beta_over_decades():
+    from endoflow.sweep import sweep_commands
+
+    commands = sweep_commands([0, 1], study="vae")
+    assert len(commands) == 8
+    assert commands[0] == ["exp", "run", "--queue", "-n", "vae-mean-warp-seed0", "-S", "model.latent_bank=true",
+                           "-S", "model.pose_vae=true", "-S", "model.pose_sample=false",
+                           "-S", "loss.kl_weight=1.0e-05", "-S", "seed=0", "evaluate"]
+    betas = [c[c.index("-S", 10) + 1] for c in commands[:4]]
+    assert betas == ["loss.kl_weight=1.0e-05", "loss.kl_weight=0.0e+00", "loss.kl_weight=1.0e-04",
+                     "loss.kl_weight=1.0e-03"]
+    with pytest.raises(ValueError, match="study"):
+        sweep_commands([0], study="vea")
+
+
+def test_the_vae_study_settings_read_back_as_the_studys_values():
+    from endoflow.config import Params, apply_override, params_from_dict, params_to_dict
+    from endoflow.sweep import VAE_STUDY, sweep_commands
+
+    for command, (_, sample, beta) in zip(sweep_commands([0], study="vae"), VAE_STUDY):
+        raw = params_to_dict(Params())
+        for setting in command[command.index("-S") + 1::2][:5]:
+            apply_override(raw, setting)
+        params = params_from_dict(raw)
+        assert params.model.pose_sample is sample and params.loss.kl_weight == beta and params.seed == 0
+
+
+def study_run(name: str, seed: int, abs_rel: float, *, sample: bool = True, beta: float = 1e-5,
+              vae: bool = True) -> RunResults:
+    params = {"seed": seed, "model": {"latent_bank": True, "pose_vae": vae, "pose_sample": sample},
+              "loss": {"kl_weight": beta}}
+    return RunResults(name, params, {"simcol_12": evaluation(abs_rel, 0.5)})
+
+
+def test_vae_study_runs_are_their_own_configurations_named_by_the_setting():
+    assert study_run("a", 0, 0.1).configuration == "full"
+    assert study_run("a", 0, 0.1, sample=False).configuration == "full, mean warp"
+    assert study_run("a", 0, 0.1, beta=1e-3).configuration == "full, β=0.001"
+    assert study_run("a", 0, 0.1, beta=0.0).configuration == "full, β=0"
+    # without the VAE there is nothing to sample and no KL: the settings do not split no-vae
+    assert study_run("a", 0, 0.1, vae=False, sample=False, beta=1e-3).configuration == "no-vae"
+    # runs from before the setting existed are the default
+    assert RunResults("old", {"model": {"latent_bank": True, "pose_vae": True}}).configuration == "full"
+
+
+def test_vae_study_rows_follow_the_four_configurations_and_are_compared_with_the_full_model():
+    runs = [study_run("beta-s0", 0, 0.20, beta=1e-3), study_run("beta-s1", 1, 0.22, beta=1e-3),
+            study_run("full-s0", 0, 0.10), study_run("full-s1", 1, 0.12),
+            study_run("mean-s0", 0, 0.11, sample=False), study_run("mean-s1", 1, 0.13, sample=False)]
+    text = format_report(runs)
+    rows = table_rows(text[text.index("### simcol_12"):text.index("### Pose against constant velocity")])
+    assert [row[0] for row in rows[2:]] == ["full", "full, mean warp", "full, β=0.001", "trivial baseline",
+                                            "full, mean warp - full", "full, β=0.001 - full"]
+    assert rows[-1][:3] == ["full, β=0.001 - full", "2", "+0.1000 *"]
+    assert rows[-2][:3] == ["full, mean warp - full", "2", "+0.0100"]

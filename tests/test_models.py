@@ -273,6 +273,20 @@ def test_deterministic_pose_net_without_vae():
     assert training_step_losses(model, batch, params.loss)["kl"] == 0
 
 
+def test_without_pose_sampling_training_warps_with_the_mean_and_keeps_the_kl():
+    params = small_params(latent_bank=False, pose_sample=False)
+    model = build_model(params, None).train()
+    with torch.no_grad():
+        model.pose_net.logvar_head.bias.fill_(-2.0)  # a spread a sample would show
+    batch = random_batch(2, 32, 32)
+    estimate = model.source_pose(batch["cur"], batch["next"], source_is_next=True)
+    assert estimate.logvar is not None and torch.equal(estimate.vec, estimate.mean)
+    losses = training_step_losses(model, batch, params.loss)
+    assert losses["kl"] > 0
+    losses["total"].backward()
+    assert model.pose_net.logvar_head.weight.grad.abs().sum() > 0  # the KL alone trains the variance head
+
+
 def test_previous_frame_pose_is_the_inverse_of_the_forward_motion():
     model = build_model(small_params(latent_bank=False), None).eval()
     batch = random_batch(2, 32, 32)

@@ -6,8 +6,9 @@ Pose direction (as Monodepth2): the pose network always reads a pair in temporal
 is directly ``T_next_cur``; for the previous frame it predicts ``T_cur_prev`` and the warp uses its inverse
 ``T_prev_cur``. Both predicted vectors are forward motions, so one prior (N(0, I)) fits both.
 
-In training mode with ``pose_vae`` the vector driving the warp is the reparameterised sample
-``mean + exp(logvar / 2) * eps``; in eval mode (and without ``pose_vae``) it is the mean.
+In training mode with ``pose_vae`` (and ``pose_sample``) the vector driving the warp is the reparameterised
+sample ``mean + exp(logvar / 2) * eps``; in eval mode, without ``pose_vae`` and with ``pose_sample`` false it is
+the mean (the log-variance is still predicted, so the KL still applies).
 
 Depth: disparity ``sigma`` in (0, 1) maps linearly to inverse depth between ``1 / max_depth`` and
 ``1 / min_depth`` (Monodepth2's ``disp_to_depth``), so depth lies in ``[min_depth, max_depth]`` cm.
@@ -76,8 +77,8 @@ class EndoflowModel(nn.Module):
 
     def source_pose(self, target: torch.Tensor, source: torch.Tensor, source_is_next: bool) -> PoseEstimate:
         """The pose that warps ``source`` (the next or the previous frame) into ``target``; sampled in
-        training mode."""
-        return self._pose_of_source(target, source, source_is_next, sample=self.training)
+        training mode unless ``pose_sample`` is off."""
+        return self._pose_of_source(target, source, source_is_next, sample=self.training and self.cfg.pose_sample)
 
     @torch.no_grad()
     def predict_pose(self, target: torch.Tensor, source: torch.Tensor, source_is_next: bool = True) -> torch.Tensor:
