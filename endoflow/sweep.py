@@ -8,11 +8,14 @@ Each experiment is named ``<configuration>-seed<k>`` and sets every switch it re
 queued copy's ``params.yaml`` only). DVC runs queued experiments in temporary copies of the project; the MLflow
 store and Ray's checkpoints stay in the project (:func:`endoflow.locations.home_project`). One worker at a time
 (``-j 1``): the embedded MLflow store is one SQLite file, and one training already uses every core. When the
-queue is done, ``endoflow report`` aggregates the runs by configuration over seeds.
+queue is done, ``endoflow report`` aggregates the runs by configuration over seeds. Queued experiments import
+``endoflow`` from the environment's install, which ``make install`` makes editable (the workspace's files): the
+library must stay as it is until the queue is done.
 """
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -54,6 +57,14 @@ def _yaml(value: bool | str) -> str:
     return str(value).lower() if isinstance(value, bool) else value
 
 
+def stage_environment() -> dict[str, str]:
+    """The environment of the ``dvc`` commands: stage commands call ``python``, and the queue worker started here
+    runs them, so this interpreter's folder comes first on PATH (as in ``make repro``), activated or not."""
+    environment = dict(os.environ)
+    environment["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), environment.get("PATH", "")])
+    return environment
+
+
 def run_sweep(project_root: str | Path, seeds: Iterable[int], start: bool = True, study: str = "ablation") -> None:
     """Queue ``study``'s sweep in the DVC project at ``project_root`` and, with ``start``, start one queue
     worker."""
@@ -61,7 +72,7 @@ def run_sweep(project_root: str | Path, seeds: Iterable[int], start: bool = True
     commands = sweep_commands(seeds, study) + ([["queue", "start", "-j", "1"]] if start else [])
     for arguments in commands:
         print(f"[sweep] dvc {' '.join(arguments)}", flush=True)
-        exit_code = subprocess.run(dvc + arguments, cwd=project_root).returncode
+        exit_code = subprocess.run(dvc + arguments, cwd=project_root, env=stage_environment()).returncode
         if exit_code != 0:
             raise SweepError(f"`dvc {' '.join(arguments)}` failed with exit code {exit_code} in "
                              f"{Path(project_root).resolve()} (DVC says why above); run the sweep at the root of a "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -268,3 +269,21 @@ def test_vae_study_rows_follow_the_four_configurations_and_are_compared_with_the
                                             "full, mean warp - full", "full, β=0.001 - full"]
     assert rows[-1][:3] == ["full, β=0.001 - full", "2", "+0.1000 *"]
     assert rows[-2][:3] == ["full, mean warp - full", "2", "+0.0100"]
+
+
+def test_the_sweep_runs_dvc_with_this_interpreters_folder_first_on_path(tmp_path, monkeypatch):
+    """Stage commands call `python`: the queue worker the sweep starts must find this environment's, also when
+    it is not activated."""
+    import subprocess
+    import sys
+
+    from endoflow import sweep
+
+    calls = []
+    monkeypatch.setenv("PATH", "/usr/bin")
+    monkeypatch.setattr(subprocess, "run", lambda command, cwd, env: calls.append((command, env))
+                        or subprocess.CompletedProcess(command, 0))
+    sweep.run_sweep(tmp_path, [0], start=True)
+    assert calls[-1][0][-4:] == ["queue", "start", "-j", "1"] and len(calls) == 5
+    assert all(env["PATH"].split(os.pathsep)[:2] == [str(Path(sys.executable).parent), "/usr/bin"]
+               for _, env in calls)
