@@ -8,9 +8,7 @@ Each experiment is named ``<configuration>-seed<k>`` and sets every switch it re
 queued copy's ``params.yaml`` only). DVC runs queued experiments in temporary copies of the project; the MLflow
 store and Ray's checkpoints stay in the project (:func:`endoflow.locations.home_project`). One worker at a time
 (``-j 1``): the embedded MLflow store is one SQLite file, and one training already uses every core. When the
-queue is done, ``endoflow report`` aggregates the runs by configuration over seeds. Queued experiments import
-``endoflow`` from the environment's install, which ``make install`` makes editable (the workspace's files): the
-library must stay as it is until the queue is done.
+queue is done, ``endoflow report`` aggregates the runs by configuration over seeds.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """DVC stage `preprocess` (foreach dataset): native layout -> WebDataset shards + manifest.parquet.
 
-Usage: ``python stages/preprocess.py {simcol,endoslam,scenenet}``; reads ``params.yaml`` and writes
+Usage: ``python -m stages.preprocess {simcol,endoslam,scenenet}``; reads ``params.yaml`` and writes
 ``<preprocess.out>/<dataset>/`` (a local path, made absolute against the working folder, or an fsspec URL).
 An interrupted run resumes from ``<preprocess.out>/.<dataset>.partial/`` (on an object store, from the
 shards already in ``<preprocess.out>/<dataset>/``). ``preprocess.engine: ray`` writes the shards as Ray

@@ -1,6 +1,6 @@
 """DVC stage `pretrain_latent_bank`: SceneNet depth shards -> the pretrained generative latent bank.
 
-Usage: ``python stages/pretrain_latent_bank.py [--params params.yaml]``; reads ``latent_bank.shards`` and writes
+Usage: ``python -m stages.pretrain_latent_bank [--params params.yaml]``; reads ``latent_bank.shards`` and writes
 ``latent_bank.out``, ``latent_bank.metrics`` and ``latent_bank.plots``, logs an MLflow run in
 ``tracking.latent_bank_experiment``, and ends with one line: the SWD before and after, and its floor.
 """

@@ -1,7 +1,7 @@
 """DVC stage `reconstruct` (foreach sequence): the trained model's depth, camera path and fused surface of a
 built-in test sequence, measured against its exact ground truth.
 
-Usage: ``python stages/reconstruct.py NAME`` (a key of ``reconstruct.sequences`` in ``params.yaml``); writes
+Usage: ``python -m stages.reconstruct NAME`` (a key of ``reconstruct.sequences`` in ``params.yaml``); writes
 ``<reconstruct.out>/NAME/`` (what ``endoflow reconstruct`` writes), ``<reconstruct.metrics>/NAME.json`` and
 ``<reconstruct.plots>/NAME/``, logs them into the model's MLflow run and prints the path and surface tables.
 """

@@ -1,6 +1,6 @@
 """DVC stage `synthesize`: procedural data with exact ground truth in the native layouts.
 
-Usage: ``python stages/synthesize.py [--params params.yaml]``; writes ``<synth.out>/SimCol3D``,
+Usage: ``python -m stages.synthesize [--params params.yaml]``; writes ``<synth.out>/SimCol3D``,
 ``<synth.out>/EndoSLAM`` and ``<synth.out>/SceneNet`` with the sizes in ``synth.*`` (and the EndoSLAM depth
 scale, pose unit and frame rate of ``data.endoslam``, so that the reader decodes what was written).
 """

@@ -1,6 +1,6 @@
 """DVC stage `train`: shards + latent bank -> trained model, on Ray Train (DDP), tracked in MLflow.
 
-Usage: ``python stages/train.py``; reads ``params.yaml`` (``train.*``, ``ray.*``, ``model.*``, ``loss.*``) and
+Usage: ``python -m stages.train``; reads ``params.yaml`` (``train.*``, ``ray.*``, ``model.*``, ``loss.*``) and
 writes ``train.out`` (models/endoflow.pt), ``train.metrics`` (metrics/train.json) and ``train.plots``
 (plots/train/). Re-running after an interruption resumes from the latest Ray checkpoint in
 ``ray.storage_path``; progress lines show loss, samples per second and time left.

@@ -13,6 +13,9 @@ from __future__ import annotations
 
 import ast
 import shlex
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -31,10 +34,11 @@ def dvc_stages() -> dict[str, dict]:
 
 
 def stage_script(stage: dict) -> str:
-    """The one `.py` file the stage's cmd runs, relative to the project."""
-    scripts = [word for word in shlex.split(stage["cmd"]) if word.endswith(".py")]
-    assert len(scripts) == 1, f"cmd {stage['cmd']!r} should run exactly one script, found {scripts}"
-    return scripts[0]
+    """The file of the one module the stage's cmd runs (`python -m stages.<name> ...`), relative to the project."""
+    words = shlex.split(stage["cmd"])
+    assert words[:2] == ["python", "-m"] and words[2].startswith("stages."), \
+        f"cmd {stage['cmd']!r} should run one module of stages/ from the project root: python -m stages.<name>"
+    return words[2].replace(".", "/") + ".py"
 
 
 def code_deps(stage: dict) -> list[str]:
@@ -107,10 +111,14 @@ def imported_names(path: Path, root: Path) -> list[str]:
 
 
 def import_closure(script: Path, root: Path) -> dict[str, str | None]:
-    """Every file run when `script` runs, among the script itself and the modules of `root/endoflow`, each
-    mapped to the file that first imports it (None for the script), relative to `root`."""
+    """Every file run when `script` runs as a module, among the script itself, its package's `__init__.py` and the
+    modules of `root/endoflow`, each mapped to the file that first imports it (None for the script), relative to
+    `root`."""
     start = script.relative_to(root).as_posix()
     imported_by: dict[str, str | None] = {start: None}
+    package = script.parent / "__init__.py"  # `python -m stages.x` runs the package's __init__ first
+    if package.is_file():
+        imported_by[package.relative_to(root).as_posix()] = start
     todo = [script]
     while todo:
         path = todo.pop(0)
@@ -224,3 +232,16 @@ def test_the_closure_follows_every_form_of_import_python_runs(tmp_path: Path) ->
                                "endoflow/g.py", "run.py"]
     assert import_chain(closure, "endoflow/g.py") == (
         "run.py -> endoflow/a/b.py -> endoflow/a/c.py -> endoflow/e/__init__.py -> endoflow/g.py")
+
+
+def test_a_stage_run_in_a_copy_of_the_project_imports_the_copys_library(tmp_path: Path):
+    """DVC runs a queued experiment in a copy of the project: the copy's library must run, not the environment's
+    editable install (the workspace's files), or an experiment queued with a change to the library would not run
+    the change."""
+    shutil.copytree(PROJECT / "stages", tmp_path / "stages", ignore=shutil.ignore_patterns("__pycache__"))
+    (tmp_path / PACKAGE).mkdir()
+    (tmp_path / PACKAGE / "__init__.py").write_text("raise ImportError('the library of the copy')\n")
+    for name, stage in dvc_stages().items():
+        command = [sys.executable] + [word for word in shlex.split(stage["cmd"])[1:] if "${" not in word]
+        result = subprocess.run(command + ["--help"], cwd=tmp_path, capture_output=True, text=True)
+        assert "the library of the copy" in result.stderr, f"{name}: {result.stderr[-500:]}"

@@ -131,16 +131,16 @@ class StageMonitor:
 
     @staticmethod
     def _stage_name(process: psutil.Process) -> str | None:
-        """``preprocess@simcol`` for a process running ``python stages/preprocess.py simcol``, else None."""
+        """``preprocess@simcol`` for a process running ``python -m stages.preprocess simcol``, else None."""
         try:
             args = process.cmdline()
         except psutil.Error:
             return None
-        scripts = [i for i, arg in enumerate(args) if arg.startswith("stages/") and arg.endswith(".py")]
-        if not scripts or "python" not in Path(args[0]).name:
+        modules = [i for i, arg in enumerate(args) if arg.startswith("stages.") and i > 0 and args[i - 1] == "-m"]
+        if not modules or "python" not in Path(args[0]).name:
             return None
-        i = scripts[0]
-        stem = Path(args[i]).stem
+        i = modules[0]
+        stem = args[i].removeprefix("stages.")
         return f"{stem}@{args[i + 1]}" if i + 1 < len(args) else stem
 
     def _record(self, name: str, process: psutil.Process) -> None:
