@@ -98,8 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--no-experiments", action="store_true", help="only the workspace's metrics")
     report.set_defaults(handler=_report)
 
-    sweep = commands.add_parser("sweep", help="queue the four ablation configurations x seeds as DVC experiments "
-                                              "and run them (the paper's Table 3 with seed statistics)")
+    sweep = commands.add_parser("sweep", help="queue a study's configurations x seeds as DVC experiments and run "
+                                              "them (the paper's Table 3, or the VAE study, with seed statistics)")
     sweep.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default: 0 1 2)")
     sweep.add_argument("--study", choices=STUDIES, default="ablation",
                        help="ablation: the four configurations (default); vae: the full model without the warp's "

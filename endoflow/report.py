@@ -47,7 +47,6 @@ BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map
                    "constant_velocity": "baseline: constant velocity"}
 # the paper's Table 3 rows: (name, model.latent_bank, model.pose_vae); `endoflow sweep` names its experiments so
 ABLATIONS = (("full", True, True), ("no-bank", False, True), ("no-vae", True, False), ("neither", False, False))
-CONFIGURATIONS = {(bank, vae): name for name, bank, vae in ABLATIONS}
 # the VAE study's settings (docs/method.md): with the VAE, a run whose setting differs from the default is its own
 # configuration, named after the ablation and the setting
 DEFAULT_KL_WEIGHT = LossConfig().kl_weight
@@ -80,22 +79,31 @@ class RunResults:
 
     @property
     def configuration(self) -> Optional[str]:
-        """The ablation configuration's name (``full``, ``no-bank``, ``no-vae``, ``neither``), if known."""
-        model = self.params.get("model", {})
+        """The configuration's name: the ablation's (``full``, ``no-bank``, ``no-vae``, ``neither``) followed, with
+        the VAE, by the VAE study's settings that differ from the defaults (``full, mean warp``,
+        ``full, β=0.001``); None for a run without the two switches."""
+        key = self.configuration_key
+        if key is None:
+            return None
+        _, ablation, mean_warp, beta = key
+        settings = (["mean warp"] if mean_warp else []) + ([f"β={beta:g}"] if beta != DEFAULT_KL_WEIGHT else [])
+        return ", ".join([ABLATIONS[ablation][0]] + settings)
+
+    @property
+    def configuration_key(self) -> Optional[tuple[bool, int, bool, float]]:
+        """(a VAE study setting differs from its default, index in :data:`ABLATIONS`, warps with the pose's mean,
+        beta): sorts the four ablations first, in the paper's order, then the VAE study's configurations by their
+        settings. Without the VAE, which neither samples nor has a KL term, the settings read as defaults."""
+        model, loss = self.params.get("model", {}), self.params.get("loss", {})
         if "latent_bank" not in model or "pose_vae" not in model:
             return None
-        name = CONFIGURATIONS[(bool(model["latent_bank"]), bool(model["pose_vae"]))]
-        return ", ".join([name] + self._vae_study_settings())
-
-    def _vae_study_settings(self) -> list[str]:
-        """The VAE study's settings where they differ from the defaults; none without the VAE, which neither
-        samples nor has a KL term."""
-        model, loss = self.params.get("model", {}), self.params.get("loss", {})
-        if not model.get("pose_vae"):
-            return []
-        settings = [] if bool(model.get("pose_sample", DEFAULT_POSE_SAMPLE)) else ["mean warp"]
-        beta = float(loss.get("kl_weight", DEFAULT_KL_WEIGHT))
-        return settings + ([f"β={beta:g}"] if beta != DEFAULT_KL_WEIGHT else [])
+        switches = (bool(model["latent_bank"]), bool(model["pose_vae"]))
+        ablation = [(bank, vae) for _, bank, vae in ABLATIONS].index(switches)
+        mean_warp, beta = False, DEFAULT_KL_WEIGHT
+        if switches[1]:
+            mean_warp = model.get("pose_sample", DEFAULT_POSE_SAMPLE) is False
+            beta = _float_or(loss.get("kl_weight"), DEFAULT_KL_WEIGHT)
+        return mean_warp or beta != DEFAULT_KL_WEIGHT, ablation, mean_warp, beta
 
     @property
     def label(self) -> str:
@@ -103,6 +111,14 @@ class RunResults:
         switches = [f"{text} {'on' if model[key] else 'off'}" for key, text in
                     (("latent_bank", "bank"), ("pose_vae", "VAE")) if key in model]
         return f"{self.name} ({', '.join(switches)})" if switches else self.name
+
+
+def _float_or(value: Any, default: float) -> float:
+    """``value`` as a number (DVC writes ``1e-05``, which YAML 1.1 reads as a string), else ``default``."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return default
 
 
 class ExperimentsUnavailable(Exception):
@@ -253,12 +269,13 @@ def format_report(runs: list[RunResults], order: Iterable[str] = ()) -> str:
 
 
 def runs_by_configuration(runs: list[RunResults]) -> dict[str, list[RunResults]]:
-    """Runs of each known configuration, one per seed: the four of :data:`CONFIGURATIONS` in their order, then
-    the VAE study's in name order."""
-    groups: dict[str, dict[Any, RunResults]] = {name: {} for name in CONFIGURATIONS.values()}
-    for run in sorted((run for run in runs if run.configuration is not None), key=lambda run: run.configuration):
+    """Runs of each known configuration, one per seed (the first run of a configuration and seed), in the order
+    of :attr:`RunResults.configuration_key`."""
+    groups: dict[str, dict[Any, RunResults]] = {}
+    known = sorted((run for run in runs if run.configuration_key is not None), key=lambda run: run.configuration_key)
+    for run in known:
         groups.setdefault(run.configuration, {}).setdefault(run.params.get("seed"), run)
-    return {name: list(by_seed.values()) for name, by_seed in groups.items() if by_seed}
+    return {name: list(by_seed.values()) for name, by_seed in groups.items()}
 
 
 def seed_samples(runs: list[RunResults], test_set: str, metric: str) -> list[float]:

@@ -1,11 +1,12 @@
-"""The paper's Table 3 as DVC experiments: each ablation configuration with each seed, queued in DVC's
-experiment queue and run one after another by ``dvc queue start``.
+"""Studies as DVC experiments, each configuration with each seed, queued in DVC's experiment queue and run one
+after another by ``dvc queue start``: the paper's Table 3 (``ablation``: :data:`ABLATIONS`) and the VAE study
+(``vae``: :data:`VAE_STUDY`).
 
 Each experiment reproduces the pipeline up to the ``evaluate`` stages (:data:`SWEEP_TARGET`), Table 3's
 metrics; reconstruction is left out (``dvc exp apply`` then ``dvc repro`` makes it for a chosen run).
 
-Each experiment is named ``<configuration>-seed<k>`` and sets every switch it relies on (``-S`` edits the
-queued copy's ``params.yaml`` only). DVC runs queued experiments in temporary copies of the project; the MLflow
+Each experiment is named ``<configuration>-seed<k>`` and sets every switch it relies on, the two ablation
+switches and the VAE study's two settings (``-S`` edits the queued copy's ``params.yaml`` only). DVC runs queued experiments in temporary copies of the project; the MLflow
 store and Ray's checkpoints stay in the project (:func:`endoflow.locations.home_project`). One worker at a time
 (``-j 1``): the embedded MLflow store is one SQLite file, and one training already uses every core. When the
 queue is done, ``endoflow report`` aggregates the runs by configuration over seeds.
@@ -19,7 +20,7 @@ import sys
 from pathlib import Path
 from typing import Iterable
 
-from endoflow.report import ABLATIONS, DEFAULT_KL_WEIGHT
+from endoflow.report import ABLATIONS, DEFAULT_KL_WEIGHT, DEFAULT_POSE_SAMPLE
 
 SWEEP_TARGET = "evaluate"
 # The VAE study (docs/method.md): the full model with the warp's sampling or the KL taken away, and beta over
@@ -37,22 +38,24 @@ class SweepError(RuntimeError):
 def sweep_commands(seeds: Iterable[int], study: str = "ablation") -> list[list[str]]:
     """The ``dvc`` arguments that queue every configuration of ``study`` (:data:`STUDIES`) with every seed,
     seed by seed."""
+    return [["exp", "run", "--queue", "-n", f"{name}-seed{seed}", "-S", f"model.latent_bank={_flag(bank)}",
+             "-S", f"model.pose_vae={_flag(vae)}", "-S", f"model.pose_sample={_flag(sample)}",
+             "-S", f"loss.kl_weight={beta!r}", "-S", f"seed={seed}", SWEEP_TARGET]
+            for seed in seeds for name, bank, vae, sample, beta in study_configurations(study)]
+
+
+def study_configurations(study: str) -> list[tuple[str, bool, bool, bool, float]]:
+    """``study``'s configurations as (name, model.latent_bank, model.pose_vae, model.pose_sample,
+    loss.kl_weight); the ablations keep the VAE study's defaults."""
     if study not in STUDIES:
         raise ValueError(f"study: expected one of {', '.join(STUDIES)}, got {study!r}")
     if study == "ablation":
-        configurations = [(name, {"model.latent_bank": bank, "model.pose_vae": vae}) for name, bank, vae in ABLATIONS]
-    else:
-        # beta in YAML's float form (1.0e-04): `-S` values are parsed as YAML, where 1e-04 would be a string
-        configurations = [(name, {"model.latent_bank": True, "model.pose_vae": True, "model.pose_sample": sample,
-                                  "loss.kl_weight": f"{beta:.1e}"}) for name, sample, beta in VAE_STUDY]
-    return [["exp", "run", "--queue", "-n", f"{name}-seed{seed}"]
-            + [part for key, value in settings.items() for part in ("-S", f"{key}={_yaml(value)}")]
-            + ["-S", f"seed={seed}", SWEEP_TARGET]
-            for seed in seeds for name, settings in configurations]
+        return [(name, bank, vae, DEFAULT_POSE_SAMPLE, DEFAULT_KL_WEIGHT) for name, bank, vae in ABLATIONS]
+    return [(name, True, True, sample, beta) for name, sample, beta in VAE_STUDY]
 
 
-def _yaml(value: bool | str) -> str:
-    return str(value).lower() if isinstance(value, bool) else value
+def _flag(value: bool) -> str:
+    return str(value).lower()
 
 
 def stage_environment() -> dict[str, str]:

@@ -200,10 +200,13 @@ def test_the_sweep_queues_every_configuration_with_every_seed_naming_each_switch
 
     commands = sweep_commands([0, 1, 2])
     assert len(commands) == 12
+    # the VAE study's settings too, at their defaults: the ablation does not inherit the workspace's
     assert commands[0] == ["exp", "run", "--queue", "-n", "full-seed0", "-S", "model.latent_bank=true",
-                           "-S", "model.pose_vae=true", "-S", "seed=0", "evaluate"]
+                           "-S", "model.pose_vae=true", "-S", "model.pose_sample=true", "-S", "loss.kl_weight=1e-05",
+                           "-S", "seed=0", "evaluate"]
     assert commands[-1] == ["exp", "run", "--queue", "-n", "neither-seed2", "-S", "model.latent_bank=false",
-                            "-S", "model.pose_vae=false", "-S", "seed=2", "evaluate"]
+                            "-S", "model.pose_vae=false", "-S", "model.pose_sample=true", "-S", "loss.kl_weight=1e-05",
+                            "-S", "seed=2", "evaluate"]
     assert len({tuple(c) for c in commands}) == 12
 
 
@@ -221,24 +224,30 @@ def test_the_vae_study_queues_the_full_model_without_sampling_and_with_beta_over
     assert len(commands) == 8
     assert commands[0] == ["exp", "run", "--queue", "-n", "vae-mean-warp-seed0", "-S", "model.latent_bank=true",
                            "-S", "model.pose_vae=true", "-S", "model.pose_sample=false",
-                           "-S", "loss.kl_weight=1.0e-05", "-S", "seed=0", "evaluate"]
-    betas = [c[c.index("-S", 10) + 1] for c in commands[:4]]
-    assert betas == ["loss.kl_weight=1.0e-05", "loss.kl_weight=0.0e+00", "loss.kl_weight=1.0e-04",
-                     "loss.kl_weight=1.0e-03"]
+                           "-S", "loss.kl_weight=1e-05", "-S", "seed=0", "evaluate"]
+    betas = [next(word for word in command if word.startswith("loss.kl_weight=")) for command in commands[:4]]
+    assert betas == ["loss.kl_weight=1e-05", "loss.kl_weight=0.0", "loss.kl_weight=0.0001", "loss.kl_weight=0.001"]
     with pytest.raises(ValueError, match="study"):
         sweep_commands([0], study="vea")
 
 
-def test_the_vae_study_settings_read_back_as_the_studys_values():
-    from endoflow.config import Params, apply_override, params_from_dict, params_to_dict
-    from endoflow.sweep import VAE_STUDY, sweep_commands
+@pytest.mark.parametrize("study", ["ablation", "vae"])
+def test_the_sweeps_settings_as_dvc_writes_them_load_as_the_studys_values(tmp_path: Path, study: str):
+    """`-S` as DVC applies it to the queued copy's params.yaml (Hydra's override grammar, written back by ruamel),
+    then read by endoflow's config."""
+    import yaml
+    from dvc.utils.hydra import apply_overrides
 
-    for command, (_, sample, beta) in zip(sweep_commands([0], study="vae"), VAE_STUDY):
-        raw = params_to_dict(Params())
-        for setting in command[command.index("-S") + 1::2][:5]:
-            apply_override(raw, setting)
-        params = params_from_dict(raw)
-        assert params.model.pose_sample is sample and params.loss.kl_weight == beta and params.seed == 0
+    from endoflow.config import Params, load_params, params_to_dict
+    from endoflow.sweep import study_configurations, sweep_commands
+
+    for command, (_, bank, vae, sample, beta) in zip(sweep_commands([3], study), study_configurations(study)):
+        path = tmp_path / "params.yaml"
+        path.write_text(yaml.safe_dump(params_to_dict(Params())))
+        apply_overrides(path, [command[i + 1] for i, word in enumerate(command) if word == "-S"])
+        params = load_params(path)
+        assert (params.model.latent_bank, params.model.pose_vae, params.model.pose_sample) == (bank, vae, sample)
+        assert params.loss.kl_weight == beta and params.seed == 3
 
 
 def study_run(name: str, seed: int, abs_rel: float, *, sample: bool = True, beta: float = 1e-5,
@@ -255,6 +264,9 @@ def test_vae_study_runs_are_their_own_configurations_named_by_the_setting():
     assert study_run("a", 0, 0.1, beta=0.0).configuration == "full, β=0"
     # without the VAE there is nothing to sample and no KL: the settings do not split no-vae
     assert study_run("a", 0, 0.1, vae=False, sample=False, beta=1e-3).configuration == "no-vae"
+    # DVC writes beta as 1e-05, which YAML 1.1 reads back as a string
+    assert RunResults("dvc", {"model": {"latent_bank": True, "pose_vae": True},
+                              "loss": {"kl_weight": "1e-05"}}).configuration == "full"
     # runs from before the setting existed are the default
     assert RunResults("old", {"model": {"latent_bank": True, "pose_vae": True}}).configuration == "full"
 
@@ -262,13 +274,16 @@ def test_vae_study_runs_are_their_own_configurations_named_by_the_setting():
 def test_vae_study_rows_follow_the_four_configurations_and_are_compared_with_the_full_model():
     runs = [study_run("beta-s0", 0, 0.20, beta=1e-3), study_run("beta-s1", 1, 0.22, beta=1e-3),
             study_run("full-s0", 0, 0.10), study_run("full-s1", 1, 0.12),
-            study_run("mean-s0", 0, 0.11, sample=False), study_run("mean-s1", 1, 0.13, sample=False)]
+            study_run("mean-s0", 0, 0.11, sample=False), study_run("mean-s1", 1, 0.13, sample=False),
+            study_run("small-s0", 0, 0.12, beta=1e-6)]
     text = format_report(runs)
     rows = table_rows(text[text.index("### simcol_12"):text.index("### Pose against constant velocity")])
-    assert [row[0] for row in rows[2:]] == ["full", "full, mean warp", "full, β=0.001", "trivial baseline",
-                                            "full, mean warp - full", "full, β=0.001 - full"]
-    assert rows[-1][:3] == ["full, β=0.001 - full", "2", "+0.1000 *"]
-    assert rows[-2][:3] == ["full, mean warp - full", "2", "+0.0100"]
+    # the ablation first, then beta in numeric order (1e-06 before 0.001), then the mean warp
+    assert [row[0] for row in rows[2:]] == [
+        "full", "full, β=1e-06", "full, β=0.001", "full, mean warp", "trivial baseline",
+        "full, β=1e-06 - full", "full, β=0.001 - full", "full, mean warp - full"]
+    assert rows[-2][:3] == ["full, β=0.001 - full", "2", "+0.1000 *"]
+    assert rows[-1][:3] == ["full, mean warp - full", "2", "+0.0100"]
 
 
 def test_the_sweep_runs_dvc_with_this_interpreters_folder_first_on_path(tmp_path, monkeypatch):

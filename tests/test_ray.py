@@ -60,9 +60,11 @@ def first_checkpoint_complete(storage: Path) -> bool:
 
 
 def run_stage_until_first_checkpoint(root: Path, storage: Path, timeout: float = 300) -> None:
-    """Run ``stages/train.py`` in its own process group and kill it all once epoch 0 is checkpointed."""
-    stage = Path(__file__).resolve().parents[1] / "stages" / "train.py"
-    process = subprocess.Popen([sys.executable, str(stage)], cwd=root, start_new_session=True,
+    """Run the training stage as dvc.yaml does (``python -m stages.train``, the project on the path) in ``root``,
+    in its own process group, and kill it all once epoch 0 is checkpointed."""
+    project = Path(__file__).resolve().parents[1]
+    process = subprocess.Popen([sys.executable, "-m", "stages.train"], cwd=root, start_new_session=True,
+                               env={**os.environ, "PYTHONPATH": str(project)},
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + timeout
