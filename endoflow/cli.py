@@ -96,6 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     report = commands.add_parser("report", help="Markdown tables (paper Tables 1-3) of workspace + DVC experiments")
     report.add_argument("--no-experiments", action="store_true", help="only the workspace's metrics")
+    report.add_argument("--all-commits", action="store_true",
+                        help="the experiments of every commit, not only HEAD's (a sweep queued before a commit)")
     report.set_defaults(handler=_report)
 
     sweep = commands.add_parser("sweep", help="queue a study's configurations x seeds as DVC experiments and run "
@@ -223,7 +225,8 @@ def _report(args: argparse.Namespace) -> int:
     from endoflow.report import build_report
 
     params = _params_if_present(args.params)
-    print(build_report(".", params.eval.predictions, params_to_dict(params), experiments=not args.no_experiments),
+    print(build_report(".", params.eval.predictions, params_to_dict(params), experiments=not args.no_experiments,
+                       all_commits=args.all_commits),
           end="")
     return 0
 

@@ -136,9 +136,10 @@ def workspace_results(predictions_dir: str | Path, params: Optional[dict] = None
     return RunResults(name, params or {}, test_sets)
 
 
-def dvc_experiment_states(project_root: str | Path) -> list[dict]:
-    """What ``dvc exp show --json`` prints (baseline commits, each with its experiments), through DVC's Python
-    API, so that it works without ``dvc`` on ``PATH``; :class:`ExperimentsUnavailable` says why it cannot."""
+def dvc_experiment_states(project_root: str | Path, all_commits: bool = False) -> list[dict]:
+    """What ``dvc exp show --json`` prints (baseline commits, each with its experiments: HEAD's, or with
+    ``all_commits`` every commit's, as ``-A``), through DVC's Python API, so that it works without ``dvc`` on
+    ``PATH``; :class:`ExperimentsUnavailable` says why it cannot."""
     try:
         from dvc.exceptions import DvcException, NotDvcRepoError
         from dvc.repo import Repo
@@ -147,7 +148,8 @@ def dvc_experiment_states(project_root: str | Path) -> list[dict]:
                                      f"environment it was installed into") from exc
     try:
         with Repo(str(project_root)) as repo:
-            return [state.dumpd() for state in repo.experiments.show(hide_queued=True, hide_failed=True)]
+            states = repo.experiments.show(all_commits=all_commits, hide_queued=True, hide_failed=True)
+            return [state.dumpd() for state in states]
     except NotDvcRepoError as exc:
         raise ExperimentsUnavailable(f"{Path(project_root).resolve()} is not a DVC project") from exc
     except DvcException as exc:
@@ -410,14 +412,14 @@ def format_evaluation(result: dict) -> str:
 
 
 def build_report(project_root: str | Path, predictions_dir: str, params: Optional[dict] = None,
-                 experiments: bool = True) -> str:
+                 experiments: bool = True, all_commits: bool = False) -> str:
     """The whole report for a project: the workspace's evaluations plus, if asked, those of DVC's baseline
-    commits and experiments (a note on stderr says why when DVC cannot list them)."""
+    commits and experiments, HEAD's or every commit's (a note on stderr says why when DVC cannot list them)."""
     root = Path(project_root)
     states: list[dict] = []
     if experiments:
         try:
-            states = dvc_experiment_states(root)
+            states = dvc_experiment_states(root, all_commits)
         except ExperimentsUnavailable as exc:
             print(f"endoflow report: workspace only: {exc}", file=sys.stderr)
     runs = []

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -84,3 +85,14 @@ def test_report_outside_a_dvc_project_says_why_it_shows_the_workspace_only(tmp_p
     result = run([str(VENV_BIN / "endoflow"), "report"], tmp_path, pipeline_env("report"))
     assert "workspace only" in result.stderr and "is not a DVC project" in result.stderr
     assert "| workspace" in result.stdout
+
+
+def test_experiments_of_an_earlier_commit_are_reported_with_all_commits(project: Path, tmp_path: Path):
+    """A sweep queued before a commit hangs its experiments on the earlier commit: HEAD's list misses them."""
+    env = pipeline_env("report")
+    copy = tmp_path / "project"
+    shutil.copytree(project, copy, symlinks=True)
+    run(["git", "commit", "-q", "--allow-empty", "-m", "a later commit"], copy, env)
+    endoflow = str(VENV_BIN / "endoflow")
+    assert "no-bank (bank off" not in run([endoflow, "report"], copy, env).stdout
+    assert "| no-bank (bank off, VAE on)" in run([endoflow, "report", "--all-commits"], copy, env).stdout
