@@ -18,7 +18,8 @@ figures (:data:`SEED_METRICS`), and for each ablation its difference from the fu
 exceeds the seed spread (both have at least two seeds and the two mean +- sd intervals do not overlap:
 ``|mean_a - mean_full| > sd_a + sd_full``); then each configuration's pose against constant velocity, marked
 where the model is better by more than its spread (``mean + sd < constant velocity``). Runs with the same
-configuration and seed (the workspace and the experiment it came from) count once. A configuration is the two
+configuration and seed (the workspace and the experiment it came from) count once; one with other params (a
+run of another preset, say) is left out with a note on stderr. A configuration is the two
 switches plus, with the VAE, the VAE study's settings where they differ from the defaults (``model.pose_sample``
 and ``loss.kl_weight``: ``full, β=0.001``, ``full, mean warp``); nothing else, so compare experiments of one
 preset.
@@ -276,8 +277,31 @@ def runs_by_configuration(runs: list[RunResults]) -> dict[str, list[RunResults]]
     groups: dict[str, dict[Any, RunResults]] = {}
     known = sorted((run for run in runs if run.configuration_key is not None), key=lambda run: run.configuration_key)
     for run in known:
-        groups.setdefault(run.configuration, {}).setdefault(run.params.get("seed"), run)
+        seed = run.params.get("seed")
+        kept = groups.setdefault(run.configuration, {}).setdefault(seed, run)
+        differing = _differing_params(kept.params, run.params)
+        if differing:
+            print(f"endoflow report: {run.name} left out of the seed statistics: {kept.name} has its configuration "
+                  f"({run.configuration}) and seed ({seed}) but other params ({', '.join(differing)})",
+                  file=sys.stderr)
     return {name: list(by_seed.values()) for name, by_seed in groups.items()}
+
+
+def _differing_params(first: dict, second: dict) -> list[str]:
+    """Dotted keys whose values differ, compared as text (DVC's params give ``1e-05`` as a string)."""
+    flat_first, flat_second = _flat(first), _flat(second)
+    return sorted(key for key in flat_first.keys() | flat_second.keys()
+                  if str(flat_first.get(key)) != str(flat_second.get(key)))
+
+
+def _flat(params: dict, prefix: str = "") -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, value in params.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
 
 
 def seed_samples(runs: list[RunResults], test_set: str, metric: str) -> list[float]:

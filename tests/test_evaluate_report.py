@@ -16,6 +16,7 @@ from endoflow.report import (
     format_report,
     markdown_table,
     running_in_workspace,
+    runs_by_configuration,
     workspace_results,
 )
 
@@ -302,3 +303,16 @@ def test_the_sweep_runs_dvc_with_this_interpreters_folder_first_on_path(tmp_path
     assert calls[-1][0][-4:] == ["queue", "start", "-j", "1"] and len(calls) == 5
     assert all(env["PATH"].split(os.pathsep)[:2] == [str(Path(sys.executable).parent), "/usr/bin"]
                for _, env in calls)
+
+
+def test_a_run_with_the_configuration_and_seed_of_another_but_other_params_is_left_out_loudly(capsys):
+    full = study_run("full-s0", 0, 0.10)
+    other = study_run("offset-s0", 0, 0.30)
+    other.params["preprocess"] = {"neighbour_offset": 4}
+    same = study_run("workspace", 0, 0.10)
+    same.params["loss"]["kl_weight"] = "1e-05"  # as DVC's params read back: the same value
+    groups = runs_by_configuration([full, same, other, study_run("full-s1", 1, 0.12)])
+    assert [run.name for run in groups["full"]] == ["full-s0", "full-s1"]
+    error = capsys.readouterr().err
+    assert error.count("left out") == 1
+    assert "offset-s0 left out" in error and "full-s0" in error and "preprocess.neighbour_offset" in error
