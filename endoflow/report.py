@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional
 
-from endoflow.config import LossConfig, ModelConfig
+from endoflow.config import LossConfig, ModelConfig, flatten_params
 from endoflow.evaluation.results import EVALUATION_FILE, HEADLINE, evaluation_path
 
 PAPER_COLUMNS = (("abs_rel", "Abs Rel"), ("sq_rel", "Sq Rel"), ("rmse", "RMSE"), ("rmse_log", "RMSE log"),
@@ -289,19 +289,10 @@ def runs_by_configuration(runs: list[RunResults]) -> dict[str, list[RunResults]]
 
 def _differing_params(first: dict, second: dict) -> list[str]:
     """Dotted keys whose values differ, compared as text (DVC's params give ``1e-05`` as a string)."""
-    flat_first, flat_second = _flat(first), _flat(second)
+    flat_first, flat_second = flatten_params(first), flatten_params(second)
     return sorted(key for key in flat_first.keys() | flat_second.keys()
                   if str(flat_first.get(key)) != str(flat_second.get(key)))
 
-
-def _flat(params: dict, prefix: str = "") -> dict[str, Any]:
-    flat: dict[str, Any] = {}
-    for key, value in params.items():
-        if isinstance(value, dict):
-            flat.update(_flat(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
 
 
 def seed_samples(runs: list[RunResults], test_set: str, metric: str) -> list[float]:
