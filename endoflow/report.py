@@ -279,7 +279,7 @@ def runs_by_configuration(runs: list[RunResults]) -> dict[str, list[RunResults]]
     for run in known:
         seed = run.params.get("seed")
         kept = groups.setdefault(run.configuration, {}).setdefault(seed, run)
-        differing = _differing_params(kept.params, run.params)
+        differing = _differing_params(kept.params, run.params) if kept is not run else []
         if differing:
             print(f"endoflow report: {run.name} left out of the seed statistics: {kept.name} has its configuration "
                   f"({run.configuration}) and seed ({seed}) but other params ({', '.join(differing)})",
@@ -292,7 +292,6 @@ def _differing_params(first: dict, second: dict) -> list[str]:
     flat_first, flat_second = flatten_params(first), flatten_params(second)
     return sorted(key for key in flat_first.keys() | flat_second.keys()
                   if str(flat_first.get(key)) != str(flat_second.get(key)))
-
 
 
 def seed_samples(runs: list[RunResults], test_set: str, metric: str) -> list[float]:
