@@ -9,7 +9,8 @@ Each experiment is named ``<configuration>-seed<k>`` and sets every switch it re
 switches and the VAE study's two settings (``-S`` edits the queued copy's ``params.yaml`` only). DVC runs queued
 experiments in temporary copies of the project; the MLflow store and Ray's checkpoints stay in the project
 (:func:`endoflow.locations.home_project`). One worker at a time (``-j 1``): the embedded MLflow store is one
-SQLite file, and one training already uses every core. When the queue is done, ``endoflow report`` aggregates the runs by configuration over seeds.
+SQLite file, and one training already uses every core. When the queue is done, ``endoflow report`` aggregates
+the runs by configuration over seeds.
 """
 
 from __future__ import annotations
