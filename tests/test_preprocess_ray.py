@@ -10,17 +10,20 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
 
 import pytest
+import ray
 import yaml
 from ray.cluster_utils import Cluster
 
 from endoflow.config import Params, params_to_dict
 from endoflow.data.base import DataFormatError
-from endoflow.data.shards import preprocess_dataset
+from endoflow.data.shards import preprocess_dataset, stop_tasks
+from endoflow.io import TEMPORARY_MARK
 from tests.fixtures_native import write_simcol
 
 pytestmark = pytest.mark.slow
@@ -111,8 +114,31 @@ def test_a_damaged_frame_fails_naming_the_file_and_a_rerun_keeps_the_finished_sh
     finally:
         frame.write_bytes(intact)
     assert not (tmp_path / "shards" / "simcol").exists()
-    finished = {p.name for p in (tmp_path / "shards" / ".simcol.partial").glob("*.tar")}
+    staged = {p.name for p in (tmp_path / "shards" / ".simcol.partial").iterdir()}
+    assert not [name for name in staged if TEMPORARY_MARK in name], staged  # no task still writing
+    finished = {name for name in staged if name.endswith(".tar")}
     assert finished and "test-000003.tar" not in finished
     summary = preprocess_dataset("simcol", params, f"{out}/simcol")
     assert summary["shards_reused"] == len(finished)
     assert all(same_files(local, tmp_path / "shards" / "simcol").values())
+
+
+def test_stopping_after_an_error_returns_only_when_every_running_task_has_ended(
+    cluster: Cluster, tmp_path: Path
+) -> None:
+    def write_after_a_while(path: str) -> None:
+        try:
+            time.sleep(3)
+        finally:
+            Path(path).write_text("ended")
+
+    ray.init(address=cluster.address, log_to_driver=False)
+    try:
+        task = ray.remote(num_cpus=1)(write_after_a_while)
+        markers = [tmp_path / f"task-{index}" for index in range(2)]
+        pending = [task.remote(str(marker)) for marker in markers]
+        time.sleep(1)  # both running, one per node
+        stop_tasks(pending)
+        assert all(marker.exists() for marker in markers)
+    finally:
+        ray.shutdown()

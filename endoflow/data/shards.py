@@ -624,8 +624,8 @@ def run_shard_tasks_on_ray(
     Each task gets its shard's plan, the settings and the sequences it reads (put into the object store once
     each, and only while a queued shard still needs them), writes the shard and returns its
     :class:`ShardResult`. A task's error is raised here as the task raised it (a damaged frame's
-    :class:`DataFormatError` names the file); the remaining tasks are cancelled. Ray is shut down again
-    only if this call started it (or joined the cluster).
+    :class:`DataFormatError` names the file) once the remaining tasks are cancelled and have ended. Ray is
+    shut down again only if this call started it (or joined the cluster).
     """
     import ray
 
@@ -685,10 +685,25 @@ def _shard_tasks(
         while pending:
             results.append(_next_task_result(pending, progress))
     except BaseException:
-        for ref in pending:
-            ray.cancel(ref)
+        stop_tasks(pending)
         raise
     return results
+
+
+def stop_tasks(pending: list) -> None:
+    """Cancel the tasks of ``pending`` and wait until each has ended.
+
+    A running task is interrupted (its atomic write then removes its temporary) or finishes its shard; either
+    way no task of this run still writes into the staging folder once the error reaches the caller, so a
+    rerun that starts at once never meets a file being written.
+    """
+    import ray
+
+    for ref in pending:
+        ray.cancel(ref)
+    if pending:
+        print(f"[preprocess] stopping {len(pending)} shard tasks after the error", flush=True)
+        ray.wait(pending, num_returns=len(pending))
 
 
 def shard_sequences(shard: ShardSpec) -> list[str]:
