@@ -22,6 +22,7 @@ from endoflow.geometry.pose import (
     pose_vec_to_matrix,
     quaternion_xyzw_to_matrix,
     relative_pose,
+    step_root,
     unity_to_opencv,
 )
 from endoflow.geometry.warp import warp_frame
@@ -300,6 +301,20 @@ def test_chain_step_is_the_inverse_step_composed_and_stays_rigid():
     rotation = nearest_rotation(noisy)
     np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(rotation) == pytest.approx(1.0) and np.abs(rotation - step[:3, :3]).max() < 1e-3
+
+
+@pytest.mark.parametrize("count", [1, 2, 3, 4])
+def test_a_step_repeated_count_times_has_that_step_as_its_root(count):
+    rng = np.random.default_rng(count)
+    vectors = np.concatenate([rng.uniform(-0.4, 0.4, (5, 3)), rng.normal(size=(5, 3))], axis=1)
+    steps = pose_vec_to_matrix(torch.from_numpy(vectors)).numpy()
+    spans = np.stack([np.linalg.matrix_power(step, count) for step in steps])
+    np.testing.assert_allclose(step_root(spans, count), steps, atol=1e-12)
+
+
+def test_a_step_root_needs_a_positive_count():
+    with pytest.raises(ValueError, match="count must be positive"):
+        step_root(np.eye(4)[None], 0)
 
 
 def test_the_mean_step_of_equal_steps_is_that_step_and_of_no_steps_the_identity():

@@ -10,7 +10,7 @@ cover the whole sequence as the SimCol3D challenge expects. Per sequence:
   ``mean_depth_map`` (the training set's per-pixel mean GT depth map);
 - pose (consecutive frames with GT pose; the longest such run when some are missing): the ``simcol`` and
   ``endoslam`` protocols for the model and ``constant_velocity`` (every step is the training set's mean
-  relative pose).
+  relative pose of one frame, whatever ``preprocess.neighbour_offset`` the training pairs had).
 
 The networks run on ``eval.device`` under ``eval.precision`` (:mod:`endoflow.devices`); their depth and pose
 leave them as float32 (float64 for poses), and everything after (challenge files, metrics) is computed from

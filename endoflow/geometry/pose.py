@@ -129,6 +129,31 @@ def mean_step(steps: np.ndarray) -> np.ndarray:
     return pose_vec_to_matrix(torch.from_numpy(np.mean(vectors, axis=0))).numpy()
 
 
+def step_root(steps: np.ndarray, count: int) -> np.ndarray:
+    """The per-frame steps ``S`` of ``N x 4 x 4`` relative poses ``T`` that each span ``count`` frames:
+    ``S^count = T``, the step a camera at constant velocity repeats ``count`` times to move by ``T``.
+
+    ``S`` turns about ``T``'s axis by a ``count``-th of its angle, and its translation ``t_S`` is the one those
+    steps chain to ``t_T``: ``(I + R_S + ... + R_S^(count-1)) t_S = t_T``. Rotation angles below pi.
+    """
+    _check_last_dims(steps, (4, 4), "steps")
+    if count < 1:
+        raise ValueError(f"count must be positive, got {count}")
+    steps = np.asarray(steps, np.float64)
+    rotation_vectors = matrix_to_pose_vec(torch.from_numpy(steps)).numpy()[..., :3] / count
+    turn = pose_vec_to_matrix(torch.from_numpy(np.concatenate(
+        [rotation_vectors, np.zeros_like(rotation_vectors)], axis=-1))).numpy()[..., :3, :3]
+    chained = np.zeros_like(turn)
+    power = np.broadcast_to(np.eye(3), turn.shape).copy()
+    for _ in range(count):
+        chained += power
+        power = power @ turn
+    roots = np.broadcast_to(np.eye(4), steps.shape).copy()
+    roots[..., :3, :3] = turn
+    roots[..., :3, 3] = np.linalg.solve(chained, steps[..., :3, 3:4])[..., 0]
+    return roots
+
+
 def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
     """Rotation angle of ``... x 3 x 3`` matrices in degrees, trace clipped so rounding never gives NaN."""
     trace = np.trace(rotations, axis1=-2, axis2=-1)

@@ -35,7 +35,8 @@ class TrainingBaselines:
     Attributes:
         mean_depth_cm: mean of all valid GT depth pixels (the constant-depth baseline).
         mean_depth_map: ``H x W`` per-pixel mean of valid GT depth at the stored size (float32).
-        mean_relative_pose: ``4 x 4`` mean ``inv(P_i) @ P_{i+1}`` (the constant-velocity baseline).
+        mean_relative_pose: ``4 x 4`` mean ``inv(P_i) @ P_{i+1}`` over consecutive frames ``i``, ``i + 1``
+            (the constant-velocity baseline; from training pairs further apart, their per-frame root).
     """
 
     mean_depth_cm: float

@@ -40,7 +40,7 @@ from endoflow.data.shard_format import (
     manifest_location,
 )
 from endoflow.evaluation import plots
-from endoflow.geometry.pose import mean_step
+from endoflow.geometry.pose import mean_step, step_root
 from endoflow.io import file_sha256, save_figure, staged_directory, write_csv, write_json
 from endoflow.locations import absolute_location, home_project, local_file
 from endoflow.models.mlflow_model import log_mlflow_model
@@ -83,8 +83,13 @@ def training_fingerprint(params: Params, train_shards: str, latent_bank: Optiona
     return digest.hexdigest()[:16]
 
 
-def training_baselines(train_urls: list[str]) -> TrainingBaselines:
-    """Mean GT depth (scalar and per pixel) and mean relative pose ``inv(T_cur) @ T_next`` of the train shards."""
+def training_baselines(train_urls: list[str], neighbour_offset: int) -> TrainingBaselines:
+    """Mean GT depth (scalar and per pixel) and mean per-frame relative pose of the train shards.
+
+    A sample's ``inv(T_cur) @ T_next`` spans ``neighbour_offset`` frames (``preprocess.neighbour_offset``, which
+    made the shards); its per-frame root (:func:`step_root`) is what the constant-velocity baseline repeats
+    between consecutive frames.
+    """
     depth_sum: Optional[np.ndarray] = None
     depth_count: Optional[np.ndarray] = None
     steps = []
@@ -104,7 +109,8 @@ def training_baselines(train_urls: list[str]) -> TrainingBaselines:
         raise ValueError(f"train shards {train_urls[:1]}...: no GT depth to compute the baselines from")
     mean_depth = float(depth_sum.sum() / depth_count.sum())
     mean_map = np.where(depth_count > 0, depth_sum / np.maximum(depth_count, 1), mean_depth)
-    return TrainingBaselines(mean_depth, mean_map.astype(np.float32), mean_step(np.array(steps).reshape(-1, 4, 4)))
+    per_frame = step_root(np.array(steps).reshape(-1, 4, 4), neighbour_offset)
+    return TrainingBaselines(mean_depth, mean_map.astype(np.float32), mean_step(per_frame))
 
 
 def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
@@ -141,7 +147,7 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
 
 def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: str) -> dict[str, Any]:
     """Train (or resume) on Ray and write the outputs, inside the open MLflow run of ``config``."""
-    baselines = training_baselines(list(config.train_shards))
+    baselines = training_baselines(list(config.train_shards), params.preprocess.neighbour_offset)
     storage = absolute_location(params.ray.storage_path, home_project(root))
     run_name = f"{params.ray.run_name}-{fingerprint}"
     resume_from = latest_checkpoint(f"{storage.rstrip('/')}/{run_name}", params.ray.num_workers)
