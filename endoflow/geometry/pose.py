@@ -140,6 +140,8 @@ def step_root(steps: np.ndarray, count: int) -> np.ndarray:
     if count < 1:
         raise ValueError(f"count must be positive, got {count}")
     steps = np.asarray(steps, np.float64)
+    if count == 1:
+        return steps.copy()
     rotation_vectors = matrix_to_pose_vec(torch.from_numpy(steps)).numpy()[..., :3] / count
     turn = pose_vec_to_matrix(torch.from_numpy(np.concatenate(
         [rotation_vectors, np.zeros_like(rotation_vectors)], axis=-1))).numpy()[..., :3, :3]
