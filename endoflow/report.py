@@ -39,7 +39,7 @@ from endoflow.config import LossConfig, ModelConfig, flatten_params
 from endoflow.evaluation.results import EVALUATION_FILE, HEADLINE, evaluation_path
 
 PAPER_COLUMNS = (("abs_rel", "Abs Rel"), ("sq_rel", "Sq Rel"), ("rmse", "RMSE"), ("rmse_log", "RMSE log"),
-                 ("l1", "L1"), ("a1", "δ<1.25"), ("a2", "δ<1.25²"), ("a3", "δ<1.25³"))
+                 ("l1", "L1"), ("a1", "δ<1.25"), ("a2", "δ<1.25²"), ("a3", "δ<1.25³"), ("ratio", "Scale"))
 SIMCOL_DEPTH_COLUMNS = (("l1", "L1 (cm)"), ("rel", "Rel (%)"), ("rmse", "RMSE (cm)"))
 SIMCOL_POSE_COLUMNS = (("ate", "ATE (cm)"), ("ate_local", "ATE local (cm)"), ("rte", "RTE (cm)"),
                        ("rot", "ROT (°)"))

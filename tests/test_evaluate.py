@@ -140,6 +140,7 @@ def test_oracle_scores_zero_in_every_protocol_and_baselines_do_not(oracle_shards
 
     model = summary["depth_paper"]["model"]
     assert model["abs_rel"] == pytest.approx(0.0, abs=1e-4) and model["a1"] == 1.0
+    assert model["ratio"] == pytest.approx(1.0, abs=1e-4)  # metric depth needs no scaling
     # the challenge protocol scores float16 predictions of depth / 20, as its files hold them
     assert summary["depth_simcol"]["model"]["l1"] == pytest.approx(0.0, abs=5e-3)
     assert summary["depth_simcol"]["model"]["rel"] == pytest.approx(0.0, abs=0.05)

@@ -25,7 +25,7 @@ def evaluation(abs_rel: float, rte: float) -> dict:
     return {
         "test_set": "simcol_12",
         "depth_paper": {"model": {"abs_rel": abs_rel, "sq_rel": 0.1, "rmse": 1.0, "rmse_log": 0.2, "l1": 0.5,
-                                  "a1": 0.8, "a2": 0.9, "a3": 0.95},
+                                  "a1": 0.8, "a2": 0.9, "a3": 0.95, "ratio": 1.25},
                         "constant_depth": {"abs_rel": 0.5, "a1": 0.3}},
         "depth_simcol": {"model": {"l1": 0.4, "rel": 9.0, "rmse": 0.7}},
         "pose_simcol": {"model": {"ate": 2.0, "ate_local": 0.6, "rte": rte, "rot": 1.5},
@@ -89,8 +89,8 @@ def test_report_has_a_table_per_protocol_with_baselines_and_an_ablation_summary(
     assert "### Depth, paper protocol" in report and "### Depth, SimCol3D challenge protocol" in report
     rows = table_rows(report)
     assert ["workspace (bank on, VAE on)", "0.1234", "0.1000", "1.0000", "0.2000", "0.5000", "0.8000", "0.9000",
-            "0.9500"] in rows
-    assert ["baseline: constant depth", "0.5000", "–", "–", "–", "–", "0.3000", "–", "–"] in rows
+            "0.9500", "1.2500"] in rows
+    assert ["baseline: constant depth", "0.5000", "–", "–", "–", "–", "0.3000", "–", "–", "–"] in rows
     assert ["baseline: constant velocity", "4.0000", "0.6000", "0.9000", "–"] in rows
     assert ["no-bank (bank off, VAE on)", "0.2000", "0.3000"] in table_rows(report.split("## Ablation summary")[1])
     assert "EndoSLAM protocol" not in report  # absent protocols get no empty table
@@ -121,7 +121,8 @@ def test_evaluation_summary_shows_the_model_beside_its_baselines_per_protocol():
                               "Depth, SimCol3D challenge protocol (one scale per sequence)",
                               "Pose, SimCol3D challenge protocol (medians)"]  # no EndoSLAM metrics in the result
     paper = sections["Depth, paper protocol (per-image median scaling, capped at 20 cm)"]
-    assert paper[0] == ["method", "Abs Rel", "Sq Rel", "RMSE", "RMSE log", "L1", "δ<1.25", "δ<1.25²", "δ<1.25³"]
+    assert paper[0] == ["method", "Abs Rel", "Sq Rel", "RMSE", "RMSE log", "L1", "δ<1.25", "δ<1.25²", "δ<1.25³",
+                        "Scale"]
     assert [row[:2] for row in paper[2:]] == [["model", "0.1234"], ["baseline: constant depth", "0.5000"]]
     pose = sections["Pose, SimCol3D challenge protocol (medians)"]
     assert pose[0] == ["method", "ATE (cm)", "ATE local (cm)", "RTE (cm)", "ROT (°)"]

@@ -4,7 +4,8 @@ Three protocols, each labelled in every output so tables never mix them:
 
 - ``paper``: the Monodepth2-style protocol of the paper's released code. Per image: keep ``gt > 0``,
   median-scale the prediction (``median(gt) / median(pred)``), clamp it to ``[1e-3, 20]`` cm, then Abs Rel,
-  Sq Rel, RMSE, RMSE log, L1 and the three ``delta < 1.25^k`` accuracies; averaged over images.
+  Sq Rel, RMSE, RMSE log, L1 and the three ``delta < 1.25^k`` accuracies; averaged over images, as is the
+  scale the median scaling applied (``ratio``: 1 where the prediction is metric).
 - ``simcol``: the SimCol3D challenge's evaluation scripts. Depth: predictions are ``depth / 20`` clipped to
   ``[0, 1]``, ONE least-squares scale per sequence from per-image means, then per image L1 (cm), median
   relative error (%, the per-image median, so the sequence figure is a mean of medians) and RMSE (cm),
@@ -35,7 +36,7 @@ PAPER_MAX_DEPTH_CM = 20.0
 SIMCOL_DEPTH_RANGE_CM = 20.0  # challenge predictions are depth / 20 cm in [0, 1]
 SIMCOL_REL_EPS_CM = 1e-4  # the challenge code's 10e-5 added to the GT in the relative error
 
-PAPER_DEPTH_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "l1", "a1", "a2", "a3")
+PAPER_DEPTH_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "l1", "a1", "a2", "a3", "ratio")
 SIMCOL_DEPTH_KEYS = ("l1", "rel", "rmse")
 SIMCOL_POSE_KEYS = ("ate", "ate_local", "rte", "rot")
 ENDOSLAM_POSE_KEYS = ("ate", "rpe_trans", "rpe_rot")
