@@ -142,9 +142,7 @@ def step_root(steps: np.ndarray, count: int) -> np.ndarray:
     steps = np.asarray(steps, np.float64)
     if count == 1:
         return steps.copy()
-    rotation_vectors = matrix_to_pose_vec(torch.from_numpy(steps)).numpy()[..., :3] / count
-    turn = pose_vec_to_matrix(torch.from_numpy(np.concatenate(
-        [rotation_vectors, np.zeros_like(rotation_vectors)], axis=-1))).numpy()[..., :3, :3]
+    turn = axis_angle_to_matrix(matrix_to_axis_angle(torch.from_numpy(steps[..., :3, :3])) / count).numpy()
     chained = np.zeros_like(turn)
     power = np.broadcast_to(np.eye(3), turn.shape).copy()
     for _ in range(count):
