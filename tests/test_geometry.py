@@ -58,7 +58,8 @@ def test_rotations_are_proper_for_any_leading_shape() -> None:
 
 
 def test_pose_vector_round_trip() -> None:
-    vec = torch.randn(7, 6, dtype=torch.float64)
+    # seeded: about 1 draw in 100 of an unseeded one has an angle above pi, where the round trip cannot hold
+    vec = torch.randn(7, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     vec[:, :3] *= 0.8  # angles below pi, where the axis-angle vector is unique
     T = pose_vec_to_matrix(vec)
     assert T.shape == (7, 4, 4)
