@@ -7,7 +7,12 @@ SHA-256, in the evaluation order (``triplet_dataset``) and in training and valid
 
 from __future__ import annotations
 
+import gzip
+import hashlib
 import io
+import json
+import os
+import resource
 import tarfile
 from pathlib import Path
 
@@ -20,9 +25,12 @@ from endoflow.data.loader import list_shards, rank_batches, raw_samples, triplet
 from endoflow.data.shard_format import (
     DEPTH_ONLY_MEMBERS,
     MANIFEST,
+    SHARD_TABLE_KEY,
     TRIPLET_MEMBERS,
+    check_plain_member,
     decode_sample,
     read_manifest,
+    shard_digests,
     shard_entries,
 )
 from endoflow.data.shards import write_dataset_shards
@@ -187,3 +195,96 @@ def test_a_malformed_shard_table_is_named() -> None:
     for raw in (b"{not json", b'{"train-000000.tar": {"samples": 0}}', b"[1, 2]"):
         with pytest.raises(DataFormatError, match=SHARD_TABLE_KEY.decode()):
             _shard_table("/data/shards/simcol/manifest.parquet", raw, table)
+
+
+# ------------------------------------------------------------------- hostile shards (the round-3 audit)
+def record_shard_bytes(shard: Path) -> None:
+    """Make the manifest beside ``shard`` record its present bytes, as a planted manifest would."""
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(shard.parent / MANIFEST)
+    entries = json.loads(table.schema.metadata[SHARD_TABLE_KEY])
+    entries[shard.name]["sha256"] = hashlib.sha256(shard.read_bytes()).hexdigest()
+    pq.write_table(table.replace_schema_metadata({SHARD_TABLE_KEY: json.dumps(entries).encode()}),
+                   shard.parent / MANIFEST)
+
+
+def write_sparse_member_first(shard: Path, declared: int) -> None:
+    """Put a member in front of the shard's that stores 512 bytes and declares ``declared`` (GNU sparse 0.1)."""
+    members = shard.read_bytes()
+    sparse = tarfile.TarInfo("planted.depth.png")
+    sparse.size = 512
+    sparse.pax_headers = {"GNU.sparse.map": "0,512", "GNU.sparse.size": str(declared)}
+    with tarfile.open(shard, "w", format=tarfile.PAX_FORMAT) as tar:
+        tar.addfile(sparse, io.BytesIO(b"\x89PNG".ljust(512, b"\0")))
+    with tarfile.open(fileobj=io.BytesIO(members)) as original, tarfile.open(shard, "a") as tar:
+        for member in original.getmembers():
+            tar.addfile(member, original.extractfile(member))
+    record_shard_bytes(shard)
+
+
+def peak_memory() -> int:
+    """The most memory (resident bytes) this process has held so far; the sparse member declares 3 GiB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def read_digests(urls: list[str]) -> list:
+    return [shard_digests(url) for url in urls]  # what preprocessing reads of a shard kept from a killed run
+
+
+@pytest.mark.parametrize("read", [read_everything, all_val_batches], ids=["evaluation", "training"])
+def test_a_sparse_member_declaring_gigabytes_is_refused_before_any_large_allocation(shard_dir: Path, read) -> None:
+    urls = list_shards(shard_dir, "test")
+    victim = Path(urls[0])
+    write_sparse_member_first(victim, declared=3 << 30)
+    peak_before = peak_memory()
+    with pytest.raises(DataFormatError, match="planted.depth.png is a sparse file") as caught:
+        read(urls)
+    assert str(victim) in str(caught.value)
+    grown = peak_memory() - peak_before
+    assert grown < 512 << 20, f"the peak grew {grown / 2**30:.1f} GiB to refuse a {victim.stat().st_size} byte shard"
+
+
+def test_a_gzip_compressed_shard_is_refused_even_with_a_manifest_recording_it(shard_dir: Path) -> None:
+    urls = list_shards(shard_dir, "test")
+    victim = Path(urls[0])
+    victim.write_bytes(gzip.compress(victim.read_bytes()))
+    record_shard_bytes(victim)
+    with pytest.raises(DataFormatError, match="gzip-compressed file; expected an uncompressed tar") as caught:
+        read_everything(urls)
+    assert str(victim) in str(caught.value)
+
+
+def test_a_member_declaring_more_bytes_than_the_shard_holds_is_refused() -> None:
+    member = tarfile.TarInfo("k.depth.png")
+    member.size = 4097
+    with pytest.raises(DataFormatError, match=r"k.depth.png declares 4097 bytes, more than the shard's 4096"):
+        check_plain_member(member, "/data/shards/simcol/test-000000.tar", 4096)
+    member.type = tarfile.SYMTYPE
+    with pytest.raises(DataFormatError, match="k.depth.png is not a plain file"):
+        check_plain_member(member, "/data/shards/simcol/test-000000.tar", 1 << 20)
+
+
+def replace_with_zero_device_link(shard: Path) -> str:
+    shard.unlink()
+    shard.symlink_to("/dev/zero")
+    return "a character device (through a link)"
+
+
+def replace_with_fifo(shard: Path) -> str:
+    shard.unlink()
+    os.mkfifo(shard)
+    return "a FIFO"
+
+
+@pytest.mark.timeout(30)  # before the check, reading /dev/zero and opening a FIFO without a writer never ended
+@pytest.mark.parametrize("read", [read_everything, all_val_batches, read_digests],
+                         ids=["evaluation", "training", "preprocess-resume"])
+@pytest.mark.parametrize("replace", [replace_with_zero_device_link, replace_with_fifo], ids=["dev-zero", "fifo"])
+def test_a_shard_that_is_not_a_regular_file_is_refused_naming_it(shard_dir: Path, read, replace) -> None:
+    urls = list_shards(shard_dir, "val")
+    victim = Path(urls[0])
+    kind = replace(victim)
+    with pytest.raises(DataFormatError, match="not a regular file; expected a tar shard") as caught:
+        read(urls)
+    assert str(caught.value).startswith(f"{victim}: is {kind}")

@@ -24,6 +24,10 @@ members, their SHA-256), so a reader that stops part-way through a shard has sti
 the shard's end its sample count and the SHA-256 of its bytes. A mismatch is a
 :class:`~endoflow.data.base.DataFormatError` naming the shard file and what was expected.
 
+A shard is read only if it is a regular file holding an uncompressed tar of plain-file members, each no larger
+than the file: a device, a FIFO (or a link to one), a compressed or sparse archive is refused before anything is
+read into memory, so a hostile shard can neither hang a reader nor make it allocate more than the file's size.
+
 Locations may be local paths or fsspec URLs (``s3://...``, ``file:///...``).
 """
 
@@ -32,7 +36,9 @@ from __future__ import annotations
 import hashlib
 import json
 import posixpath
+import stat
 import tarfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import IO, Iterable, Iterator, Mapping
 
@@ -42,7 +48,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
-from webdataset.tariterators import group_by_keys, tar_file_iterator
+from webdataset.tariterators import group_by_keys
 
 from endoflow.data.base import DataFormatError
 from endoflow.devices import unit_float_images
@@ -74,6 +80,10 @@ MANIFEST_SCHEMA = pa.schema(
     ]
 )
 _HASH_BLOCK = 1 << 20
+# The first bytes of compressed streams that tarfile would otherwise unpack (shards are plain tar).
+_COMPRESSION_MAGIC = {b"\x1f\x8b": "gzip", b"BZh": "bzip2", b"\xfd7zXZ\x00": "xz", b"\x28\xb5\x2f\xfd": "zstd"}
+# The only member types a shard holds: plain files (ustar and pre-POSIX regular files).
+_PLAIN_MEMBER_TYPES = (tarfile.REGTYPE, tarfile.AREGTYPE)
 
 
 @dataclass(frozen=True)
@@ -235,10 +245,9 @@ class HashingWriter:
 def shard_digests(location: str) -> tuple[str, list[tuple[str, str]]]:
     """What the manifest records of a shard already on disk (one kept from an interrupted run): the SHA-256 of
     its bytes, and each sample's key and :func:`sample_sha256` in stored order."""
-    with fsspec.open(location, "rb") as stream:
-        reader = _HashingReader(stream)
-        members = ({**member, "__url__": location} for member in tar_file_iterator(reader))
-        samples = [(str(sample["__key__"]), sample_sha256(sample)) for sample in group_by_keys(members)]
+    with open_shard(location) as (reader, size):
+        samples = [(str(sample["__key__"]), sample_sha256(sample))
+                   for sample in group_by_keys(plain_tar_members(reader, location, size))]
         return reader.drain(), samples
 
 
@@ -262,20 +271,95 @@ class _HashingReader:
         return self.digest.hexdigest()
 
 
+@contextmanager
+def open_shard(url: str) -> Iterator[tuple[_HashingReader, int]]:
+    """A shard file opened for reading through a :class:`_HashingReader`, and its size in bytes.
+
+    Raises:
+        DataFormatError: naming ``url``: it is missing, is not a regular file (a device, a FIFO, a folder, or a
+            link to one: reading ``/dev/zero`` never ends, opening a FIFO waits for a writer forever), or starts
+            like a compressed stream.
+    """
+    size = regular_file_size(url)
+    with fsspec.open(url, "rb") as stream:
+        head = stream.read(max(len(magic) for magic in _COMPRESSION_MAGIC))
+        stream.seek(0)
+        for magic, compression in _COMPRESSION_MAGIC.items():
+            if head.startswith(magic):
+                raise DataFormatError(url, f"a {compression}-compressed file; expected an uncompressed tar "
+                                           f"(as the preprocess stage writes)")
+        yield _HashingReader(stream), size
+
+
+def regular_file_size(url: str) -> int:
+    """The size in bytes of the regular file at ``url`` (a path or an fsspec URL), links followed.
+
+    Raises:
+        DataFormatError: naming ``url``: it is missing or is not a regular file.
+    """
+    fs, path = fsspec.core.url_to_fs(url)
+    try:
+        info = fs.info(path)
+    except FileNotFoundError:
+        raise DataFormatError(url, "shard file not found; expected a tar file (rerun the preprocess stage)") from None
+    if info.get("type") != "file":
+        raise DataFormatError(url, f"is {_file_kind(info)}, not a regular file; expected a tar shard")
+    return int(info["size"])
+
+
+def _file_kind(info: Mapping) -> str:
+    """What a non-regular file is, in words, from fsspec's ``info`` (a local file's ``mode`` tells the most)."""
+    mode = info.get("mode")
+    kinds = ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a FIFO"),
+             (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a folder"))
+    kind = next((name for test, name in kinds if mode is not None and test(mode)), f"an entry of type {info.get('type')!r}")
+    return f"{kind} (through a link)" if info.get("islink") else kind
+
+
+def plain_tar_members(stream: IO[bytes], url: str, size_bound: int) -> Iterator[dict]:
+    """The members of the uncompressed tar ``stream`` as ``{"fname", "data", "__url__"}``, in stored order.
+
+    Every member must be a plain file no larger than ``size_bound`` (the shard file's size: a member stored in
+    the file cannot be larger), checked before its data is read: a sparse member declaring gigabytes is refused
+    without reading them.
+
+    Raises:
+        DataFormatError: naming ``url`` and the member.
+        tarfile.TarError: the bytes are not an uncompressed tar.
+    """
+    with tarfile.open(fileobj=stream, mode="r|") as tar:
+        for member in tar:
+            check_plain_member(member, url, size_bound)
+            yield {"fname": member.name, "data": tar.extractfile(member).read(), "__url__": url}
+            tar.members = []  # a stream keeps no list of the members passed
+
+
+def check_plain_member(member: tarfile.TarInfo, url: str, size_bound: int) -> None:
+    """A shard member must be a plain file of at most ``size_bound`` bytes."""
+    if member.sparse is not None or member.type == tarfile.GNUTYPE_SPARSE:
+        raise DataFormatError(url, f"member {member.name} is a sparse file declaring {member.size} bytes; "
+                                   f"expected plain files only")
+    if member.type not in _PLAIN_MEMBER_TYPES:
+        raise DataFormatError(url, f"member {member.name} is not a plain file (tar type {member.type!r}); "
+                                   f"expected plain files only")
+    if member.size > size_bound:
+        raise DataFormatError(url, f"member {member.name} declares {member.size} bytes, more than the shard's "
+                                   f"{size_bound}; expected members stored in the file (damaged shard)")
+
+
 def read_shard(url: str, entry: ShardEntry) -> Iterator[dict]:
     """The raw samples of one shard (member -> bytes, plus ``__key__`` and ``__url__``), in stored order.
 
     Raises:
-        DataFormatError: naming ``url``: a sample whose key, members or SHA-256 differ from the manifest's (as
-            soon as it is read, before it is yielded), or, after the last sample, a sample count or a SHA-256
-            of the whole file that differs from the manifest's ``entry``.
+        DataFormatError: naming ``url``: a shard that is not a regular file holding an uncompressed tar of
+            plain-file members (:func:`open_shard`, :func:`plain_tar_members`); a sample whose key, members or
+            SHA-256 differ from the manifest's (as soon as it is read, before it is yielded), or, after the last
+            sample, a sample count or a SHA-256 of the whole file that differs from the manifest's ``entry``.
     """
     count = 0
-    with fsspec.open(url, "rb") as stream:
-        reader = _HashingReader(stream)
+    with open_shard(url) as (reader, size):
         try:
-            members = ({**member, "__url__": url} for member in tar_file_iterator(reader))
-            for sample in group_by_keys(members):
+            for sample in group_by_keys(plain_tar_members(reader, url, size)):
                 check_complete(sample, url)
                 check_recorded(sample, entry, count, url)
                 count += 1
