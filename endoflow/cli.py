@@ -109,6 +109,12 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--no-start", dest="start", action="store_false",
                        help="only queue them (start later with `dvc queue start -j 1`)")
     sweep.set_defaults(handler=_sweep)
+
+    params = commands.add_parser("params", help="write the full, documented params file DVC reads: the defaults, "
+                                                "or a preset's differences over them")
+    params.add_argument("--preset", type=Path, default=None, help="a preset (presets/paper.yaml); default: none")
+    params.add_argument("--out", type=Path, default=None, help="file to write (params.yaml); default: print it")
+    params.set_defaults(handler=_params)
     return parser
 
 
@@ -251,3 +257,14 @@ def _params_if_present(path: str):
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def _params(args: argparse.Namespace) -> int:
+    from endoflow.params_file import preset_yaml, write_params_file
+
+    if args.out is None:
+        print(preset_yaml(args.preset), end="")
+        return 0
+    write_params_file(args.out, args.preset)
+    print(f"wrote {args.out}: the defaults" + (f" with {args.preset}" if args.preset else ""))
+    return 0

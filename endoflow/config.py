@@ -1,367 +1,584 @@
-"""Typed configuration: ``params.yaml`` validated once into dataclasses.
+"""The parameters: one pydantic schema, the one source of every default, range and unit.
 
-Every stage and command reads its settings through :func:`load_params`. Unknown keys, values of the wrong
-type, values out of range (``train.lr: -0.1``) and settings that contradict each other (``ray.num_workers``
-CPUs beyond ``ray.num_cpus``) fail with :class:`ConfigError` naming the dotted key (``model.latent_bank``),
-so a mistake in ``params.yaml`` or ``dvc exp run -S`` fails at load, never minutes into a stage. Keys left
-out take the defaults below.
+``params.yaml`` equals the schema's defaults (``endoflow params`` writes it; a test holds them equal), presets
+in ``presets/`` state only their differences, and :func:`load_params` validates a file once: an unknown key, a
+value of the wrong type or out of range, or settings that contradict each other fail with :class:`ConfigError`
+naming the dotted key, the value and what was expected. Each field says whether it changes what training
+computes (:func:`training_keys`), which is what the resume fingerprint covers.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import math
+import difflib
 import re
-import types
-import typing
-from dataclasses import dataclass, field
 from pathlib import Path
-from functools import reduce
-from typing import Any, Callable, Literal, Optional, Sequence, Union
+from typing import Annotated, Any, Callable, ClassVar, Literal, Optional, Sequence, Union
 
 import yaml
+from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, PlainValidator, ValidationError,
+                      model_validator)
+from pydantic_core import PydanticCustomError
 
 
 class ConfigError(ValueError):
     """A parameter is unknown, missing or of the wrong type; the message names the key."""
 
 
-# What a device key may say, and what a precision key may say; endoflow/devices.py turns them into torch terms.
+# The ResNet encoder downsamples by 32, and DepthNet needs whole feature maps at every level.
+ENCODER_STRIDE = 32
+# pretrain.py measures the bank with a sliced Wasserstein distance on pyramids down to 16 px.
+SWD_MIN_RESOLUTION = 16
+# Ray refuses smaller object stores (ray._private.ray_constants.OBJECT_STORE_MINIMUM_MEMORY_BYTES, 75 MiB).
+RAY_MIN_OBJECT_STORE_MB = 75
+# What a device key may say; endoflow/devices.py turns it into a torch device.
 DEVICE_NAME = re.compile(r"auto|cpu|cuda(:[0-9]+)?")
 Precision = Literal["auto", "bf16", "float32"]
+Split = Literal["train", "val", "test"]
 
 
-# --------------------------------------------------------------------------------------------- data
-@dataclass
-class SimColConfig:
-    root: str = "data/raw/synthetic/SimCol3D"
-    # 3x3 pixel K at `reference_size`, overriding cam.txt (row-major nested lists); null reads cam.txt.
-    intrinsics: Optional[list[list[float]]] = None
-    # cam.txt describes images of this width; K is scaled by (stored width / reference_size).
-    reference_size: int = 475
-    val: list[str] = field(default_factory=lambda: ["S4", "S9", "S14", "B4", "B9", "B14"])
-    test: list[str] = field(
-        default_factory=lambda: ["S5", "S10", "S15", "B5", "B10", "B15", "O1", "O2", "O3"]
-    )
+# ------------------------------------------------------------------------------------------ field types
+def _expect(holds: Callable[[Any], bool], expected: str) -> AfterValidator:
+    """A check whose failure reads ``<key> must be <expected>, got <value>``."""
+
+    def check(value: Any) -> Any:
+        if not holds(value):
+            raise PydanticCustomError("expected", "{expected}", {"expected": expected})
+        return value
+
+    return AfterValidator(check)
 
 
-@dataclass
-class EndoSLAMConfig:
-    root: str = "data/raw/synthetic/EndoSLAM"
-    # unitycam: synthetic VR-Caps export; camera: real HighCam/LowCam/... recordings; auto: detect.
-    layout: Literal["auto", "unitycam", "camera"] = "auto"
-    # Pose translation units to cm (UnityCam units are unconfirmed; real-camera sheets claim metres).
-    unitycam_translation_to_cm: float = 1.0
-    camera_translation_to_cm: float = 100.0
-    # UnityCam depth PNGs hold relative distance 0..255; this is the distance that 255 stands for.
-    depth_full_scale_cm: float = 20.0
-    depth_is_ray_length: bool = False
-    fps: float = 30.0
-    # 3x3 pixel K for the stored frames; null uses the documented third-party UnityCam K (scaled).
-    intrinsics: Optional[list[list[float]]] = None
-    # Real-camera poses: convert from a left-handed frame like UnityCam's?
-    camera_poses_left_handed: bool = False
-    split: Literal["train", "val", "test"] = "test"
+def _yaml_number(value: Any) -> Any:
+    # PyYAML (YAML 1.1) reads `1e-4` as a string; accept what float() reads as a number.
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
 
 
-@dataclass
-class SceneNetConfig:
-    root: str = "data/raw/synthetic/SceneNet"
-    max_frames_per_trajectory: Optional[int] = None
+def _count_or_counts(value: Any) -> Any:
+    """One integer >= 1, or a non-empty list of them (one per resolution of the latent bank)."""
+    if not isinstance(value, list):
+        if not _is_count(value):
+            raise PydanticCustomError("expected", "{expected}", {"expected": "an integer >= 1 or a list of them"})
+        return value
+    if not value:
+        raise PydanticCustomError("expected", "{expected}", {"expected": "an integer >= 1 or a non-empty list"})
+    for index, item in enumerate(value):
+        if not _is_count(item):
+            raise PydanticCustomError("entry", "{expected}", {"index": index, "expected": "an integer >= 1",
+                                                              "value": repr(item)})
+    return value
 
 
-@dataclass
-class DataConfig:
-    size: int = 128  # stored square size of shard images (centre crop to square, then resize)
-    simcol: SimColConfig = field(default_factory=SimColConfig)
-    endoslam: EndoSLAMConfig = field(default_factory=EndoSLAMConfig)
-    scenenet: SceneNetConfig = field(default_factory=SceneNetConfig)
+def _is_count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 1
 
 
-# -------------------------------------------------------------------------------------------- synth
-@dataclass
-class SynthLayoutConfig:
-    sequences: int
-    frames: int
+def _is_power_of_two(value: int) -> bool:
+    return value >= 1 and value & (value - 1) == 0
 
 
-@dataclass
-class SynthConfig:
-    out: str = "data/raw/synthetic"
-    size: int = 128
-    seed: int = 0
-    workers: int = 2  # processes rendering sequences in parallel (CPU)
-    # Rendering device: auto (a CUDA GPU if torch sees one, else the CPU), cpu, cuda or cuda:N (endoflow.devices).
-    # A GPU renders in one process, and its float arithmetic may differ from the CPU's in the last bits.
-    device: str = "cpu"
-    simcol: SynthLayoutConfig = field(default_factory=lambda: SynthLayoutConfig(15, 60))
-    endoslam: SynthLayoutConfig = field(default_factory=lambda: SynthLayoutConfig(2, 120))
-    scenenet: SynthLayoutConfig = field(default_factory=lambda: SynthLayoutConfig(60, 20))
+def _is_plain_name(name: str) -> bool:
+    return bool(name) and all(c.isascii() and (c.isalnum() or c in "_-") for c in name)
 
 
-# ---------------------------------------------------------------------------------------- preprocess
-@dataclass
-class PreprocessConfig:
-    # A local path or an fsspec URL (file:///shared/shards, s3://bucket/shards) that every Ray node can write.
-    out: str = "data/shards"
-    # Who writes the shards: local (preprocess.workers processes on this machine) or ray (one Ray task per
-    # shard on the cluster at ray.address, or on a local Ray when it is null; the dataset root must be at the
-    # same path on every node). Both write the same bytes.
-    engine: Literal["local", "ray"] = "local"
-    workers: int = 2  # processes of the local engine
-    samples_per_shard: int = 128
-    # Each split's shard count is a multiple of this, so whole shards divide evenly over workers.
-    shard_multiple: int = 4
-    neighbour_offset: int = 1  # prev/next are frames cur -/+ this offset
+Number = Annotated[float, BeforeValidator(_yaml_number)]
+Device = Annotated[str, _expect(lambda v: DEVICE_NAME.fullmatch(v) is not None, "auto, cpu, cuda or cuda:N")]
+ImageSize = Annotated[int, _expect(lambda v: v >= ENCODER_STRIDE and v % ENCODER_STRIDE == 0,
+                                   f"a positive multiple of {ENCODER_STRIDE} (the ResNet encoder downsamples by "
+                                   f"that)")]
+Count = Annotated[int, Field(ge=1)]
+CountOrCounts = Annotated[Union[int, list[int]], PlainValidator(_count_or_counts)]
+Intrinsics = Optional[list[list[Number]]]
+PlainName = Annotated[str, _expect(_is_plain_name, "a name of letters, digits, _ and -")]
 
 
-# ------------------------------------------------------------------------------------ latent bank
-@dataclass
-class LatentBankConfig:
+def setting(default: Any = ..., doc: str = "", *, unit: Optional[str] = None, training: Optional[bool] = None,
+            **constraints: Any) -> Any:
+    """A field with its default, what it means, its unit and whether it changes what training computes (``None``:
+    as its section says); ``constraints`` are pydantic's (``ge``, ``gt``, ``le``, ``lt``)."""
+    factory = constraints.pop("default_factory", None)
+    extra = {"unit": unit, "training": training}
+    if factory is not None:
+        return Field(default_factory=factory, description=doc, json_schema_extra=extra, **constraints)
+    return Field(default, description=doc, json_schema_extra=extra, **constraints)
+
+
+class Section(BaseModel):
+    """A section of params.yaml: unknown keys refused, types strict (``true`` is no integer), numbers finite."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, validate_default=True)
+    # Whether the section's fields change what training computes, unless a field says otherwise; None: as the
+    # section holding it.
+    TRAINING: ClassVar[Optional[bool]] = None
+
+
+# ------------------------------------------------------------------------------------------------ data
+class SimColConfig(Section):
+    root: str = setting("data/raw/synthetic/SimCol3D", "SimCol3D root (the native layout)")
+    intrinsics: Intrinsics = setting(None, "3x3 pixel K at reference_size, overriding cam.txt (row-major); null "
+                                           "reads cam.txt", unit="px")
+    reference_size: Count = setting(475, "the image width cam.txt describes; K is scaled by stored width / this",
+                                    unit="px")
+    val: list[str] = setting(["S4", "S9", "S14", "B4", "B9", "B14"], "sequences of the val split")
+    test: list[str] = setting(["S5", "S10", "S15", "B5", "B10", "B15", "O1", "O2", "O3"],
+                              "sequences of the test split")
+
+
+class EndoSLAMConfig(Section):
+    root: str = setting("data/raw/synthetic/EndoSLAM", "EndoSLAM root (the native layout)")
+    layout: Literal["auto", "unitycam", "camera"] = setting(
+        "auto", "unitycam: synthetic VR-Caps export; camera: real HighCam/LowCam/... recordings; auto: detect")
+    unitycam_translation_to_cm: Number = setting(1.0, "UnityCam pose translation units to cm (unconfirmed)", gt=0)
+    camera_translation_to_cm: Number = setting(100.0, "real-camera pose translation units to cm (sheets say m)",
+                                               gt=0)
+    depth_full_scale_cm: Number = setting(20.0, "the distance a UnityCam depth PNG's 255 stands for", unit="cm",
+                                          gt=0)
+    depth_is_ray_length: bool = setting(False, "depth PNGs hold distance along the ray, not z-depth")
+    fps: Number = setting(30.0, "frame rate of the recordings", unit="Hz", gt=0)
+    intrinsics: Intrinsics = setting(None, "3x3 pixel K for the stored frames; null uses the documented "
+                                           "third-party UnityCam K (scaled)", unit="px")
+    camera_poses_left_handed: bool = setting(False, "real-camera poses: convert from a left-handed frame like "
+                                                    "UnityCam's")
+    split: Split = setting("test", "the split every EndoSLAM sequence goes to")
+
+
+class SceneNetConfig(Section):
+    root: str = setting("data/raw/synthetic/SceneNet", "SceneNet RGB-D root (depth only: the latent bank)")
+    max_frames_per_trajectory: Optional[Count] = setting(None, "cap per trajectory; null: every frame")
+
+
+class DataConfig(Section):
+    size: ImageSize = setting(64, "stored square size of shard images (centre crop to square, then resize)",
+                              unit="px")
+    simcol: SimColConfig = setting(default_factory=SimColConfig)
+    endoslam: EndoSLAMConfig = setting(default_factory=EndoSLAMConfig)
+    scenenet: SceneNetConfig = setting(default_factory=SceneNetConfig)
+
+
+# ----------------------------------------------------------------------------------------------- synth
+class SynthLayoutConfig(Section):
+    sequences: Count = setting(doc="sequences rendered")
+    # Two frames make the shortest trajectory the writers render; triplets need more (a cross-field rule).
+    frames: int = setting(doc="frames per sequence", ge=2)
+
+
+class SynthConfig(Section):
+    # the data reaches training through the shards, whose manifest is hashed
+    TRAINING: ClassVar[Optional[bool]] = False
+
+    out: str = setting("data/raw/synthetic", "where the synthesize stage writes the native layouts")
+    size: int = setting(128, "rendered square frame size", unit="px", ge=8)
+    seed: int = setting(0, "seed of the procedural scenes", ge=0)
+    workers: Count = setting(2, "processes rendering sequences in parallel (CPU)")
+    device: Device = setting("cpu", "auto, cpu, cuda or cuda:N; a GPU renders in one process, its float "
+                                    "arithmetic may differ from the CPU's in the last bits")
+    simcol: SynthLayoutConfig = setting(default_factory=lambda: SynthLayoutConfig(sequences=15, frames=60))
+    # at most one sequence per UnityCam organ: the writers check that
+    endoslam: SynthLayoutConfig = setting(default_factory=lambda: SynthLayoutConfig(sequences=2, frames=120))
+    scenenet: SynthLayoutConfig = setting(default_factory=lambda: SynthLayoutConfig(sequences=60, frames=20))
+
+
+# ------------------------------------------------------------------------------------------ preprocess
+class PreprocessConfig(Section):
+    out: str = setting("data/shards", "a local path or an fsspec URL (file:///shared/shards, s3://bucket/shards) "
+                                      "that every Ray node can write")
+    engine: Literal["local", "ray"] = setting(
+        "local", "local: preprocess.workers processes here; ray: one Ray task per shard at ray.address (the "
+                 "dataset root at the same path on every node); both write the same bytes")
+    workers: Count = setting(2, "processes of the local engine")
+    samples_per_shard: Count = setting(128, "samples per shard file")
+    shard_multiple: Count = setting(4, "each split's shard count is a multiple of this, so whole shards divide "
+                                       "evenly over workers")
+    neighbour_offset: Count = setting(1, "prev/next are frames cur -/+ this offset", unit="frames")
+
+
+# ----------------------------------------------------------------------------------------- latent bank
+class LatentBankConfig(Section):
     """Generative pretraining of the StyleGAN-like depth generator (WGAN-GP, progressive growing)."""
 
-    shards: str = "data/shards/scenenet"
-    out: str = "models/latent_bank.pt"
-    metrics: str = "metrics/latent_bank.json"  # SWD before and after training, steps, seconds
-    plots: str = "plots/latent_bank"  # sample grids and loss curves
-    resolution: int = 64  # final generator resolution (power of two)
-    # First generator block; with resolution 64 the bank has 5 blocks, one per DepthNet encoder level.
-    start_resolution: int = 4
-    latent_dim: int = 128
-    style_dim: int = 128
-    mapping_layers: int = 4
-    channel_base: int = 512
-    channel_max: int = 128
-    batch_size: int = 16
-    # Generator steps at each resolution: one number for all, or a list from start_resolution up.
-    steps_per_stage: Union[int, list[int]] = 300
-    lr: float = 1e-4  # fixed, as the paper
-    betas: list[float] = field(default_factory=lambda: [0.0, 0.99])
-    # Critic steps per generator step: one number for all resolutions, or a list like steps_per_stage.
-    n_critic: Union[int, list[int]] = 1
-    gp_gamma: float = 10.0
-    # Decay of the generator's weight average; its horizon (about 1 / (1 - decay) steps) must be short beside
-    # the last stage, or the average still holds coarser stages' weights: 0.999 over 300-step stages left the
-    # SWD ratio at 0.50-0.60 for seeds 0-2, 0.99 gives 0.43-0.45 (docs/method.md).
-    ema_decay: float = 0.99
-    # Initial scale of the synthesis convolutions relative to PyTorch's default; they are scale-free (AdaIN
-    # follows), so below 1 they learn faster at the fixed lr (see endoflow.models.latent_bank.InitScaled).
-    conv_init_scale: float = 0.25
-    swd_samples: int = 256
-    drift_weight: float = 0.001  # ProGAN's penalty on squared real scores, keeps critic outputs bounded
-    fade_fraction: float = 0.5  # share of each new stage spent fading the new resolution in
-    # Maps are centred log-depth divided by this (natural-log units), clipped to [-1, 1].
-    depth_log_range: float = 1.5
-    holdout_fraction: float = 0.1  # held out of train for the SWD when the shards have no val split
-    device: str = "auto"  # auto, cpu, cuda or cuda:N (endoflow.devices); the bank file is saved as CPU tensors
-    # float32 by default, also on GPUs: the gradient penalty differentiates the critic twice, and bf16 moves it
-    # most (critic loss up to 6% off float32 at a first step); bf16 pretraining is unmeasured on a GPU
-    # (docs/method.md, "Devices and precision"). auto or bf16 as for train.precision.
-    precision: Precision = "float32"
+    shards: str = setting("data/shards/scenenet", "depth shards the bank learns from")
+    out: str = setting("models/latent_bank.pt", "the bank file", training=False)
+    metrics: str = setting("metrics/latent_bank.json", "SWD before and after training, steps, seconds",
+                           training=False)
+    plots: str = setting("plots/latent_bank", "sample grids and loss curves", training=False)
+    resolution: int = setting(64, "final generator resolution", unit="px")
+    start_resolution: int = setting(4, "first generator block; with resolution 64 the bank has 5 blocks, one per "
+                                       "DepthNet encoder level", unit="px")
+    latent_dim: Count = setting(128, "latent code size")
+    style_dim: Count = setting(128, "style vector size")
+    mapping_layers: Count = setting(4, "layers of the mapping network")
+    channel_base: Count = setting(512, "a block has min(channel_base / resolution, channel_max) channels")
+    channel_max: Count = setting(128, "most channels of a block")
+    batch_size: Count = setting(16, "depth maps per step")
+    steps_per_stage: CountOrCounts = setting(300, "generator steps at each resolution: one number for all, or a "
+                                                  "list from start_resolution up")
+    lr: Number = setting(1e-4, "learning rate, fixed as in the paper", gt=0)
+    betas: list[Annotated[Number, Field(ge=0, lt=1)]] = setting(
+        [0.0, 0.99], "Adam's [beta1, beta2]", min_length=2, max_length=2)
+    n_critic: CountOrCounts = setting(1, "critic steps per generator step: one number, or a list like "
+                                         "steps_per_stage")
+    gp_gamma: Number = setting(10.0, "gradient-penalty weight", ge=0)
+    # Its horizon (about 1 / (1 - decay) steps) must be short beside the last stage, or the average still holds
+    # coarser stages' weights: 0.999 over 300-step stages left the SWD ratio at 0.50-0.60 for seeds 0-2, 0.99
+    # gives 0.43-0.45 (docs/method.md).
+    ema_decay: Number = setting(0.99, "decay of the generator's weight average", ge=0, lt=1)
+    # They are scale-free (AdaIN follows), so below 1 they learn faster at the fixed lr
+    # (see endoflow.models.latent_bank.InitScaled).
+    conv_init_scale: Number = setting(0.25, "initial scale of the synthesis convolutions relative to PyTorch's "
+                                            "default", gt=0)
+    swd_samples: Count = setting(256, "maps the sliced Wasserstein distance compares")
+    drift_weight: Number = setting(0.001, "ProGAN's penalty on squared real scores, keeps critic outputs bounded",
+                                   ge=0)
+    fade_fraction: Number = setting(0.5, "share of each new stage spent fading the new resolution in", ge=0, le=1)
+    depth_log_range: Number = setting(1.5, "maps are centred log-depth divided by this, clipped to [-1, 1]",
+                                      unit="natural-log units", gt=0)
+    holdout_fraction: Number = setting(0.1, "held out of train for the SWD when the shards have no val split",
+                                       ge=0, lt=1)
+    device: Device = setting("auto", "auto, cpu, cuda or cuda:N; the bank file is saved as CPU tensors",
+                             training=False)
+    # The gradient penalty differentiates the critic twice, and bf16 moves it most (critic loss up to 6% off
+    # float32 at a first step); bf16 pretraining is unmeasured on a GPU (docs/method.md, Devices and precision).
+    precision: Precision = setting("float32", "float32, also on GPUs; auto or bf16 as for train.precision")
+
+    @model_validator(mode="after")
+    def _resolutions(self) -> "LatentBankConfig":
+        for name, value in (("resolution", self.resolution), ("start_resolution", self.start_resolution)):
+            least = SWD_MIN_RESOLUTION if name == "resolution" else 4
+            if not (_is_power_of_two(value) and value >= least):
+                why = f" (pretraining's SWD needs {SWD_MIN_RESOLUTION} px)" if name == "resolution" else ""
+                raise _field_error(name, f"a power of two >= {least}{why}", value)
+        return self
 
 
-# ------------------------------------------------------------------------------------------ model
-@dataclass
-class ModelConfig:
-    latent_bank: bool = True  # ablation: false gives the same DepthNet without the bank
-    pose_vae: bool = True  # ablation: false gives a deterministic PoseNet
-    min_depth: float = 0.1  # cm
-    max_depth: float = 20.0  # cm
-    encoder_weights: Optional[str] = None  # optional local ResNet-18 ImageNet state dict
-    scales: int = 4
-    # The frozen bank injects its learned per-pixel noise while training (never at evaluation).
-    bank_noise: bool = False
-    # Initial log-variance of the pose VAE (std exp(-4.5) ~ 0.011 rad / cm): small, so early samples
-    # do not swamp the warp; the KL term then pulls it up against the reprojection loss.
-    pose_logvar_init: float = -9.0
-    # With pose_vae, training warps with the reparameterised sample (true, the paper) or with the mean (false:
-    # the KL still applies); the VAE study in docs/method.md separates the two. Evaluation always uses the mean.
-    pose_sample: bool = True
+# ----------------------------------------------------------------------------------------------- model
+class ModelConfig(Section):
+    latent_bank: bool = setting(True, "ablation: false gives the same DepthNet without the bank")
+    pose_vae: bool = setting(True, "ablation: false gives a deterministic PoseNet")
+    min_depth: Number = setting(0.1, "smallest depth DepthNet predicts", unit="cm", gt=0)
+    max_depth: Number = setting(20.0, "largest depth DepthNet predicts", unit="cm")
+    encoder_weights: Optional[str] = setting(None, "optional local ResNet-18 ImageNet state dict")
+    # DepthNet's decoder has five levels; disparities come from the four finest (Monodepth2's scales).
+    scales: int = setting(4, "decoder scales the loss sees", ge=1, le=4)
+    bank_noise: bool = setting(False, "the frozen bank injects its learned per-pixel noise while training (never "
+                                      "at evaluation)")
+    # std exp(-4.5) ~ 0.011 rad / cm: small, so early samples do not swamp the warp; the KL term then pulls it up
+    # against the reprojection loss.
+    pose_logvar_init: Number = setting(-9.0, "initial log-variance of the pose VAE")
+    pose_sample: bool = setting(True, "with pose_vae, training warps with the reparameterised sample (true, the "
+                                      "paper) or the mean (false; the KL still applies); evaluation uses the mean")
 
 
-@dataclass
-class LossConfig:
-    photometric: Literal["mse", "ssim_l1"] = "ssim_l1"
-    ssim_weight: float = 0.85
-    min_reprojection: bool = True
-    automask: bool = True
-    smoothness_weight: float = 1e-3
-    multiscale: bool = True
-    # beta. The paper gives no value; 1e-3 pushed the pose log-variance up until sampling noise (~0.03 rad)
-    # swamped the per-frame rotation of the default data, and pose learned nothing (docs/method.md).
-    kl_weight: float = 1e-5
+class LossConfig(Section):
+    photometric: Literal["mse", "ssim_l1"] = setting("ssim_l1", "photometric error")
+    ssim_weight: Number = setting(0.85, "SSIM's share of ssim_l1", ge=0, le=1)
+    min_reprojection: bool = setting(True, "per-pixel minimum over source frames (Monodepth2)")
+    automask: bool = setting(True, "mask pixels the identity warp explains better (Monodepth2)")
+    smoothness_weight: Number = setting(1e-3, "edge-aware disparity smoothness weight", ge=0)
+    multiscale: bool = setting(True, "the loss at every decoder scale, upsampled to full resolution")
+    # The paper gives no value; 1e-3 pushed the pose log-variance up until sampling noise (~0.03 rad) swamped the
+    # per-frame rotation of the default data, and pose learned nothing (docs/method.md).
+    kl_weight: Number = setting(1e-5, "beta, the pose VAE's KL weight", ge=0)
 
 
-# -------------------------------------------------------------------------------------- training
-@dataclass
-class TrainConfig:
-    shards: str = "data/shards/simcol"
-    latent_bank: str = "models/latent_bank.pt"
-    out: str = "models/endoflow.pt"
-    metrics: str = "metrics/train.json"
-    plots: str = "plots/train"
-    epochs: int = 20
-    batch_size: int = 12
-    lr: float = 1e-4
-    weight_decay: float = 1e-3
-    # adamw: decoupled weight decay. adam: decay added to the gradient (L2), which Adam's normalisation
-    # inflates wherever the photometric gradient is small; on the default data it stalls learning.
-    optimizer: Literal["adam", "adamw"] = "adamw"
-    log_every: int = 10
-    # Learning-rate schedule: constant, or step (x gamma every step_epochs, Monodepth2's), or cosine.
-    schedule: Literal["constant", "step", "cosine"] = "step"
-    step_epochs: int = 15
-    gamma: float = 0.1
-    grad_clip: Optional[float] = None  # max gradient norm; null: no clipping
-    steps_per_epoch: Optional[int] = None  # cap per epoch (smoke runs); null: one pass over the shards
-    val_batches: Optional[int] = None  # cap on validation batches per epoch; null: the whole val split
-    # auto: bf16 autocast (and channels-last) on a GPU with native bf16, float32 elsewhere; bf16 also runs on
-    # the CPU (CI does). The device is Ray's (ray.use_gpu). See endoflow.devices.
-    precision: Precision = "auto"
-    image_examples: int = 3  # fixed val frames whose depth is logged beside GT each epoch
-    # Ray checkpoints kept (the newest; each holds the best epoch's weights too, so the model is never lost)
-    keep_checkpoints: int = 2
-    # Processes per Ray worker that read, check, decode and collate its batches (0: the training process does,
-    # between steps). The batch order depends on it (0 and 1 agree), so a run resumes only with its value. With
-    # loader processes, loader_workers + 1 (the training process) must fit ray.cpus_per_worker.
-    loader_workers: int = 0
+# -------------------------------------------------------------------------------------------- training
+class TrainConfig(Section):
+    shards: str = setting("data/shards/simcol", "training shards (their manifest is in the fingerprint)",
+                          training=False)
+    latent_bank: str = setting("models/latent_bank.pt", "the bank file (its bytes are in the fingerprint)",
+                               training=False)
+    out: str = setting("models/endoflow.pt", "the model file", training=False)
+    metrics: str = setting("metrics/train.json", "what DVC shows of training", training=False)
+    plots: str = setting("plots/train", "curves and history", training=False)
+    # not in the fingerprint: a run given more epochs resumes from where it stopped
+    epochs: Count = setting(10, "training epochs", training=False)
+    batch_size: Count = setting(12, "samples per step per worker")
+    lr: Number = setting(2e-4, "learning rate", gt=0)
+    weight_decay: Number = setting(1e-3, "weight decay", ge=0)
+    # adam adds the decay to the gradient (L2), which Adam's normalisation inflates wherever the photometric
+    # gradient is small; on the default data it stalls learning.
+    optimizer: Literal["adam", "adamw"] = setting("adamw", "adamw: decoupled weight decay; adam: L2 decay")
+    log_every: Count = setting(10, "steps between logged training losses", training=False)
+    schedule: Literal["constant", "step", "cosine"] = setting(
+        "cosine", "learning-rate schedule: constant, step (x gamma every step_epochs, Monodepth2's) or cosine")
+    step_epochs: Count = setting(15, "epochs between steps of the step schedule")
+    gamma: Number = setting(0.1, "the step schedule's factor", gt=0, le=1)
+    grad_clip: Optional[Number] = setting(None, "max gradient norm; null: no clipping", gt=0)
+    steps_per_epoch: Optional[Count] = setting(None, "cap per epoch (smoke runs); null: one pass over the shards")
+    val_batches: Optional[Count] = setting(None, "cap on validation batches per epoch; null: the whole val split")
+    precision: Precision = setting("auto", "auto: bf16 autocast (and channels-last) on a GPU with native bf16, "
+                                           "float32 elsewhere; bf16 also runs on the CPU (endoflow.devices)")
+    image_examples: int = setting(3, "fixed val frames whose depth is logged beside GT each epoch", ge=0,
+                                  training=False)
+    # each holds the best epoch's weights too, so the model is never lost; Ray refuses to keep none
+    keep_checkpoints: Count = setting(2, "Ray checkpoints kept (the newest)", training=False)
+    # The batch order depends on it (0 and 1 agree), so a run resumes only with its value.
+    loader_workers: int = setting(0, "processes per Ray worker that read, check, decode and collate its batches "
+                                     "(0: the training process does, between steps)", ge=0)
 
 
-@dataclass
-class RayConfig:
-    address: Optional[str] = None  # null: local Ray sized for this machine; "auto": join a cluster
-    num_workers: int = 1
-    use_gpu: bool = False
-    cpus_per_worker: float = 1.0
-    # Where Ray puts the workers: PACK / SPREAD as few / as many nodes as it can, STRICT_PACK all on one node,
-    # STRICT_SPREAD each on a node of its own (Ray Train's ScalingConfig.placement_strategy).
-    placement_strategy: Literal["PACK", "SPREAD", "STRICT_PACK", "STRICT_SPREAD"] = "PACK"
-    # Worker failures (a process or node lost, or any error a worker raises) that Ray Train recovers from by
-    # restarting every worker from the newest checkpoint; -1: no limit. A real error is raised after max_failures
-    # retries, each repeating at most the epoch it broke in.
-    max_failures: int = 2
-    # Checkpoints: a local path (made absolute), a shared filesystem or an fsspec URL (s3://, file://...).
-    storage_path: str = "ray_results"
-    # Local Ray only (address null): logical CPUs (null: this machine's) and object store size.
-    num_cpus: Optional[int] = None
-    object_store_mb: int = 256
-    run_name: str = "endoflow-train"  # + a fingerprint of params and data: same inputs resume the run
+class RayConfig(Section):
+    # where training runs, not what it computes (the worker count aside)
+    TRAINING: ClassVar[Optional[bool]] = False
+
+    address: Optional[str] = setting(None, "null: local Ray sized for this machine; auto: join a cluster")
+    num_workers: Count = setting(1, "training workers (DDP ranks)", training=True)
+    use_gpu: bool = setting(False, "one GPU per worker")
+    cpus_per_worker: Number = setting(2.0, "CPUs Ray reserves per worker (its loader processes included)", gt=0)
+    placement_strategy: Literal["PACK", "SPREAD", "STRICT_PACK", "STRICT_SPREAD"] = setting(
+        "PACK", "PACK / SPREAD as few / as many nodes as it can, STRICT_PACK all on one node, STRICT_SPREAD each "
+                "on a node of its own (Ray Train's ScalingConfig.placement_strategy)")
+    # A real error is raised after max_failures retries, each repeating at most the epoch it broke in.
+    max_failures: int = setting(2, "worker failures Ray Train recovers from by restarting every worker from the "
+                                   "newest checkpoint; -1: no limit", ge=-1)
+    storage_path: str = setting("ray_results", "checkpoints: a local path (made absolute), a shared filesystem or "
+                                               "an fsspec URL")
+    num_cpus: Optional[Count] = setting(None, "local Ray only: logical CPUs (null: this machine's)")
+    object_store_mb: int = setting(256, "local Ray only: object store size", unit="MB",
+                                   ge=RAY_MIN_OBJECT_STORE_MB)
+    run_name: str = setting("endoflow-train", "+ a fingerprint of params and data: same inputs resume the run")
 
 
-# --------------------------------------------------------------------------------------- evaluation
-@dataclass
-class EvalSetConfig:
-    """One test set: samples of `split` in `<eval.shards>/<dataset>` whose group/sequence match."""
+# ------------------------------------------------------------------------------------------ evaluation
+class EvalSetConfig(Section):
+    """One test set: samples of ``split`` in ``<eval.shards>/<dataset>`` whose group/sequence match."""
 
-    dataset: str
-    groups: list[str] = field(default_factory=list)  # empty: any group
-    sequences: list[str] = field(default_factory=list)  # empty: any sequence
-    split: Literal["train", "val", "test"] = "test"
+    dataset: str = setting(doc="the dataset's name (a section of data)")
+    groups: list[str] = setting([], "groups it takes; empty: any")
+    sequences: list[str] = setting([], "sequences it takes; empty: any")
+    split: Split = setting("test", "the split it takes")
 
 
 def _default_test_sets() -> dict[str, EvalSetConfig]:
     return {
-        "simcol_12": EvalSetConfig("simcol", groups=["SyntheticColon_I", "SyntheticColon_II"]),
-        "simcol_3": EvalSetConfig("simcol", groups=["SyntheticColon_III"]),
-        "endoslam_colon": EvalSetConfig("endoslam", groups=["Colon"]),
-        "endoslam_small_intestine": EvalSetConfig("endoslam", groups=["Small Intestine"]),
+        "simcol_12": EvalSetConfig(dataset="simcol", groups=["SyntheticColon_I", "SyntheticColon_II"]),
+        "simcol_3": EvalSetConfig(dataset="simcol", groups=["SyntheticColon_III"]),
+        "endoslam_colon": EvalSetConfig(dataset="endoslam", groups=["Colon"]),
+        "endoslam_small_intestine": EvalSetConfig(dataset="endoslam", groups=["Small Intestine"]),
     }
 
 
-@dataclass
-class EvalConfig:
-    model: str = "models/endoflow.pt"
-    shards: str = "data/shards"  # holds <dataset>/ shard folders; a local path or an fsspec URL
-    metrics: str = "metrics/eval"  # <metrics>/<testset>.json
-    plots: str = "plots/eval"  # <plots>/<testset>/
-    predictions: str = "predictions"  # <predictions>/<testset>/ in the SimCol3D challenge layout
-    test_sets: dict[str, EvalSetConfig] = field(default_factory=_default_test_sets)
-    batch_size: int = 8
-    depth_examples: int = 3  # frames shown with error maps per test set
-    max_frames_per_sequence: Optional[int] = None  # null: every frame
-    device: str = "auto"  # auto, cpu, cuda or cuda:N (endoflow.devices)
-    precision: Precision = "auto"  # as train.precision; depth and pose are scored in float32 after the network
+class EvalConfig(Section):
+    TRAINING: ClassVar[Optional[bool]] = False
+
+    model: str = setting("models/endoflow.pt", "the model evaluated (a path or a models:/ URI)")
+    shards: str = setting("data/shards", "holds <dataset>/ shard folders; a local path or an fsspec URL")
+    metrics: str = setting("metrics/eval", "<metrics>/<testset>.json")
+    plots: str = setting("plots/eval", "<plots>/<testset>/")
+    predictions: str = setting("predictions", "<predictions>/<testset>/ in the SimCol3D challenge layout")
+    test_sets: dict[str, EvalSetConfig] = setting(
+        default_factory=_default_test_sets, doc="by name (an evaluate@<name> stage each): samples of split in "
+        "<shards>/<dataset> whose group and sequence are listed (an empty list takes any)")
+    batch_size: Count = setting(8, "frames per forward pass")
+    depth_examples: int = setting(3, "frames shown with error maps per test set", ge=0)
+    max_frames_per_sequence: Optional[Count] = setting(None, "null: every frame")
+    device: Device = setting("auto", "auto, cpu, cuda or cuda:N (endoflow.devices)")
+    precision: Precision = setting("auto", "as train.precision; depth and pose are scored in float32")
 
 
-# ------------------------------------------------------------------------------------- reconstruction
-@dataclass
-class ReconstructSequenceConfig:
+# -------------------------------------------------------------------------------------- reconstruction
+class ReconstructSequenceConfig(Section):
     """One sequence the ``reconstruct`` stage reconstructs and measures: ``sequence`` of ``data.<dataset>.root``
     (a name its reader lists), frames ``start, start + stride, ...`` below ``stop`` (null: to the end)."""
 
-    dataset: str
-    sequence: str
-    start: int = 0
-    stop: Optional[int] = None
-    stride: int = 1
+    dataset: str = setting(doc="the dataset's name (a section of data with images)")
+    sequence: str = setting(doc="a sequence its reader lists")
+    start: int = setting(0, "first frame", ge=0)
+    stop: Optional[int] = setting(None, "frames below this; null: to the end")
+    stride: Count = setting(1, "every stride-th frame")
+
+    @model_validator(mode="after")
+    def _stop_after_start(self) -> "ReconstructSequenceConfig":
+        if self.stop is not None and self.stop <= self.start:
+            raise _field_error("stop", f"above start ({self.start}) or null", self.stop)
+        return self
 
 
 def _default_reconstructions() -> dict[str, ReconstructSequenceConfig]:
     return {
-        "simcol_S5": ReconstructSequenceConfig("simcol", "S5"),
-        "simcol_O1": ReconstructSequenceConfig("simcol", "O1"),
-        "endoslam_colon": ReconstructSequenceConfig("endoslam", "UnityCam/Colon"),
+        "simcol_S5": ReconstructSequenceConfig(dataset="simcol", sequence="S5"),
+        "simcol_O1": ReconstructSequenceConfig(dataset="simcol", sequence="O1"),
+        "endoslam_colon": ReconstructSequenceConfig(dataset="endoslam", sequence="UnityCam/Colon"),
     }
 
 
-@dataclass
-class ReconstructConfig:
-    model: str = "models/endoflow.pt"
-    out: str = "reconstructions"  # <out>/<name>/: what `endoflow reconstruct` writes
-    metrics: str = "metrics/reconstruct"  # <metrics>/<name>.json: path and surface errors against ground truth
-    plots: str = "plots/reconstruct"  # <plots>/<name>/: the picture sheet and per-frame path errors
-    sequences: dict[str, ReconstructSequenceConfig] = field(default_factory=_default_reconstructions)
-    size: Optional[int] = None  # null: the model's data.size
-    voxel_cm: Optional[float] = None  # null: about one pixel's footprint at a quarter of the depth range
-    trunc_cm: Optional[float] = None  # null: 4 voxels
-    device: str = "auto"
+class ReconstructConfig(Section):
+    TRAINING: ClassVar[Optional[bool]] = False
+
+    model: str = setting("models/endoflow.pt", "the model (a path or a models:/ URI)")
+    out: str = setting("reconstructions", "<out>/<name>/: what `endoflow reconstruct` writes")
+    metrics: str = setting("metrics/reconstruct", "<metrics>/<name>.json: path and surface errors against ground "
+                                                  "truth")
+    plots: str = setting("plots/reconstruct", "<plots>/<name>/: the picture sheet and per-frame path errors")
+    sequences: dict[str, ReconstructSequenceConfig] = setting(
+        default_factory=_default_reconstructions, doc="by name (a reconstruct@<name> stage each): frames start, "
+        "start + stride, ... below stop (null: to the end) of a sequence of data.<dataset>.root")
+    size: Optional[ImageSize] = setting(None, "null: the model's data.size", unit="px")
+    voxel_cm: Optional[Number] = setting(None, "null: about one pixel's footprint at a quarter of the depth range",
+                                         unit="cm", gt=0)
+    trunc_cm: Optional[Number] = setting(None, "null: 4 voxels", unit="cm", gt=0)
+    device: Device = setting("auto", "auto, cpu, cuda or cuda:N (endoflow.devices)")
 
 
-# ----------------------------------------------------------------------------------------- tracking
-@dataclass
-class TrackingConfig:
-    # null: embedded SQLite store at <project>/mlflow.db with artifacts in <project>/mlartifacts.
-    uri: Optional[str] = None
-    experiment: str = "endoflow"
-    latent_bank_experiment: str = "endoflow-latent-bank"
-    # a name: each training registers its model as a new version of this MLflow registered model
-    # (models:/<name>/<version>, which `endoflow reconstruct --model` and eval.model accept); null: not registered
-    registered_model: Optional[str] = None
+# -------------------------------------------------------------------------------------------- tracking
+class TrackingConfig(Section):
+    TRAINING: ClassVar[Optional[bool]] = False
+
+    uri: Optional[str] = setting(None, "null: embedded SQLite store at <project>/mlflow.db with artifacts in "
+                                       "<project>/mlartifacts")
+    experiment: str = setting("endoflow", "training and evaluation runs")
+    latent_bank_experiment: str = setting("endoflow-latent-bank", "pretraining runs")
+    # MLflow's registry takes other characters too, but a models:/<name>/<version> URI must parse back
+    registered_model: Optional[PlainName] = setting(
+        None, "a name: each training registers its model as a new version of it (models:/<name>/<version>, which "
+              "`endoflow reconstruct --model` and eval.model accept); null: not registered")
+
+
+# ------------------------------------------------------------------------------------------------- all
+class Params(Section):
+    TRAINING: ClassVar[Optional[bool]] = True
+
+    seed: int = setting(0, "the seed every random generator of pretraining and training starts from", ge=0)
+    # float sums split over threads add in another order, so the same seed gives other numbers with another
+    # count; a fixed count, not the machine's cores, makes them the same on any machine
+    threads: Count = setting(2, "torch's CPU threads in every process that computes")
+    data: DataConfig = setting(default_factory=DataConfig)
+    synth: SynthConfig = setting(default_factory=SynthConfig)
+    preprocess: PreprocessConfig = setting(default_factory=PreprocessConfig)
+    latent_bank: LatentBankConfig = setting(default_factory=LatentBankConfig)
+    model: ModelConfig = setting(default_factory=ModelConfig)
+    loss: LossConfig = setting(default_factory=LossConfig)
+    train: TrainConfig = setting(default_factory=TrainConfig)
+    ray: RayConfig = setting(default_factory=RayConfig)
+    tracking: TrackingConfig = setting(default_factory=TrackingConfig)
+    eval: EvalConfig = setting(default_factory=EvalConfig)
+    reconstruct: ReconstructConfig = setting(default_factory=ReconstructConfig)
+
+    @model_validator(mode="after")
+    def _cross_field_rules(self) -> "Params":
+        for rule in _CROSS_FIELD_RULES:
+            problem = rule(self)
+            if problem:
+                raise PydanticCustomError("cross_field", "{problem}", {"problem": problem})
+        return self
 
 
 # The datasets endoflow reads, one per section of ``data``: the one list every command, stage, reader and
 # writer takes. SceneNet is read for its depth alone (the latent bank): its shards hold no triplets.
-DATASETS = tuple(name for name, tp in typing.get_type_hints(DataConfig).items() if dataclasses.is_dataclass(tp))
+DATASETS = tuple(name for name, info in DataConfig.model_fields.items()
+                 if isinstance(info.annotation, type) and issubclass(info.annotation, Section))
 DEPTH_ONLY_DATASETS = frozenset({"scenenet"})
 
 
-# ---------------------------------------------------------------------------------------------- all
-@dataclass
-class Params:
-    seed: int = 0
-    # torch's CPU threads in every process that computes (pretraining, each training worker, evaluation,
-    # reconstruction): float sums split over threads add in another order, so the same seed gives other numbers
-    # with another count; a fixed count, not the machine's cores, makes them the same on any machine
-    threads: int = 2
-    data: DataConfig = field(default_factory=DataConfig)
-    synth: SynthConfig = field(default_factory=SynthConfig)
-    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
-    latent_bank: LatentBankConfig = field(default_factory=LatentBankConfig)
-    model: ModelConfig = field(default_factory=ModelConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    train: TrainConfig = field(default_factory=TrainConfig)
-    ray: RayConfig = field(default_factory=RayConfig)
-    tracking: TrackingConfig = field(default_factory=TrackingConfig)
-    eval: EvalConfig = field(default_factory=EvalConfig)
-    reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
+# ---------------------------------------------------------------------------------------- cross-field rules
+def _depth_range(p: Params) -> Optional[str]:
+    if p.model.min_depth >= p.model.max_depth:
+        return f"model.min_depth ({p.model.min_depth}) must be below model.max_depth ({p.model.max_depth})"
+    return None
 
 
-# ----------------------------------------------------------------------------------------- loading
+def _encoder_batch_norm(p: Params) -> Optional[str]:
+    # At the smallest size the encoder's last features are 1x1, and BatchNorm in training mode needs more than
+    # one value per channel: a batch of one fails at the first step.
+    if p.data.size == ENCODER_STRIDE and p.train.batch_size < 2:
+        return (f"train.batch_size must be >= 2 when data.size is {ENCODER_STRIDE} (the encoder's 1x1 features give "
+                f"BatchNorm one value per channel), got {p.train.batch_size}")
+    return None
+
+
+def bank_resolutions(cfg: LatentBankConfig) -> list[int]:
+    """The generator's block resolutions, ``start_resolution`` doubling up to ``resolution``."""
+    resolutions = [cfg.start_resolution]
+    while resolutions[-1] < cfg.resolution:
+        resolutions.append(resolutions[-1] * 2)
+    return resolutions
+
+
+def _bank_growth(p: Params) -> Optional[str]:
+    cfg = p.latent_bank
+    if cfg.start_resolution > cfg.resolution:
+        return (f"latent_bank.start_resolution ({cfg.start_resolution}) must not exceed latent_bank.resolution "
+                f"({cfg.resolution})")
+    resolutions = bank_resolutions(cfg)
+    for name in ("steps_per_stage", "n_critic"):
+        value = getattr(cfg, name)
+        if isinstance(value, list) and len(value) != len(resolutions):
+            return (f"latent_bank.{name} must be one number or a list of {len(resolutions)} (one per resolution "
+                    f"{resolutions}), got {value}")
+    return None
+
+
+def _synth_triplets(p: Params) -> Optional[str]:
+    offset = p.preprocess.neighbour_offset
+    for layout in (name for name in DATASETS if name not in DEPTH_ONLY_DATASETS):
+        frames = getattr(p.synth, layout).frames
+        if frames <= 2 * offset:
+            return (f"synth.{layout}.frames must exceed 2 x preprocess.neighbour_offset = {2 * offset} (a sample "
+                    f"needs frames cur - {offset} and cur + {offset}), got {frames}")
+    return None
+
+
+def _ray_fits_local_cpus(p: Params) -> Optional[str]:
+    ray = p.ray
+    if ray.address or ray.num_cpus is None:  # connect_ray starts a local Ray for an empty address too
+        return None
+    need = ray.num_workers * ray.cpus_per_worker
+    if need > ray.num_cpus:
+        return (f"ray.num_workers x ray.cpus_per_worker = {ray.num_workers} x {ray.cpus_per_worker:g} = {need:g} "
+                f"CPUs exceed ray.num_cpus = {ray.num_cpus} of the local Ray (ray.address null); Ray would wait "
+                f"forever")
+    return None
+
+
+def _workers_have_shards(p: Params) -> Optional[str]:
+    # Otherwise a worker finds no shard of its own (loader.rank_shards) once training or validation starts.
+    if p.ray.num_workers > p.preprocess.shard_multiple:
+        multiple = p.preprocess.shard_multiple
+        return (f"ray.num_workers ({p.ray.num_workers}) must not exceed preprocess.shard_multiple ({multiple}): a "
+                f"split has a multiple of {multiple} shards, maybe just {multiple}, and every worker needs a shard "
+                f"of its own")
+    return None
+
+
+def _loader_workers_fit_worker_cpus(p: Params) -> Optional[str]:
+    # Loader processes run beside the training process inside the CPUs Ray reserves for the worker; beyond them
+    # they would take cores from other workers or trials on the node.
+    loaders, cpus = p.train.loader_workers, p.ray.cpus_per_worker
+    if loaders and loaders + 1 > cpus:
+        return (f"train.loader_workers ({loaders}) + 1 (the training process) = {loaders + 1} CPUs exceed "
+                f"ray.cpus_per_worker = {cpus:g}; raise ray.cpus_per_worker or lower train.loader_workers")
+    return None
+
+
+def _named_entries(p: Params) -> Optional[str]:
+    # Test-set and sequence names name DVC stages, folders and dotted keys.
+    with_images = [name for name in DATASETS if name not in DEPTH_ONLY_DATASETS]
+    for section, entries, datasets in (("eval.test_sets", p.eval.test_sets, list(DATASETS)),
+                                       ("reconstruct.sequences", p.reconstruct.sequences, with_images)):
+        for name, entry in entries.items():
+            if not _is_plain_name(name):
+                return f"{section}: name {name!r} must be letters, digits, _ and - only (it names a DVC stage)"
+            if entry.dataset not in datasets:
+                return f"{section}.{name}.dataset must be one of {datasets}, got {entry.dataset!r}"
+    return None
+
+
+_CROSS_FIELD_RULES: tuple[Callable[[Params], Optional[str]], ...] = (
+    _depth_range, _encoder_batch_norm, _bank_growth, _synth_triplets, _ray_fits_local_cpus, _workers_have_shards,
+    _loader_workers_fit_worker_cpus, _named_entries,
+)
+
+
+# --------------------------------------------------------------------------------------------- loading
 def load_params(path: str | Path = "params.yaml", overrides: Sequence[str] = ()) -> Params:
-    """Read ``path`` and apply ``key=value`` overrides (values parsed as YAML), then validate.
+    """Read ``path`` (keys left out take the schema's defaults) and apply ``key=value`` overrides (values parsed
+    as YAML), then validate.
 
     Raises:
-        ConfigError: naming the file and the dotted key that is unknown or mistyped.
+        ConfigError: naming the file and the dotted key that is unknown, mistyped or out of range.
     """
     path = Path(path)
     if not path.is_file():
@@ -381,12 +598,27 @@ def load_params(path: str | Path = "params.yaml", overrides: Sequence[str] = ())
 
 
 def params_from_dict(raw: dict[str, Any]) -> Params:
-    """Validate a plain mapping (as parsed from YAML) into :class:`Params`: types, ranges, cross-field rules."""
-    params = _build(Params, raw, prefix="")
-    _check_ranges(params)
-    for check in _CROSS_FIELD_CHECKS:
-        check(params)
-    return params
+    """Validate a plain mapping (as parsed from YAML) into :class:`Params`: types, ranges, cross-field rules.
+
+    Keys left out take the schema's defaults, within sections too (``synth.endoslam: {frames: 10}`` keeps the
+    default sequence count); a mapping of named entries (``eval.test_sets``) given is taken whole.
+    """
+    try:
+        return Params.model_validate(_over_defaults(raw, Params().model_dump(), Params))
+    except ValidationError as exc:
+        raise ConfigError("; ".join(_describe(error) for error in exc.errors())) from None
+
+
+def _over_defaults(raw: dict[str, Any], defaults: dict[str, Any], section: type[Section]) -> dict[str, Any]:
+    """``raw`` with every key it leaves out of ``section`` (and of the sections within it) taken from ``defaults``."""
+    merged = dict(raw)
+    for name, info in section.model_fields.items():
+        inner = info.annotation
+        if isinstance(inner, type) and issubclass(inner, Section) and isinstance(raw.get(name), dict):
+            merged[name] = _over_defaults(raw[name], defaults[name], inner)
+        else:
+            merged.setdefault(name, defaults[name])
+    return merged
 
 
 def apply_override(raw: dict[str, Any], item: str) -> None:
@@ -407,430 +639,144 @@ def apply_override(raw: dict[str, Any], item: str) -> None:
 def flatten_params(params: Any, prefix: str = "") -> dict[str, Any]:
     """Flat ``{"model.latent_bank": True, "eval.test_sets.simcol_3.groups": [...], ...}`` view.
 
-    Reaches into nested sections and mappings of sections (such as ``eval.test_sets``); used for MLflow
-    params and for the training fingerprint.
+    Reaches into nested sections and mappings of sections (such as ``eval.test_sets``); used for MLflow params
+    and for the training fingerprint.
     """
-    if dataclasses.is_dataclass(params):
-        items = [(f.name, getattr(params, f.name)) for f in dataclasses.fields(params)]
-    else:
-        items = list(params.items())
+    tree = params.model_dump() if isinstance(params, BaseModel) else params
     flat: dict[str, Any] = {}
-    for name, value in items:
+    for name, value in tree.items():
         key = f"{prefix}{name}"
-        if dataclasses.is_dataclass(value) or isinstance(value, dict):
+        if isinstance(value, dict):
             flat.update(flatten_params(value, prefix=f"{key}."))
         else:
             flat[key] = value
     return flat
 
 
-def params_to_dict(params: Any) -> dict[str, Any]:
+def params_to_dict(params: BaseModel) -> dict[str, Any]:
     """Nested plain-dict form, for writing back to YAML or JSON."""
-    return dataclasses.asdict(params)
+    return params.model_dump()
 
 
-def _build(cls: type, raw: Any, prefix: str) -> Any:
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{prefix.rstrip('.') or 'params'}: expected a mapping, got {raw!r}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(raw) - names)
-    if unknown:
-        raise ConfigError(f"unknown key {prefix}{unknown[0]!s} (known: {', '.join(sorted(names))})")
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        key = f"{prefix}{f.name}"
-        if f.name in raw:
-            kwargs[f.name] = _coerce(hints[f.name], raw[f.name], key)
-        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            raise ConfigError(f"missing key {key}")
-    return cls(**kwargs)
+def training_keys(params: Params) -> list[str]:
+    """The flat keys (as :func:`flatten_params` names them) of the fields that change what training computes."""
+    return sorted(_training_keys(params, "", inherited=True))
 
 
-def _coerce(tp: Any, value: Any, key: str) -> Any:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if dataclasses.is_dataclass(tp):
-        return _build(tp, value, prefix=f"{key}.")
-    if origin in (Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for arg in (a for a in args if a is not type(None)):
-            try:
-                return _coerce(arg, value, key)
-            except ConfigError as exc:
-                errors.append(str(exc))
-        raise ConfigError(errors[0] if len(errors) == 1 else f"{key}: {value!r} matches none of {args}")
-    if origin is Literal:
-        if value not in args:
-            raise ConfigError(f"{key} must be one of {list(args)}, got {value!r}")
-        return value
-    if origin in (list, tuple):
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{key} must be a list, got {value!r}")
-        item_type = args[0] if args else Any
-        return [_coerce(item_type, v, f"{key}[{i}]") for i, v in enumerate(value)]
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise ConfigError(f"{key} must be a mapping, got {value!r}")
-        value_type = args[1] if len(args) == 2 else Any
-        return {str(k): _coerce(value_type, v, f"{key}.{k}") for k, v in value.items()}
-    if tp is Any:
-        return value
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{key} must be true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{key} must be an integer, got {value!r}")
-        return value
-    if tp is float:
-        # PyYAML (YAML 1.1) reads `1e-4` as a string; accept what float() reads as a number.
-        number = _float_or_none(value) if isinstance(value, str) else value
-        if number is None or isinstance(number, bool) or not isinstance(number, (int, float)):
-            raise ConfigError(f"{key} must be a number, got {value!r}")
-        if not math.isfinite(number):
-            raise ConfigError(f"{key} must be a finite number, got {value!r}")
-        return float(number)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{key} must be a string, got {value!r}")
-        return value
-    raise ConfigError(f"{key}: unsupported parameter type {tp!r}")
+def _training_keys(section: Section, prefix: str, inherited: bool) -> set[str]:
+    own = type(section).TRAINING
+    default = inherited if own is None else own
+    keys: set[str] = set()
+    for name, info in type(section).model_fields.items():
+        marked = (info.json_schema_extra or {}).get("training")
+        changes_training = default if marked is None else marked
+        value = getattr(section, name)
+        entries = value.items() if isinstance(value, dict) else [(None, value)]
+        if all(isinstance(item, Section) for _, item in entries) and value:
+            for entry, item in entries:
+                keys |= _training_keys(item, f"{prefix}{name}." + (f"{entry}." if entry else ""), changes_training)
+        elif changes_training:
+            keys.add(f"{prefix}{name}")
+    return keys
 
 
-def _float_or_none(text: str) -> Optional[float]:
-    try:
-        return float(text)
-    except ValueError:
+# ------------------------------------------------------------------------------------- error messages
+def _field_error(key: str, expected: str, value: Any) -> PydanticCustomError:
+    """An error a model validator raises for one of its fields, read as ``<key> must be <expected>, got <value>``."""
+    return PydanticCustomError("field", "{key} must be {expected}, got {value}",
+                               {"key": key, "expected": expected, "value": repr(value)})
+
+
+_WORDS = {
+    "int_type": "an integer", "int_parsing": "an integer", "int_from_float": "an integer",
+    "float_type": "a number", "float_parsing": "a number", "finite_number": "a finite number",
+    "bool_type": "true or false", "string_type": "a string", "list_type": "a list",
+    "dict_type": "a mapping", "model_type": "a mapping",
+}
+_BOUNDS = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
+
+
+def _describe(error: dict[str, Any]) -> str:
+    """``<dotted key> must be <expected>, got <value>`` for one pydantic error."""
+    key = _dotted(error["loc"])
+    kind, ctx, value = error["type"], error.get("ctx") or {}, error.get("input")
+    if kind == "extra_forbidden":
+        return _unknown_key(error["loc"])
+    if kind == "missing":
+        return f"missing key {key}"
+    if kind in ("cross_field", "field"):
+        return f"{key}.{error['msg']}" if kind == "field" and key else error["msg"]
+    if kind == "literal_error":
+        return f"{key} must be one of {_literal_choices(error['loc'])}, got {value!r}"
+    if kind in _BOUNDS:
+        bound = next(iter(ctx.values()))
+        return f"{key} must be {_BOUNDS[kind]} {bound:g}, got {value!r}"
+    if kind in ("too_short", "too_long"):
+        return f"{key} must be a list of {ctx.get('min_length', ctx.get('max_length'))} entries, got {value!r}"
+    if kind == "expected":
+        return f"{key} must be {ctx['expected']}, got {value!r}"
+    if kind == "entry":
+        return f"{key}[{ctx['index']}] must be {ctx['expected']}, got {ctx['value']}"
+    expected = _WORDS.get(kind, error["msg"].removeprefix("Input should be "))
+    return f"{key} must be {expected}, got {value!r}"
+
+
+def _dotted(loc: tuple) -> str:
+    """``("data", "simcol", "intrinsics", 0, 1)`` as ``data.simcol.intrinsics[0][1]``; union branch tags left out."""
+    text = ""
+    for part in _plain_loc(loc):
+        text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
+    return text
+
+
+def _plain_loc(loc: tuple) -> list:
+    """``loc`` without pydantic's union branch names (``int``, ``list[constrained-int]``), which follow a leaf."""
+    parts, section = [], Params
+    for part in loc:
+        if section is None and not isinstance(part, int):
+            continue
+        parts.append(part)
+        section = _section_after(section, part)
+    return parts
+
+
+def _section_after(section: Any, part: Any) -> Any:
+    """The section class a loc part leads to, or None past the sections."""
+    if isinstance(section, _Entries):
+        return section.cls
+    if not (isinstance(section, type) and issubclass(section, BaseModel)) or part not in section.model_fields:
         return None
+    annotation = section.model_fields[part].annotation
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    args = getattr(annotation, "__args__", ())
+    if getattr(annotation, "__origin__", None) is dict and len(args) == 2 and issubclass(args[1], BaseModel):
+        return _Entries(args[1])
+    return None
 
 
-# -------------------------------------------------------------------------------------- validation
-@dataclass(frozen=True)
-class _Check:
-    """A condition on one value, and the words an error uses for it (``train.lr must be > 0, got -0.1``)."""
+class _Entries:
+    """A mapping of named sections (``eval.test_sets``): its keys are names, its values ``cls``."""
 
-    holds: Callable[[Any], bool]
-    expected: str
+    def __init__(self, cls: type) -> None:
+        self.cls = cls
 
 
-@dataclass(frozen=True)
-class _Each:
-    """``check`` on every entry of a list, or on the value itself when it is one number."""
-
-    check: _Check
-
-
-def _at_least(bound: float) -> _Check:
-    return _Check(lambda v: v >= bound, f">= {bound}")
-
-
-def _above(bound: float) -> _Check:
-    return _Check(lambda v: v > bound, f"> {bound}")
+def _unknown_key(loc: tuple) -> str:
+    parts = _plain_loc(loc)
+    section: Any = Params
+    for part in parts[:-1]:
+        section = _section_after(section, part)
+    known = sorted(section.model_fields) if isinstance(section, type) else []
+    close = difflib.get_close_matches(str(parts[-1]), known, n=1)
+    hint = f"; did you mean {close[0]}?" if close else ""
+    return f"unknown key {_dotted(loc)} (known: {', '.join(known)}){hint}"
 
 
-def _within(low: float, high: float, include_low: bool = True, include_high: bool = True) -> _Check:
-    """``low <= v <= high``, either end excluded on request; stated as ``in [low, high)`` and the like."""
-    return _Check(
-        lambda v: (low <= v if include_low else low < v) and (v <= high if include_high else v < high),
-        f"in {'[' if include_low else '('}{low}, {high}{']' if include_high else ')'}",
-    )
-
-
-def _optional(check: _Check) -> _Check:
-    return _Check(lambda v: v is None or check.holds(v), f"null or {check.expected}")
-
-
-def _is_power_of_two(value: int) -> bool:
-    return value >= 1 and value & (value - 1) == 0
-
-
-def _is_plain_name(name: str) -> bool:
-    return bool(name) and all(c.isascii() and (c.isalnum() or c in "_-") for c in name)
-
-
-_COUNT = _at_least(1)
-_POSITIVE = _above(0)
-_NON_NEGATIVE = _at_least(0)
-_FRACTION = _within(0, 1)
-_PROPER_FRACTION = _within(0, 1, include_high=False)
-_DEVICE = _Check(lambda v: DEVICE_NAME.fullmatch(v) is not None, "auto, cpu, cuda or cuda:N")
-# The ResNet encoder downsamples by 32, and DepthNet needs whole feature maps at every level.
-ENCODER_STRIDE = 32
-# pretrain.py measures the bank with a sliced Wasserstein distance on pyramids down to 16 px.
-SWD_MIN_RESOLUTION = 16
-# Ray refuses smaller object stores (ray._private.ray_constants.OBJECT_STORE_MINIMUM_MEMORY_BYTES, 75 MiB).
-_RAY_MIN_OBJECT_STORE_MB = 75
-
-_TOP_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    # numpy seeds (the loader's shard order, the synthetic scenes) must be non-negative.
-    ("seed", _NON_NEGATIVE),
-    ("threads", _COUNT),
-)
-
-_DATA_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    ("data.size", _Check(lambda v: v >= ENCODER_STRIDE and v % ENCODER_STRIDE == 0,
-                         f"a positive multiple of {ENCODER_STRIDE} (the ResNet encoder downsamples by that)")),
-    ("data.simcol.reference_size", _COUNT),
-    ("data.endoslam.unitycam_translation_to_cm", _POSITIVE),
-    ("data.endoslam.camera_translation_to_cm", _POSITIVE),
-    ("data.endoslam.depth_full_scale_cm", _POSITIVE),
-    ("data.endoslam.fps", _POSITIVE),
-    ("data.scenenet.max_frames_per_trajectory", _optional(_COUNT)),
-)
-
-_SYNTH_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    ("synth.size", _Check(lambda v: v >= 8, ">= 8 (the smallest frame the synthetic writers render)")),
-    ("synth.seed", _NON_NEGATIVE),
-    ("synth.workers", _COUNT),
-    ("synth.device", _DEVICE),
-    ("synth.simcol.sequences", _COUNT),
-    ("synth.endoslam.sequences", _COUNT),  # at most one per UnityCam organ: the writers check that
-    ("synth.scenenet.sequences", _COUNT),
-    # Two frames make the shortest trajectory the writers render; triplets need more (a cross-field rule).
-    ("synth.simcol.frames", _at_least(2)),
-    ("synth.endoslam.frames", _at_least(2)),
-    ("synth.scenenet.frames", _at_least(2)),
-)
-
-_PREPROCESS_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    ("preprocess.workers", _COUNT),
-    ("preprocess.samples_per_shard", _COUNT),
-    ("preprocess.shard_multiple", _COUNT),
-    ("preprocess.neighbour_offset", _COUNT),
-)
-
-_LATENT_BANK_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    ("latent_bank.resolution", _Check(lambda v: _is_power_of_two(v) and v >= SWD_MIN_RESOLUTION,
-                                     f"a power of two >= {SWD_MIN_RESOLUTION} (pretraining's SWD needs "
-                                     f"{SWD_MIN_RESOLUTION} px)")),
-    ("latent_bank.start_resolution", _Check(lambda v: _is_power_of_two(v) and v >= 4, "a power of two >= 4")),
-    ("latent_bank.latent_dim", _COUNT),
-    ("latent_bank.style_dim", _COUNT),
-    ("latent_bank.mapping_layers", _COUNT),
-    ("latent_bank.channel_base", _COUNT),
-    ("latent_bank.channel_max", _COUNT),
-    ("latent_bank.batch_size", _COUNT),
-    ("latent_bank.steps_per_stage", _Each(_COUNT)),
-    ("latent_bank.lr", _POSITIVE),
-    ("latent_bank.betas", _Check(lambda v: len(v) == 2, "two numbers [beta1, beta2]")),
-    ("latent_bank.betas", _Each(_PROPER_FRACTION)),
-    ("latent_bank.n_critic", _Each(_COUNT)),
-    ("latent_bank.gp_gamma", _NON_NEGATIVE),
-    ("latent_bank.ema_decay", _PROPER_FRACTION),
-    ("latent_bank.conv_init_scale", _POSITIVE),
-    ("latent_bank.swd_samples", _COUNT),
-    ("latent_bank.drift_weight", _NON_NEGATIVE),
-    ("latent_bank.fade_fraction", _FRACTION),
-    ("latent_bank.depth_log_range", _POSITIVE),
-    ("latent_bank.holdout_fraction", _PROPER_FRACTION),
-    ("latent_bank.device", _DEVICE),
-)
-
-_MODEL_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    ("model.min_depth", _POSITIVE),
-    # DepthNet's decoder has five levels; disparities come from the four finest (Monodepth2's scales).
-    ("model.scales", _within(1, 4)),
-)
-
-_LOSS_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    ("loss.ssim_weight", _FRACTION),
-    ("loss.smoothness_weight", _NON_NEGATIVE),
-    ("loss.kl_weight", _NON_NEGATIVE),
-)
-
-_TRAIN_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    ("train.epochs", _COUNT),
-    ("train.batch_size", _COUNT),
-    ("train.lr", _POSITIVE),
-    ("train.weight_decay", _NON_NEGATIVE),
-    ("train.log_every", _COUNT),
-    ("train.step_epochs", _COUNT),
-    ("train.gamma", _within(0, 1, include_low=False)),
-    ("train.grad_clip", _optional(_POSITIVE)),
-    ("train.steps_per_epoch", _optional(_COUNT)),
-    ("train.val_batches", _optional(_COUNT)),
-    ("train.image_examples", _NON_NEGATIVE),
-    ("train.keep_checkpoints", _COUNT),  # Ray's CheckpointConfig refuses to keep none
-    ("train.loader_workers", _NON_NEGATIVE),
-)
-
-_RAY_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    ("ray.num_workers", _COUNT),
-    ("ray.cpus_per_worker", _POSITIVE),
-    ("ray.num_cpus", _optional(_COUNT)),
-    ("ray.object_store_mb", _at_least(_RAY_MIN_OBJECT_STORE_MB)),
-    ("ray.max_failures", _at_least(-1)),  # -1: Ray Train retries without limit
-)
-
-_EVAL_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    ("eval.batch_size", _COUNT),
-    ("eval.depth_examples", _NON_NEGATIVE),
-    ("eval.max_frames_per_sequence", _optional(_COUNT)),
-    ("eval.device", _DEVICE),
-)
-
-_RECONSTRUCT_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    ("reconstruct.size", _optional(_Check(lambda v: v >= ENCODER_STRIDE and v % ENCODER_STRIDE == 0,
-                                          f"a positive multiple of {ENCODER_STRIDE}"))),
-    ("reconstruct.voxel_cm", _optional(_POSITIVE)),
-    ("reconstruct.trunc_cm", _optional(_POSITIVE)),
-    ("reconstruct.device", _DEVICE),
-)
-
-_TRACKING_RULES: tuple[tuple[str, _Check | _Each], ...] = (
-    # MLflow's registry takes other characters too, but a models:/<name>/<version> URI must parse back
-    ("tracking.registered_model", _optional(_Check(_is_plain_name, "a name of letters, digits, _ and -"))),
-)
-
-_RANGE_RULES = (_TOP_RULES + _DATA_RULES + _SYNTH_RULES + _PREPROCESS_RULES + _LATENT_BANK_RULES + _MODEL_RULES
-                + _LOSS_RULES + _TRAIN_RULES + _RAY_RULES + _EVAL_RULES + _RECONSTRUCT_RULES + _TRACKING_RULES)
-
-
-def _check_ranges(params: Params) -> None:
-    for key, rule in _RANGE_RULES:
-        value = reduce(getattr, key.split("."), params)
-        if isinstance(rule, _Each):
-            for item_key, item in _entries(key, value):
-                _require(item_key, item, rule.check)
-        else:
-            _require(key, value, rule)
-
-
-def _entries(key: str, value: Any) -> list[tuple[str, Any]]:
-    if isinstance(value, list):
-        return [(f"{key}[{i}]", item) for i, item in enumerate(value)]
-    return [(key, value)]
-
-
-def _require(key: str, value: Any, check: _Check) -> None:
-    if not check.holds(value):
-        raise ConfigError(f"{key} must be {check.expected}, got {value!r}")
-
-
-# --------------------------------------------------------------------------------- cross-field rules
-def _check_depth_range(params: Params) -> None:
-    model = params.model
-    if model.min_depth >= model.max_depth:
-        raise ConfigError(f"model.min_depth ({model.min_depth}) must be below model.max_depth ({model.max_depth})")
-
-
-def _check_encoder_batch_norm(params: Params) -> None:
-    # At the smallest size the encoder's last features are 1x1, and BatchNorm in training mode needs more
-    # than one value per channel: a batch of one fails at the first step.
-    if params.data.size == ENCODER_STRIDE and params.train.batch_size < 2:
-        raise ConfigError(
-            f"train.batch_size must be >= 2 when data.size is {ENCODER_STRIDE} (the encoder's 1x1 features give "
-            f"BatchNorm one value per channel), got {params.train.batch_size}"
-        )
-
-
-def _bank_resolutions(cfg: LatentBankConfig) -> list[int]:
-    """The generator's block resolutions, ``start_resolution`` doubling up to ``resolution``."""
-    resolutions = [cfg.start_resolution]
-    while resolutions[-1] < cfg.resolution:
-        resolutions.append(resolutions[-1] * 2)
-    return resolutions
-
-
-def _check_bank_growth(params: Params) -> None:
-    cfg = params.latent_bank
-    if cfg.start_resolution > cfg.resolution:
-        raise ConfigError(
-            f"latent_bank.start_resolution ({cfg.start_resolution}) must not exceed latent_bank.resolution "
-            f"({cfg.resolution})"
-        )
-    resolutions = _bank_resolutions(cfg)
-    for name in ("steps_per_stage", "n_critic"):
-        value = getattr(cfg, name)
-        if isinstance(value, list) and len(value) != len(resolutions):
-            raise ConfigError(
-                f"latent_bank.{name} must be one number or a list of {len(resolutions)} (one per resolution "
-                f"{resolutions}), got {value}"
-            )
-
-
-def _check_synth_triplets(params: Params) -> None:
-    offset = params.preprocess.neighbour_offset
-    for layout in (name for name in DATASETS if name not in DEPTH_ONLY_DATASETS):
-        frames = getattr(params.synth, layout).frames
-        if frames <= 2 * offset:
-            raise ConfigError(
-                f"synth.{layout}.frames must exceed 2 x preprocess.neighbour_offset = {2 * offset} (a sample needs "
-                f"frames cur - {offset} and cur + {offset}), got {frames}"
-            )
-
-
-def _check_ray_fits_local_cpus(params: Params) -> None:
-    ray = params.ray
-    if ray.address or ray.num_cpus is None:  # connect_ray starts a local Ray for an empty address too
-        return
-    need = ray.num_workers * ray.cpus_per_worker
-    if need > ray.num_cpus:
-        raise ConfigError(
-            f"ray.num_workers x ray.cpus_per_worker = {ray.num_workers} x {ray.cpus_per_worker:g} = {need:g} CPUs "
-            f"exceed ray.num_cpus = {ray.num_cpus} of the local Ray (ray.address null); Ray would wait forever"
-        )
-
-
-def _check_workers_have_shards(params: Params) -> None:
-    # Otherwise a worker finds no shard of its own (loader.rank_shards) once training or validation starts.
-    ray, preprocess = params.ray, params.preprocess
-    if ray.num_workers > preprocess.shard_multiple:
-        raise ConfigError(
-            f"ray.num_workers ({ray.num_workers}) must not exceed preprocess.shard_multiple "
-            f"({preprocess.shard_multiple}): a split has a multiple of {preprocess.shard_multiple} shards, maybe "
-            f"just {preprocess.shard_multiple}, and every worker needs a shard of its own"
-        )
-
-
-def _check_loader_workers_fit_worker_cpus(params: Params) -> None:
-    # Loader processes run beside the training process inside the CPUs Ray reserves for the worker; beyond
-    # them they would take cores from other workers or trials on the node.
-    loaders, cpus = params.train.loader_workers, params.ray.cpus_per_worker
-    if loaders and loaders + 1 > cpus:
-        raise ConfigError(
-            f"train.loader_workers ({loaders}) + 1 (the training process) = {loaders + 1} CPUs exceed "
-            f"ray.cpus_per_worker = {cpus:g}; raise ray.cpus_per_worker or lower train.loader_workers"
-        )
-
-
-def _check_test_sets(params: Params) -> None:
-    known = list(DATASETS)
-    for name, test_set in params.eval.test_sets.items():
-        if not _is_plain_name(name):
-            raise ConfigError(f"eval.test_sets: name {name!r} must be letters, digits, _ and - only (it names a "
-                              f"DVC stage, folders and dotted keys)")
-        if test_set.dataset not in known:
-            raise ConfigError(f"eval.test_sets.{name}.dataset must be one of {known}, got {test_set.dataset!r}")
-
-
-def _check_reconstructions(params: Params) -> None:
-    known = [name for name in DATASETS if name not in DEPTH_ONLY_DATASETS]
-    for name, item in params.reconstruct.sequences.items():
-        key = f"reconstruct.sequences.{name}"
-        if not _is_plain_name(name):
-            raise ConfigError(f"reconstruct.sequences: name {name!r} must be letters, digits, _ and - only (it "
-                              f"names a DVC stage and folders)")
-        if item.dataset not in known:
-            raise ConfigError(f"{key}.dataset must be one of {known} (datasets with images), got {item.dataset!r}")
-        _require(f"{key}.start", item.start, _NON_NEGATIVE)
-        _require(f"{key}.stride", item.stride, _COUNT)
-        if item.stop is not None and item.stop <= item.start:
-            raise ConfigError(f"{key}.stop must be above {key}.start ({item.start}) or null, got {item.stop}")
-
-
-_CROSS_FIELD_CHECKS: tuple[Callable[[Params], None], ...] = (
-    _check_depth_range,
-    _check_encoder_batch_norm,
-    _check_bank_growth,
-    _check_synth_triplets,
-    _check_ray_fits_local_cpus,
-    _check_workers_have_shards,
-    _check_loader_workers_fit_worker_cpus,
-    _check_test_sets,
-    _check_reconstructions,
-)
+def _literal_choices(loc: tuple) -> list:
+    parts = _plain_loc(loc)
+    section: Any = Params
+    for part in parts[:-1]:
+        section = _section_after(section, part)
+    annotation = section.model_fields[parts[-1]].annotation
+    return list(getattr(annotation, "__args__", ()))

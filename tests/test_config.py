@@ -14,7 +14,10 @@ from endoflow.config import (
     load_params,
     params_from_dict,
     params_to_dict,
+    training_keys,
 )
+from endoflow.cli import main
+from endoflow.params_file import write_params_file
 
 PROJECT = Path(__file__).resolve().parents[1]
 
@@ -25,25 +28,77 @@ def write_params(tmp_path: Path, data: dict) -> Path:
     return path
 
 
-def key_paths(tree: dict, prefix: str = "") -> set[str]:
-    paths = set()
-    for key, value in tree.items():
-        # Test-set entries are user-defined names, not schema keys.
-        if isinstance(value, dict) and f"{prefix}{key}" != "eval.test_sets":
-            paths |= key_paths(value, f"{prefix}{key}.")
-        else:
-            paths.add(f"{prefix}{key}")
-    return paths
+PRESETS = sorted((PROJECT / "presets").glob("*.yaml"))
 
 
-PARAM_FILES = [PROJECT / "params.yaml", *sorted((PROJECT / "presets").glob("*.yaml"))]
+def test_params_yaml_is_the_schema_defaults():
+    # One source for every default: the committed params.yaml (what DVC reads) is what the schema says, so an
+    # empty params file means exactly params.yaml. `endoflow params --out params.yaml` rewrites it.
+    assert yaml.safe_load((PROJECT / "params.yaml").read_text()) == params_to_dict(Params())
+    assert load_params(PROJECT / "params.yaml") == Params()
 
 
-@pytest.mark.parametrize("path", PARAM_FILES, ids=lambda p: p.name)
-def test_parameter_files_are_valid_and_list_every_key(path):
-    # DVC tracks params by key, and a user reads the file to learn what can be set: nothing may be implicit.
+def test_params_yaml_is_what_the_params_command_writes(tmp_path, capsys):
+    # its comments (what each key means, its unit) come from the schema too
+    assert main(["params"]) == 0
+    assert capsys.readouterr().out == (PROJECT / "params.yaml").read_text(), \
+        "params.yaml is stale: run `endoflow params --out params.yaml`"
+    assert main(["params", "--preset", str(tmp_path / "missing.yaml")]) == 2
+    assert "missing.yaml: parameter file not found" in capsys.readouterr().err
+
+
+def test_empty_params_file_means_params_yaml(tmp_path):
+    empty = tmp_path / "params.yaml"
+    empty.write_text("")
+    assert load_params(empty) == load_params(PROJECT / "params.yaml")
+
+
+def test_written_params_file_documents_every_key_and_reads_back(tmp_path):
+    out = tmp_path / "params.yaml"
+    for preset in [None, *PRESETS]:
+        params = write_params_file(out, preset)
+        text = out.read_text()
+        assert load_params(out) == params
+        assert yaml.safe_load(text) == params_to_dict(params)
+        # a key is documented on the line above it (`# ...`), except inside named entries (test sets, sequences)
+        assert text.count("\n  # ") > 100
+
+
+@pytest.mark.parametrize("path", PRESETS, ids=lambda p: p.name)
+def test_presets_state_only_their_differences(path):
+    overlay = flatten_params(yaml.safe_load(path.read_text()))
+    defaults = flatten_params(Params())
+    assert overlay, f"{path.name} is empty"
+    for key, value in overlay.items():
+        assert key in defaults, f"{path.name}: {key} is no key of the schema"
+        assert value != defaults[key], f"{path.name}: {key} repeats the default {value!r}"
     load_params(path)
-    assert key_paths(yaml.safe_load(path.read_text())) == key_paths(params_to_dict(Params()))
+
+
+def test_a_partial_section_keeps_the_other_defaults_of_that_section():
+    params = params_from_dict({"synth": {"endoslam": {"frames": 10}}, "train": {"lr": 1e-3}})
+    assert params.synth.endoslam.frames == 10
+    assert params.synth.endoslam.sequences == Params().synth.endoslam.sequences
+    assert params.train.epochs == Params().train.epochs
+    # named entries given are taken whole: a preset that lists test sets means exactly those
+    only = params_from_dict({"eval": {"test_sets": {"mine": {"dataset": "simcol"}}}})
+    assert list(only.eval.test_sets) == ["mine"]
+
+
+def test_training_keys_are_derived_from_the_schema():
+    keys = set(training_keys(Params()))
+    flat = flatten_params(Params())
+    assert keys <= set(flat)
+    # what training computes
+    for key in ("seed", "threads", "data.size", "data.simcol.root", "preprocess.neighbour_offset", "model.latent_bank",
+                "loss.kl_weight", "train.lr", "train.batch_size", "train.loader_workers", "ray.num_workers",
+                "latent_bank.steps_per_stage"):
+        assert key in keys, key
+    # where it runs, how long, what it logs, and every later stage: editing these resumes an interrupted training
+    for prefix in ("train.epochs", "train.out", "train.log_every", "ray.use_gpu", "ray.cpus_per_worker",
+                   "ray.storage_path", "latent_bank.device", "synth.", "eval.", "reconstruct.", "tracking."):
+        assert not any(key.startswith(prefix) for key in keys), prefix
+        assert any(key.startswith(prefix) for key in flat), prefix
 
 
 def test_round_trip_through_plain_dict():

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from endoflow.config import load_params
+from endoflow.config import load_params, params_to_dict
 from endoflow.evaluation.evaluate import DEPTH_METHODS, POSE_METHODS
 from endoflow.reconstruction.measure import PATH_ROWS
 from tests.project_clone import PROJECT
@@ -25,7 +25,7 @@ def top_level_plots() -> dict[str, dict]:
 
 def resolved(text: str, params_file: Path) -> str:
     """``text`` with the ``${section.key}`` references of the charts resolved as DVC does."""
-    params = yaml.safe_load(params_file.read_text())
+    params = params_to_dict(load_params(params_file))
     for section in ("train", "eval", "reconstruct"):
         for key, value in params[section].items():
             if isinstance(value, str):

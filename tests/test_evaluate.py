@@ -131,7 +131,7 @@ def run_oracle(root: Path, test_set: EvalSetConfig, out: Path) -> SequenceEvalua
 
 
 def test_oracle_scores_zero_in_every_protocol_and_baselines_do_not(oracle_shards: Path, tmp_path: Path):
-    test_set = EvalSetConfig("simcol", groups=["SyntheticColon_I", "SyntheticColon_II"])
+    test_set = EvalSetConfig(dataset="simcol", groups=["SyntheticColon_I", "SyntheticColon_II"])
     evaluator = run_oracle(oracle_shards, test_set, tmp_path)
     assert [s.name for s in evaluator.sequences] == ["S5", "B5"]
     # every frame, including the first (a prev) and the last (a next), in temporal order
@@ -158,7 +158,7 @@ def test_oracle_scores_zero_in_every_protocol_and_baselines_do_not(oracle_shards
 
 
 def test_challenge_files_have_the_official_names_sizes_and_values(oracle_shards: Path, tmp_path: Path):
-    test_set = EvalSetConfig("simcol", groups=["SyntheticColon_III"])
+    test_set = EvalSetConfig(dataset="simcol", groups=["SyntheticColon_III"])
     run_oracle(oracle_shards, test_set, tmp_path)
     folder = tmp_path / "SyntheticColon_III_Test" / "Frames_O1_OP"
     depth_files = sorted((folder / "depth").iterdir())
@@ -181,7 +181,7 @@ def test_missing_poses_leave_the_longest_posed_run():
 
 def test_unknown_test_set_groups_fail_naming_what_exists(oracle_shards: Path):
     with pytest.raises(ValueError, match="found groups .*SyntheticColon_III"):
-        eval_set_shards(str(oracle_shards), EvalSetConfig("simcol", groups=["Colon"]))
+        eval_set_shards(str(oracle_shards), EvalSetConfig(dataset="simcol", groups=["Colon"]))
 
 
 def write_untrained_model(path: Path, params: Params, run_id: str | None) -> None:

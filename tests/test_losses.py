@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 
 import numpy as np
 import pytest
@@ -64,7 +63,7 @@ def test_photometric_error_kinds() -> None:
 
 # ------------------------------------------------------------------------------------- reprojection
 def config(**changes) -> LossConfig:
-    return dataclasses.replace(LossConfig(), **changes)
+    return LossConfig(**changes)
 
 
 def test_minimum_over_sources_picks_the_better_reconstruction_per_pixel() -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 
 import pytest
 import torch
@@ -14,7 +13,7 @@ from endoflow.training.loop import make_optimizer
 def weight_after_small_pulls(optimizer_name: str, steps: int = 10) -> float:
     """A weight of 1 whose loss gradient (-1e-6) pulls it up, after ``steps`` of the optimiser."""
     weight = torch.nn.Parameter(torch.ones(1))
-    cfg = dataclasses.replace(TrainConfig(), optimizer=optimizer_name, lr=1e-2, weight_decay=1e-3)
+    cfg = TrainConfig(optimizer=optimizer_name, lr=1e-2, weight_decay=1e-3)
     optimizer = make_optimizer([weight], cfg)
     for _ in range(steps):
         optimizer.zero_grad()
@@ -35,6 +34,6 @@ def test_adam_with_l2_decay_lets_the_decay_override_a_small_loss_gradient():
 
 def test_the_optimizer_is_the_one_named():
     weight = torch.nn.Parameter(torch.ones(1))
-    assert isinstance(make_optimizer([weight], dataclasses.replace(TrainConfig(), optimizer="adamw")),
+    assert isinstance(make_optimizer([weight], TrainConfig(optimizer="adamw")),
                       torch.optim.AdamW)
-    assert type(make_optimizer([weight], dataclasses.replace(TrainConfig(), optimizer="adam"))) is torch.optim.Adam
+    assert type(make_optimizer([weight], TrainConfig(optimizer="adam"))) is torch.optim.Adam

@@ -31,7 +31,7 @@ from endoflow.models.model_file import load_model_file, load_plain_torch_file
 from tests.project_clone import PROJECT, clone_project, pipeline_env
 
 PAPER = PROJECT / "presets" / "paper.yaml"
-PAPER_RAW = yaml.safe_load(PAPER.read_text())
+PAPER_RAW = params_to_dict(load_params(PAPER))  # the full set: the preset over the defaults
 
 
 def preset_entries(section: dict, names: list[str]) -> dict:
@@ -77,11 +77,11 @@ DRY_RUN_CUTS = {
 
 
 def paper_dry_run_params(cuts: dict = DRY_RUN_CUTS) -> dict:
-    """presets/paper.yaml with ``cuts`` (dotted key -> value) applied; every cut key must exist in the preset."""
+    """presets/paper.yaml over the defaults with ``cuts`` (dotted key -> value) applied; every cut key must exist."""
     raw = copy.deepcopy(PAPER_RAW)
     for key, value in cuts.items():
         section, leaf = parent_section(raw, key)
-        assert leaf in section, f"dry-run cut {key} is not a key of presets/paper.yaml"
+        assert leaf in section, f"dry-run cut {key} is not a key of the params"
         section[leaf] = value
     return raw
 

@@ -16,6 +16,7 @@ from endoflow import tracking
 from endoflow.config import load_params
 from endoflow.evaluation.results import evaluation_path
 from endoflow.io import file_sha256
+from endoflow.params_file import params_yaml
 from tests.project_clone import PROJECT, clone_project, pipeline_env, run
 
 
@@ -26,7 +27,7 @@ pytestmark = pytest.mark.slow
 def smoke_repro(tmp_path_factory) -> Path:
     clone = tmp_path_factory.mktemp("e2e") / "endoflow"
     env = pipeline_env("e2e")
-    clone_project(clone, (PROJECT / "presets" / "smoke.yaml").read_text(), env)
+    clone_project(clone, params_yaml(load_params(PROJECT / "presets" / "smoke.yaml")), env)
     run(["dvc", "repro"], clone, env)
     return clone
 

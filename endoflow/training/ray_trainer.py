@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 
 from endoflow import tracking
-from endoflow.config import ConfigError, Params, flatten_params
+from endoflow.config import ConfigError, Params, flatten_params, training_keys
 from endoflow.data.loader import list_shards, raw_samples
 from endoflow.data.shard_format import (
     DEPTH_MEMBER,
@@ -50,15 +50,6 @@ from endoflow.ray_runtime import connect_ray, worker_logs_to
 from endoflow.training.checkpoint import TrainingCheckpoint, TrainState, latest_checkpoint, load_training_state
 from endoflow.training.worker_config import WorkerConfig
 
-# Params that do not change what training computes: excluded from the fingerprint.
-NOT_FINGERPRINTED = ("train.epochs", "train.log_every", "train.image_examples", "train.keep_checkpoints",
-                     "train.out", "train.metrics", "train.plots", "train.shards", "train.latent_bank",
-                     "latent_bank.out", "latent_bank.metrics", "latent_bank.plots", "latent_bank.device", "tracking.",
-                     "eval.", "synth.",
-                     "ray.address", "ray.storage_path", "ray.num_cpus", "ray.object_store_mb", "ray.run_name",
-                     "ray.use_gpu", "ray.cpus_per_worker", "ray.placement_strategy", "ray.max_failures")
-
-
 class TrainingError(RuntimeError):
     """Training failed on the workers; the message carries the workers' own error."""
 
@@ -74,7 +65,8 @@ RAY_LOG_FOLDER = "logs"
 def training_fingerprint(params: Params, train_shards: str, latent_bank: Optional[str]) -> str:
     """SHA-256 (hex, 16 chars) of the params that shape training and of the train manifest and latent bank."""
     digest = hashlib.sha256()
-    flat = {k: v for k, v in flatten_params(params).items() if not k.startswith(NOT_FINGERPRINTED)}
+    shaping = set(training_keys(params))
+    flat = {k: v for k, v in flatten_params(params).items() if k in shaping}
     digest.update(json.dumps(flat, sort_keys=True, default=str).encode())
     for location in [manifest_location(train_shards), *([latent_bank] if latent_bank else [])]:
         with fsspec.open(location, "rb") as f:
