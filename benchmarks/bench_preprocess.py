@@ -33,16 +33,11 @@ from pathlib import Path
 from typing import Iterator
 
 from endoflow.config import Params
+from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb
 from endoflow.data.registry import open_reader
-from endoflow.data.shards import (
-    DEPTH_UNIT_CM,
-    depth_to_counts,
-    encode_png,
-    preprocess_dataset,
-    resize_depth,
-    resize_rgb,
-    single_threaded_opencv,
-)
+from endoflow.data.shard_engines import single_threaded_opencv
+from endoflow.data.shard_plan import DEPTH_UNIT_CM
+from endoflow.data.shards import preprocess_dataset
 from endoflow.synth.writers import synthesize_layout
 
 SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "samples" / "simcol3d" / "SyntheticColon_I"

@@ -60,7 +60,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from endoflow.config import Params
-from endoflow.data.shards import resize_rgb
+from endoflow.data.frame_encoding import resize_rgb
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.io import atomic_path
 from endoflow.models.endoflow_model import build_model

@@ -23,7 +23,7 @@ import numpy as np
 import webdataset as wds
 
 from endoflow.data.shard_format import HashingWriter, sample_sha256
-from endoflow.data.shards import WRITE_BUFFER
+from endoflow.data.shard_writer import WRITE_BUFFER
 
 
 def samples(count: int, size: int) -> list[dict]:

@@ -21,7 +21,8 @@ from endoflow.data.base import Sequence, missing_frame_ids
 from endoflow.data.check import check_dataset, check_sequence, format_check
 from endoflow.data.inspect import format_inspection, inspect_dataset
 from endoflow.data.registry import open_reader
-from endoflow.data.shards import EncodeSettings, preprocess_dataset, sequence_samples
+from endoflow.data.shard_plan import EncodeSettings, sequence_samples
+from endoflow.data.shards import preprocess_dataset
 from endoflow.synth import writers
 from endoflow.synth.writers import plan_jobs, render_job
 from tests.fixtures_native import (

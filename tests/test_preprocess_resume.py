@@ -152,7 +152,7 @@ def test_a_source_file_gone_since_listing_is_named(tmp_path: Path) -> None:
 def test_a_reader_setting_that_changes_decoded_frames_changes_every_shard_key() -> None:
     from dataclasses import replace
 
-    from endoflow.data.shards import ShardSpec, encode_settings, shard_keys
+    from endoflow.data.shard_plan import ShardSpec, encode_settings, shard_keys
 
     params = Params()
     rescaled = Params()

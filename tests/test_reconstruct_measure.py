@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from endoflow.config import Params
-from endoflow.data.shards import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
+from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.data.trajectory_files import write_tum
 from endoflow.geometry.pose import invert_pose
 from endoflow.io import write_bytes, write_json

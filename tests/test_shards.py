@@ -24,16 +24,11 @@ import webdataset as wds
 
 from endoflow.config import Params
 from endoflow.data.base import DataFormatError, Sequence
-from endoflow.data.shards import (
-    DEPTH_UNIT_CM,
-    ShardProgress,
-    ShardResult,
-    check_shards_arrived,
-    pool_context,
-    preprocess_dataset,
-    stored_intrinsics,
-    write_dataset_shards,
-)
+from endoflow.data.frame_encoding import stored_intrinsics
+from endoflow.data.shard_engines import ShardProgress, check_shards_arrived, pool_context
+from endoflow.data.shard_plan import DEPTH_UNIT_CM
+from endoflow.data.shard_writer import ShardResult
+from endoflow.data.shards import preprocess_dataset, write_dataset_shards
 from endoflow.data.shard_format import MANIFEST, SHARD_TABLE_KEY, ShardEntry, shard_digests
 from tests.samples import SIMCOL_SAMPLE
 

@@ -3,7 +3,7 @@
 Three kinds of input: a video file (decoded with PyAV, frame by frame: a long video needs no more memory than
 a short one), a folder of images (sorted by name), or a sequence of a dataset our readers know (then ground-truth
 depth and poses come along). ``K`` is always in pixels of the input's native frames; the model's crop and resize
-(:func:`endoflow.data.shards.stored_intrinsics`) are applied later, as preprocessing applies them for training.
+(:func:`endoflow.data.frame_encoding.stored_intrinsics`) are applied later, as preprocessing applies them for training.
 """
 
 from __future__ import annotations

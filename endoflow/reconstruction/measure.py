@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from endoflow.config import Params
 from endoflow.data.imageio import read_png16
-from endoflow.data.shards import resize_depth, resize_rgb
+from endoflow.data.frame_encoding import resize_depth, resize_rgb
 from endoflow.data.trajectory_files import read_tum
 from endoflow.devices import use_cpu_threads
 from endoflow.io import write_bytes, write_csv, write_json

@@ -5,7 +5,7 @@ selected frame, chained into camera-to-world poses from the identity at the firs
 ``T_world_cur = T_world_prev @ inv(T_cur_prev)`` (``predict_pose(prev, cur)`` returns ``T_cur_prev``, mapping
 the previous frame's points into the current one). Depth and path share one scale, the model's (cm on the data it
 was trained on); ``scale`` multiplies both. Frames are centre-cropped to a square and resized as preprocessing
-does for training, and K follows (:func:`endoflow.data.shards.stored_intrinsics`).
+does for training, and K follows (:func:`endoflow.data.frame_encoding.stored_intrinsics`).
 
 Everything is written into a staged folder that replaces ``out_dir`` only when the run completes:
 
@@ -33,13 +33,7 @@ import numpy as np
 import torch
 
 from endoflow.config import ModelConfig, Params
-from endoflow.data.shards import (
-    depth_to_counts,
-    encode_png,
-    resize_depth,
-    resize_rgb,
-    stored_intrinsics,
-)
+from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.geometry.pose import chain_step
 from endoflow.io import staged_directory, write_bytes, write_json
