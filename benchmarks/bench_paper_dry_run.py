@@ -61,7 +61,7 @@ def main() -> None:
                       for name in params.eval.test_sets}
     print(yaml.safe_dump({"latent_bank": bank, "train": train}, sort_keys=False)[:6000])
     for name, figures in evaluation.items():
-        print(name, figures[name])
+        print(name, figures)
     print("stage          wall s   cpu s  peak RSS GiB (largest process)")
     for stage, figures in resources["stages"].items():
         print(f"{stage:30s} {figures['wall_seconds']:8.1f} {figures['cpu_seconds']:8.1f} "

@@ -52,7 +52,7 @@ ABLATIONS = (("full", True, True), ("no-bank", False, True), ("no-vae", True, Fa
 # configuration, named after the ablation and the setting
 DEFAULT_KL_WEIGHT = LossConfig().kl_weight
 DEFAULT_POSE_SAMPLE = ModelConfig().pose_sample
-_HEADLINE_PROTOCOL = {name: protocol for name, protocol, _, _ in HEADLINE}
+_HEADLINE_PROTOCOL = {metric: protocol for _, protocol, _, metric in HEADLINE}  # by the evaluation JSON's name
 # the seed statistics' figures: column title, protocol of the evaluation JSON (the headline figures' own, the
 # ATEs beside RTE's), and the trivial baseline in it
 SEED_METRICS = {"abs_rel": ("Abs Rel", _HEADLINE_PROTOCOL["abs_rel"], "constant_depth"),

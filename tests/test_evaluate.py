@@ -216,10 +216,10 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     assert set(written["depth_paper"]) == {"model", "constant_depth", "mean_depth_map"}
     assert set(written["pose_simcol"]) == {"model", "constant_velocity"}
     assert set(written["depth_simcol"]["model"]) == {"l1", "rel", "rmse"}
-    # what DVC reads: the headline, under the test set's name
-    assert json.loads((tmp_path / "m.json").read_text()) == {"simcol_3": {
-        "abs_rel": written["depth_paper"]["model"]["abs_rel"], "rte": written["pose_simcol"]["model"]["rte"],
-        "rot": written["pose_simcol"]["model"]["rot"]}}
+    # what DVC reads: the headline, under a key of the test set's own, each name with its unit
+    assert json.loads((tmp_path / "m.json").read_text()) == {"eval_simcol_3": {
+        "abs_rel": written["depth_paper"]["model"]["abs_rel"], "rte_cm": written["pose_simcol"]["model"]["rte"],
+        "rot_deg": written["pose_simcol"]["model"]["rot"]}}
     # pictures in the plots folder; the tables DVC charts beside the predictions
     assert sorted(path.name for path in (tmp_path / "plots").iterdir()) == [
         "depth_examples.png", "errors_per_frame.png", "trajectory_O1.png"]
@@ -231,7 +231,7 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
 
     run = tracking.client(uri).get_run(run_id)
     assert "eval/simcol_3/depth_paper/model/abs_rel" in run.data.metrics
-    assert {"simcol_3/abs_rel", "simcol_3/rte", "simcol_3/rot"} <= set(run.data.metrics)
+    assert {"simcol_3/abs_rel", "simcol_3/rte_cm", "simcol_3/rot_deg"} <= set(run.data.metrics)
     artifacts = [a.path for a in tracking.client(uri).list_artifacts(run_id, "eval/simcol_3")]
     assert "eval/simcol_3/trajectory_O1.png" in artifacts
     # the test set beside the training shards, though both are the same folder (one manifest, one digest)

@@ -74,11 +74,13 @@ def test_dvc_metrics_are_a_short_numeric_summary(smoke_repro):
             assert "error" not in content, (path, content)
             values.update(flatten(content["data"]))
     assert all(isinstance(value, (int, float)) for value in values.values()), values
-    expected = {f"{test_set}.{key}" for test_set in params.eval.test_sets for key in ("abs_rel", "rte", "rot")}
-    expected |= {f"{name}.{key}" for name in params.reconstruct.sequences
-                 for key in ("ate", "ate_cv", "accuracy", "completeness")}
-    assert expected <= set(values)
-    assert len(values) <= len(expected) + 8, sorted(values)  # and the few training and latent-bank figures
+    expected = {f"eval_{test_set}.{key}" for test_set in params.eval.test_sets
+                for key in ("abs_rel", "rte_cm", "rot_deg")}
+    expected |= {f"reconstruct_{name}.{key}" for name in params.reconstruct.sequences
+                 for key in ("ate_cm", "accuracy_cm", "completeness_2vox_pct")}
+    expected |= {"train.best_epoch", "train.val_abs_rel", "train.val_rmse_cm", "latent_bank.swd_final",
+                 "latent_bank.swd_ratio"}
+    assert set(values) == expected
 
 
 def flatten(tree: dict, prefix: str = "") -> dict:
@@ -145,7 +147,7 @@ def test_mlflow_shows_named_model_training_runs_with_their_source_and_headline(s
     assert train_run.data.tags[tracking.SOURCE_NAME_TAG] == "stages/train.py"
     assert train_run.data.tags[tracking.SOURCE_TYPE_TAG] == "LOCAL"
     for test_set in params.eval.test_sets:
-        assert {f"{test_set}/abs_rel", f"{test_set}/rte", f"{test_set}/rot"} <= set(train_run.data.metrics)
+        assert {f"{test_set}/abs_rel", f"{test_set}/rte_cm", f"{test_set}/rot_deg"} <= set(train_run.data.metrics)
     bank = client.get_experiment_by_name(params.tracking.latent_bank_experiment)
     bank_run = client.search_runs([bank.experiment_id])[0]
     assert bank.tags[tracking.EXPERIMENT_KIND_TAG] == "custom_model_development"

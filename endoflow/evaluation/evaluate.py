@@ -43,7 +43,7 @@ import torch
 from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig, Precision
 from endoflow.evaluation import metrics, plots
-from endoflow.evaluation.results import EVALUATION_FILE, headline_metrics
+from endoflow.evaluation.results import EVALUATION_FILE, dvc_metrics, headline_metrics
 from endoflow.io import save_figure, staged_directory, write_csv, write_json
 from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
@@ -416,7 +416,7 @@ def evaluate_test_set(params: Params, name: str, samples: Iterable[dict], model_
         write_tables(predictions_dir, frames_table, sequences_table, trajectories)
         write_json(predictions_dir / EVALUATION_FILE, result)
     write_plots(name, out_plots, evaluator, frames_table, trajectories)
-    write_json(out_metrics, {name: headline_metrics(result)})
+    write_json(out_metrics, dvc_metrics(name, result))
     return result
 
 

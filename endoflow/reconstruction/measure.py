@@ -267,9 +267,8 @@ def run_reconstruction(params: Params, name: str, project_root: str | Path = "."
     model into ``<reconstruct.out>/<name>/``, measure it (:func:`measure_reconstruction`) and log the figures and
     pictures into the model's MLflow run. Every figure goes beside the reconstruction (:data:`MEASUREMENT_FILE`,
     and per-frame path errors in :data:`PATH_ERRORS_FILE`); ``<reconstruct.metrics>/<name>.json``, the file DVC
-    reads, holds the headline under the sequence's name (:func:`headline_measurement`, shown by
-    ``dvc exp show`` as ``simcol_S5.ate``); ``<reconstruct.plots>/<name>/sheet.png`` is the
-    picture sheet."""
+    reads, holds the headline (:func:`dvc_metrics`, shown by ``dvc exp show`` as ``reconstruct_simcol_S5.ate_cm``);
+    ``<reconstruct.plots>/<name>/sheet.png`` is the picture sheet."""
     cfg = params.reconstruct
     item = cfg.sequences[name]
     root = Path(project_root).resolve()
@@ -283,7 +282,7 @@ def run_reconstruction(params: Params, name: str, project_root: str | Path = "."
     reconstruct(source, source.K, model_path, out_dir, options)
     result = measure_reconstruction(source, out_dir, record.baselines)
     write_json(out_dir / MEASUREMENT_FILE, metrics_summary(result))
-    write_json(root / cfg.metrics / f"{name}.json", {name: headline_measurement(result)})
+    write_json(root / cfg.metrics / f"{name}.json", dvc_metrics(name, result))
     write_csv(out_dir / PATH_ERRORS_FILE, pd.DataFrame(per_frame_path_errors(result)))
     write_bytes(root / cfg.plots / name / "sheet.png", (out_dir / "sheet.png").read_bytes())
     log_reconstruction(params, root, record.mlflow_run_id, name, out_dir, flat_metrics(result))
@@ -291,12 +290,18 @@ def run_reconstruction(params: Params, name: str, project_root: str | Path = "."
 
 
 def headline_measurement(result: dict) -> dict[str, float]:
-    """Four numbers per sequence for ``dvc exp show``: the model's path ATE RMSE beside constant velocity's,
-    and its surface's median accuracy and completeness ratio."""
-    return {"ate": result["path"]["model"]["ate_rmse"],
-            "ate_cv": result["path"]["constant_velocity"]["ate_rmse"],
-            "accuracy": result["surface"]["model"]["accuracy_median"],
-            "completeness": result["surface"]["model"]["completeness_ratio"]}
+    """Three numbers per sequence for ``dvc exp show``, named with their units: the model's path ATE RMSE (cm),
+    its surface's median accuracy (cm) and the share of the ground-truth surface within
+    :data:`COMPLETE_WITHIN_VOXELS` voxels of it (%). Constant velocity's figures are in :data:`MEASUREMENT_FILE`."""
+    return {"ate_cm": result["path"]["model"]["ate_rmse"],
+            "accuracy_cm": result["surface"]["model"]["accuracy_median"],
+            f"completeness_{COMPLETE_WITHIN_VOXELS:g}vox_pct": 100.0 * result["surface"]["model"]["completeness_ratio"]}
+
+
+def dvc_metrics(name: str, result: dict) -> dict[str, dict[str, float]]:
+    """The content of ``<reconstruct.metrics>/<name>.json``: the headline under ``reconstruct_<name>``, a key no
+    other metrics file has (a test set may share the sequence's name)."""
+    return {f"reconstruct_{name}": headline_measurement(result)}
 
 
 def flat_metrics(result: dict) -> dict[str, float]:

@@ -54,9 +54,9 @@ class TrainingError(RuntimeError):
     """Training failed on the workers; the message carries the workers' own error."""
 
 
-# what ``train.metrics`` holds for DVC (numbers a column can show; the run id and fingerprint are in the model
-# file and the MLflow run)
-TRAIN_DVC_METRICS = ("best_epoch", "val_abs_rel", "val_rmse", "final_train_loss")
+# what ``train.metrics`` holds for DVC, under ``train``: {name with its unit: key of the training summary} (the
+# other figures, the run id and fingerprint are in the model file and the MLflow run)
+TRAIN_DVC_METRICS = {"best_epoch": "best_epoch", "val_abs_rel": "val_abs_rel", "val_rmse_cm": "val_rmse"}
 # every line Ray's processes printed while training (the terminal shows those that matter), in the MLflow run
 # as logs/ray-from-epoch-NNNN.log, one file per attempt (a resumed training adds one)
 RAY_LOG_FOLDER = "logs"
@@ -259,5 +259,10 @@ def write_training_outputs(params: Params, root: Path, state: TrainState, run_id
         "mlflow_run_id": run_id,
         "fingerprint": fingerprint,
     }
-    write_json(root / params.train.metrics, {key: summary[key] for key in TRAIN_DVC_METRICS if key in summary})
+    write_json(root / params.train.metrics, train_dvc_metrics(summary))
     return summary
+
+
+def train_dvc_metrics(summary: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """The content of ``train.metrics``: :data:`TRAIN_DVC_METRICS` of the training summary that has them."""
+    return {"train": {name: summary[key] for name, key in TRAIN_DVC_METRICS.items() if key in summary}}
