@@ -11,6 +11,7 @@ from typing import Any, Iterator, Optional, Sequence
 
 from endoflow.config import ConfigError, load_params
 from endoflow.data.base import DATASETS, DataFormatError
+from endoflow.io import OutputFolderError
 from endoflow.sweep import STUDIES
 
 
@@ -23,7 +24,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 2
     try:
         return int(args.handler(args) or 0)
-    except (ConfigError, DataFormatError, FileNotFoundError) as exc:
+    except (ConfigError, DataFormatError, FileNotFoundError, OutputFolderError) as exc:
         print(f"endoflow: error: {exc}", file=sys.stderr)
         return 2
 
@@ -73,7 +74,10 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--model", default="models/endoflow.pt",
                      help="model file of the train stage, or an MLflow model: models:/<name>/<version> (the store "
                           "of params.yaml's tracking.uri)")
-    rec.add_argument("--out", type=Path, required=True, help="output folder (replaced when the run completes)")
+    rec.add_argument("--out", type=Path, required=True,
+                     help="output folder: new, empty or an earlier reconstruction (replaced when the run completes)")
+    rec.add_argument("--force", action="store_true",
+                     help="replace --out even if it holds other files (never when it is or holds the input or model)")
     rec.add_argument("--sequence", default=None, help="a sequence of the dataset at INPUT (ground truth comes along)")
     rec.add_argument("--intrinsics", default=None,
                      help="cam.txt, YAML/JSON with fx, fy, cx, cy, width, height, or fx,fy,cx,cy in pixels of "
@@ -179,7 +183,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
 
     try:
         options = ReconstructOptions(FrameRange(args.start, args.stop, args.stride), args.size, args.scale,
-                                     args.voxel_cm, args.trunc_cm, args.npy, args.fuse, args.device)
+                                     args.voxel_cm, args.trunc_cm, args.npy, args.fuse, args.device, args.force)
     except ValueError as exc:
         print(f"endoflow reconstruct: error: {exc}", file=sys.stderr)
         return 2

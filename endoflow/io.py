@@ -8,7 +8,9 @@ Every writer in endoflow goes through this module (``docs/architecture.md``, "At
 - :func:`write_bytes`, :func:`write_text`, :func:`write_json`, :func:`write_csv`, :func:`save_figure` and
   :func:`save_torch` are built on it.
 - :func:`staged_directory` fills a unique temporary sibling folder and swaps it in whole
-  (:func:`replace_directory`), so a reader never sees a half-filled folder.
+  (:func:`replace_directory`), so a reader never sees a half-filled folder. A folder is only replaced when it
+  is missing, empty or an earlier output of the same kind (:class:`OutputKind`), or when the user forces it;
+  never when it is or holds a file the run reads (:func:`check_replaceable`, the one rule).
 - :func:`atomic_location` is :func:`atomic_path` for any fsspec URL too: on an object store (``s3://``) the
   file is written locally and uploaded with a single put, so the object appears whole or not at all.
 
@@ -27,8 +29,10 @@ import posixpath
 import shutil
 import tempfile
 from contextlib import contextmanager
+from dataclasses import dataclass
+from fnmatch import fnmatch
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterable, Iterator, Optional
 
 import fsspec
 from fsspec.implementations.local import LocalFileSystem
@@ -147,24 +151,103 @@ def save_torch(path: str | Path, payload: Any) -> None:
     write_bytes(path, buffer.getvalue())
 
 
-@contextmanager
-def staged_directory(path: str | Path) -> Iterator[Path]:
-    """Fill a unique temporary sibling folder, then swap it in for ``path`` only if the block succeeds."""
+class OutputFolderError(RuntimeError):
+    """A folder endoflow was asked to replace holds something it did not write, or what the run reads; the folder
+    is left as it was."""
+
+
+@dataclass(frozen=True)
+class OutputKind:
+    """What a folder endoflow replaces holds when endoflow wrote it: ``what`` names it in errors ("an endoflow
+    reconstruction"); ``recognise(folder)`` says whether an existing, non-empty ``folder`` is one."""
+
+    what: str
+    recognise: Callable[[Path], bool]
+
+
+def marked_output(what: str, file: str, **fields: Any) -> OutputKind:
+    """Outputs recognised by ``file`` in them, a JSON object with ``fields``' values (a format marker)."""
+
+    def recognise(folder: Path) -> bool:
+        try:
+            content = json.loads((folder / file).read_text())
+        except (OSError, ValueError):  # missing, unreadable or not JSON (a decoding error is a ValueError)
+            return False
+        return isinstance(content, dict) and all(content.get(key) == value for key, value in fields.items())
+
+    return OutputKind(what, recognise)
+
+
+def files_only(what: str, patterns: tuple[str, ...]) -> OutputKind:
+    """Outputs recognised by their files: every entry below the folder is a file whose name matches one of
+    ``patterns`` (``fnmatch``); for folders without a record of their own, such as figures."""
+
+    def recognise(folder: Path) -> bool:
+        return all(entry.is_file() and not entry.is_symlink() and any(fnmatch(entry.name, p) for p in patterns)
+                   for entry in _entries_below(folder))
+
+    return OutputKind(what, recognise)
+
+
+FIGURE_FOLDER = files_only("a folder of figures (PNG and CSV files only)", ("*.png", "*.csv"))
+
+
+def check_replaceable(path: str | Path, kind: OutputKind, force: bool = False, inputs: Iterable[str | Path] = (),
+                      force_option: Optional[str] = None) -> None:
+    """The rule for every folder endoflow replaces: ``path`` may be replaced when it is missing, empty or
+    ``kind``'s earlier output, or when ``force`` says so; never when it is or holds one of ``inputs`` (what the
+    run reads), forced or not.
+
+    Raises:
+        OutputFolderError: naming ``path``, what it holds and how to proceed (``force_option``, where the
+            caller has one, is how the user forces it).
+    """
     path = Path(path)
+    for item in inputs:
+        if _is_within(Path(item), path):
+            relation = "is" if _same_path(Path(item), path) else "holds"
+            raise OutputFolderError(f"{path}: will not replace this folder: it {relation} {item}, which this run "
+                                    f"reads; choose another output folder")
+    if not path.exists():
+        return
+    if not path.is_dir():
+        raise OutputFolderError(f"{path}: is a file, not a folder; choose a new or empty folder for the output")
+    entries = sorted(path.iterdir())
+    if not entries or force or kind.recognise(path):
+        return
+    forcing = (f", or pass {force_option} to replace it and everything in it" if force_option
+               else ", or move what it holds elsewhere")
+    raise OutputFolderError(f"{path}: will not replace a folder that is not {kind.what}: it holds "
+                            f"{_listing(entries)}; choose a new or empty folder{forcing}")
+
+
+@contextmanager
+def staged_directory(path: str | Path, kind: OutputKind, force: bool = False, inputs: Iterable[str | Path] = (),
+                     force_option: Optional[str] = None) -> Iterator[Path]:
+    """Fill a unique temporary sibling folder, then swap it in for ``path`` only if the block succeeds.
+
+    ``path`` is checked (:func:`check_replaceable`, with these arguments) before the block runs, so a refused
+    folder costs no work, and again when it is replaced."""
+    path = Path(path)
+    inputs = tuple(inputs)
+    check_replaceable(path, kind, force, inputs, force_option)
     path.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-", dir=path.parent))
     staging.chmod(0o777 & ~_UMASK)  # mkdtemp's folder is private; the output is not
     try:
         yield staging
+        replace_directory(staging, path, kind, force, inputs, force_option)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    replace_directory(staging, path)
 
 
-def replace_directory(staging: str | Path, path: str | Path) -> None:
-    """Put the complete folder ``staging`` in place of ``path`` (the old one is moved aside, then removed)."""
+def replace_directory(staging: str | Path, path: str | Path, kind: OutputKind, force: bool = False,
+                      inputs: Iterable[str | Path] = (), force_option: Optional[str] = None) -> None:
+    """Put the complete folder ``staging`` in place of ``path`` (the old one is moved aside, then removed), if
+    :func:`check_replaceable` allows it."""
     staging, path = Path(staging), Path(path)
+    check_replaceable(path, kind, force, inputs, force_option)
     old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
     had_old = path.exists()
     if had_old:
@@ -178,6 +261,30 @@ def replace_directory(staging: str | Path, path: str | Path) -> None:
     finally:
         shutil.rmtree(old, ignore_errors=True)
     _fsync_folder(path.parent)
+
+
+def _entries_below(folder: Path) -> Iterator[Path]:
+    """Every file and link below ``folder`` (subfolders are looked into, links are not followed)."""
+    for parent, folders, files in os.walk(folder):
+        for name in (*folders, *files):
+            entry = Path(parent) / name
+            if not entry.is_dir() or entry.is_symlink():
+                yield entry
+
+
+def _listing(entries: list[Path], shown: int = 5) -> str:
+    names = [entry.name + ("/" if entry.is_dir() else "") for entry in entries[:shown]]
+    more = f" and {len(entries) - shown} more" if len(entries) > shown else ""
+    return ", ".join(names) + more
+
+
+def _is_within(inner: Path, outer: Path) -> bool:
+    inner, outer = inner.resolve(), outer.resolve()
+    return inner == outer or outer in inner.parents
+
+
+def _same_path(a: Path, b: Path) -> bool:
+    return a.resolve() == b.resolve()
 
 
 def file_sha256(location: str | Path) -> str:

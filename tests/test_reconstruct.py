@@ -24,7 +24,12 @@ from endoflow.models.endoflow_model import build_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
 from endoflow.reconstruction.fusion import TSDFVolume, read_ply_vertices
-from endoflow.reconstruction.reconstruct import ReconstructOptions, default_voxel_cm, reconstruct
+from endoflow.reconstruction.reconstruct import (
+    RECONSTRUCTION_FORMAT,
+    ReconstructOptions,
+    default_voxel_cm,
+    reconstruct,
+)
 from endoflow.synth.writers import synthesize_layout
 from tests.small_model import small_model_params
 
@@ -167,11 +172,12 @@ def test_an_interrupted_run_leaves_the_previous_output_folder_whole(
     cv2.imwrite(str(folder / "frame_5.png"), np.zeros((SIZE // 2, SIZE, 3), np.uint8))  # damaged mid-way
     out = tmp_path / "out"
     out.mkdir()
-    (out / "earlier.txt").write_text("kept")
+    (out / "reconstruction.json").write_text(json.dumps({"format": RECONSTRUCTION_FORMAT, "frames": 3}))
     with pytest.raises(DataFormatError, match=r"frame_5\.png: image of 64x32 px, expected 64x64"):
         run(folder, model_file, out, params, intrinsics=k_numbers(scene, params))
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
-    assert sorted(p.name for p in out.iterdir()) == ["earlier.txt"]
+    assert json.loads((out / "reconstruction.json").read_text())["frames"] == 3
+    assert sorted(p.name for p in out.iterdir()) == ["reconstruction.json"]
 
 
 # --------------------------------------------------------------------------------------------- bad input

@@ -24,9 +24,10 @@ from fsspec.implementations.local import LocalFileSystem
 from endoflow.data.base import DataFormatError
 from endoflow.data.shard_format import MANIFEST, ShardEntry, manifest_bytes, shard_digests
 from endoflow.data.shard_plan import ShardSpec
-from endoflow.io import replace_directory, write_bytes
+from endoflow.io import files_only, replace_directory, write_bytes
 
 PLAN_FILE = "plan.json"
+SHARD_FOLDER = files_only("a shard folder (a manifest and .tar shards)", (MANIFEST, "*.tar"))
 
 
 @dataclass(frozen=True)
@@ -56,7 +57,7 @@ class OutputFolder:
         fs, path = fsspec.core.url_to_fs(posixpath.join(self.staging, PLAN_FILE))
         fs.rm(path)
         if self.staging != self.final:
-            replace_directory(self.staging, self.final)
+            replace_directory(self.staging, self.final, SHARD_FOLDER)
 
 
 def prepare_staging(staging: str, keys: dict[str, str]) -> set[str]:

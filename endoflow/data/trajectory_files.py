@@ -35,7 +35,7 @@ import numpy as np
 
 from endoflow.data.base import DataFormatError
 from endoflow.geometry.pose import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix, relative_pose
-from endoflow.io import staged_directory, write_json, write_text
+from endoflow.io import files_only, staged_directory, write_json, write_text
 
 # Largest |R^T R - I| entry (and |last row - (0, 0, 0, 1)|) accepted as rigid: float32 rotations, such as the
 # network's, are orthonormal to about 1e-7; a scaled or sheared matrix is off by far more.
@@ -176,7 +176,8 @@ def write_simcol_relative_poses(folder: str | Path, frames: np.ndarray, poses: n
     poses = _checked_poses(target, poses)
     frames = _checked_frames(target, frames, len(poses))
     relative = relative_pose(poses[:-1], poses[1:])
-    with staged_directory(target) as staging:
+    earlier_output = files_only("a folder of SimCol relative poses", ("FrameBuffer_*_to_FrameBuffer_*.txt",))
+    with staged_directory(target, earlier_output) as staging:
         for earlier, later, pose in zip(frames[:-1], frames[1:], relative):
             # the folder swap makes the files visible, so each one needs no fsync of its own
             write_text(staging / simcol_pose_name(earlier, later), _simcol_pose_text(pose), durable=False)

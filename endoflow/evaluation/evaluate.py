@@ -43,8 +43,13 @@ import torch
 from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig, Precision
 from endoflow.evaluation import metrics, plots
+<<<<<<< ours
 from endoflow.evaluation.results import EVALUATION_FILE, dvc_metrics, headline_metrics
 from endoflow.io import save_figure, staged_directory, write_csv, write_json
+=======
+from endoflow.evaluation.results import EVALUATION_FILE, headline_metrics
+from endoflow.io import FIGURE_FOLDER, marked_output, save_figure, staged_directory, write_csv, write_json
+>>>>>>> theirs
 from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
 from endoflow.data.shard_format import manifest_location, read_manifest
@@ -393,7 +398,8 @@ def evaluate_test_set(params: Params, name: str, samples: Iterable[dict], model_
     model = to_compute_layout(model, device, params.eval.precision)
     selected = (s for s in samples if belongs_to(s["meta"], test_set))
     started = time.perf_counter()
-    with staged_directory(out_predictions) as predictions_dir:
+    earlier = marked_output(f"the predictions of test set {name}", EVALUATION_FILE, test_set=name)
+    with staged_directory(out_predictions, earlier) as predictions_dir:
         evaluator = SequenceEvaluator(model, record.baselines, predictions_dir, device, params.eval.precision,
                                       params.eval.depth_examples)
         frames = frames_in_order(selected, params.eval.max_frames_per_sequence)
@@ -435,7 +441,7 @@ def write_tables(folder: Path, frames_table: pd.DataFrame, sequences_table: pd.D
 def write_plots(name: str, out_plots: Path, evaluator: SequenceEvaluator, frames_table: pd.DataFrame,
                 trajectories: dict) -> None:
     """The PNG figures of one test set (pictures only: DVC shows them offline), swapped in as a whole."""
-    with staged_directory(out_plots) as folder:
+    with staged_directory(out_plots, FIGURE_FOLDER) as folder:
         for seq, traj in trajectories.items():
             figure = plots.trajectory_figure(f"{name} {seq}: trajectory (scale fitted, chained from the first "
                                              f"GT pose)", traj["gt"], {m: traj[m] for m in POSE_METHODS})

@@ -62,11 +62,13 @@ class FrameRange:
 
 
 class FrameSource:
-    """A streamed input: ``frames(selection)`` yields :class:`InputFrame` in temporal order; ``native_size`` is
-    ``(height, width)``; ``K`` the intrinsics the input itself carries (a dataset's), else None; ``length`` its
-    number of frames where known (a video's container may not say); ``fps`` its frame rate."""
+    """A streamed input: ``frames(selection)`` yields :class:`InputFrame` in temporal order; ``location`` is the
+    file or folder it reads; ``native_size`` is ``(height, width)``; ``K`` the intrinsics the input itself carries
+    (a dataset's), else None; ``length`` its number of frames where known (a video's container may not say);
+    ``fps`` its frame rate."""
 
     description: str
+    location: Path
     native_size: tuple[int, int]
     K: Optional[np.ndarray] = None
     length: Optional[int] = None
@@ -82,7 +84,7 @@ class VideoFrames(FrameSource):
     def __init__(self, path: Path) -> None:
         import av  # only video input needs it
 
-        self.path = path
+        self.path = self.location = path
         try:
             with av.open(str(path)) as container:
                 if not container.streams.video:
@@ -117,6 +119,7 @@ class FolderFrames(FrameSource):
     """Images in a folder, in natural name order (``frame_2`` before ``frame_10``), one every 1/``fps`` s."""
 
     def __init__(self, folder: Path, fps: float = DEFAULT_FOLDER_FPS) -> None:
+        self.location = folder
         self.files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
                             key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
         if not self.files:
@@ -142,6 +145,7 @@ class DatasetFrames(FrameSource):
     """A sequence of a dataset read through our readers, with its K, ground-truth depth and poses."""
 
     def __init__(self, root: Path, sequence: str, params: Params) -> None:
+        self.location = root
         sequences = open_reader(root, None, params).sequences()
         found = [s for s in sequences if s.name == sequence]
         if not found:

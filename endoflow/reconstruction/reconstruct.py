@@ -7,7 +7,9 @@ the previous frame's points into the current one). Depth and path share one scal
 was trained on); ``scale`` multiplies both. Frames are centre-cropped to a square and resized as preprocessing
 does for training, and K follows (:func:`endoflow.data.frame_encoding.stored_intrinsics`).
 
-Everything is written into a staged folder that replaces ``out_dir`` only when the run completes:
+Everything is written into a staged folder that replaces ``out_dir`` only when the run completes, and only if
+``out_dir`` is new, empty or an earlier reconstruction (``--force``: any folder), never the input or a folder
+holding it or the model (:func:`endoflow.io.check_replaceable`):
 
 - ``depth/NNNNNN.png`` 16-bit z-depth in counts of ``depth/depth.json``'s ``unit_cm`` (0: unknown), with
   ``.npy`` float32 cm on request; ``preview/NNNNNN.png`` colour-mapped inverse depth over one range for the
@@ -16,8 +18,8 @@ Everything is written into a staged folder that replaces ``out_dir`` only when t
 - ``mesh.ply`` and ``points.ply`` (TSDF fusion, :mod:`endoflow.reconstruction.fusion`), in cm;
 - ``sheet.png`` (frames beside depth, the path from the top and the side, the fused surface) and ``video.mp4``
   (frame | depth, streamed as frames come), see :mod:`endoflow.reconstruction.pictures`;
-- ``reconstruction.json``: what ran (input, frames, size, K, scale, speed) and, with ground truth, the scale
-  that fits the model's depth to it.
+- ``reconstruction.json``: its format (:data:`RECONSTRUCTION_FORMAT`), what ran (input, frames, size, K, scale,
+  speed) and, with ground truth, the scale that fits the model's depth to it.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from endoflow.config import ModelConfig, Params
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.geometry.pose import chain_step
-from endoflow.io import staged_directory, write_bytes, write_json
+from endoflow.io import marked_output, staged_directory, write_bytes, write_json
 from endoflow.models.model_file import load_trained_model
 from endoflow.progress import format_duration
 from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
@@ -48,13 +50,20 @@ LOGGED_OUTPUTS = ("sheet.png", "video.mp4", "reconstruction.json", "trajectory.t
                   "trajectory.kitti.json", "mesh.ply")
 DEPTH_UNIT_CM = 0.001  # 16-bit counts of 10 micrometres: up to 65.5 cm
 NETWORK_STRIDE = 32  # the encoders halve the image five times
+# reconstruction.json's "format": what tells an earlier reconstruction, which a run may replace, from any other
+# folder, which it refuses to empty
+RECONSTRUCTION_FORMAT = "endoflow reconstruction 1"
+EARLIER_RECONSTRUCTION = marked_output(f"an earlier endoflow reconstruction (its reconstruction.json's format "
+                                       f"{RECONSTRUCTION_FORMAT!r})", "reconstruction.json",
+                                       format=RECONSTRUCTION_FORMAT)
 
 
 @dataclass(frozen=True)
 class ReconstructOptions:
     """``size``: square model input in px (None: the model's ``data.size``); ``scale``: factor on depth and path;
     ``voxel_cm``/``trunc_cm``: TSDF voxel and truncation (None: from the model's depth range and ``size``);
-    ``npy``: also write float32 depth; ``fuse``: build the surface; ``device``: ``auto``, ``cpu`` or ``cuda``."""
+    ``npy``: also write float32 depth; ``fuse``: build the surface; ``device``: ``auto``, ``cpu`` or ``cuda``;
+    ``force``: replace an output folder that holds something other than an earlier reconstruction."""
 
     frames: FrameRange = field(default_factory=FrameRange)
     size: Optional[int] = None
@@ -64,6 +73,7 @@ class ReconstructOptions:
     npy: bool = False
     fuse: bool = True
     device: str = "auto"
+    force: bool = False
 
     def __post_init__(self) -> None:
         if self.size is not None and (self.size < NETWORK_STRIDE or self.size % NETWORK_STRIDE):
@@ -87,7 +97,8 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     path = CameraPath()
     started = time.perf_counter()
     sampler = FrameSampler()
-    with staged_directory(out_dir) as stage, torch.no_grad():
+    with staged_directory(out_dir, EARLIER_RECONSTRUCTION, options.force, (source.location, model_path),
+                          "--force") as stage, torch.no_grad():
         with SideBySideVideo(stage / "video.mp4", source.fps / options.frames.stride, size, size) as video:
             previous: Optional[torch.Tensor] = None
             shown: Optional[tuple[float, float]] = None
@@ -115,7 +126,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
         mesh = write_surface(stage, volume) if volume is not None else None
         seconds = time.perf_counter() - started
         summary = {
-            "input": source.description, "model": str(model_path), "frames": path.count,
+            "format": RECONSTRUCTION_FORMAT, "input": source.description, "model": str(model_path), "frames": path.count,
             "frame_range": asdict(options.frames), "native_size": list(source.native_size), "size": size,
             "K": K.tolist(), "scale": options.scale, "depth_unit_cm": unit,
             "seconds": seconds, "frames_per_second": path.count / seconds, "device": str(device),

@@ -49,7 +49,7 @@ from endoflow.data.simcol import parse_cam_txt
 from endoflow.devices import resolve_device
 from endoflow.geometry.camera import scale_intrinsics
 from endoflow.geometry.pose import matrix_to_quaternion_xyzw, opencv_to_unity
-from endoflow.io import staged_directory, write_text
+from endoflow.io import files_only, staged_directory, write_text
 from endoflow.synth.render import MAX_DEPTH_CM, render_tube_frame
 from endoflow.synth.rooms import Room, camera_path, make_room, render_room
 from endoflow.synth.scenes import STYLES, TubeSequence, make_tube_sequence
@@ -62,6 +62,9 @@ UNITYCAM_ORGANS = (("Colon", "colon"), ("Small Intestine", "intestine"), ("Stoma
 SCENENET_FRAME_STEP = 25
 SCENENET_VAL_EVERY = 10
 SCENENET_JPEG_QUALITY = 90
+# what a sequence folder holds once rendered: a rerun replaces it, a folder with anything else is refused
+RENDERED_SEQUENCE = files_only("a rendered sequence (PNG, JPEG, CSV and text files)",
+                               ("*.png", "*.jpg", "*.csv", "*.txt"))
 
 
 @dataclass(frozen=True)
@@ -184,7 +187,7 @@ def render_job(job: Job) -> None:
     try:
         target = Path(job.target)
         writer = {"simcol": _write_simcol, "endoslam": _write_endoslam, "scenenet": _write_scenenet}[job.layout]
-        with staged_directory(target) as staging:
+        with staged_directory(target, RENDERED_SEQUENCE) as staging:
             extra_files = writer(job, staging)
             # Files that live beside the sequence folder (SimCol's pose files) go first, before the folder
             # swap: readers list sequences by their frame folders, so a pose file without frames is never read.

@@ -55,7 +55,7 @@ from endoflow.data.loader import list_shards, raw_samples
 from endoflow.data.shard_format import decode_sample, manifest_location
 from endoflow.devices import autocast, compute_dtype, resolve_device, to_compute_layout, use_cpu_threads
 from endoflow.evaluation.swd import multiscale_swd
-from endoflow.io import file_sha256, save_figure, save_torch, staged_directory, write_json
+from endoflow.io import FIGURE_FOLDER, file_sha256, save_figure, save_torch, staged_directory, write_json
 from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
 from endoflow.models.critic import Critic
 from endoflow.models.endoflow_model import generator_spec
@@ -444,7 +444,7 @@ def pretrain_latent_bank(
         save_torch(out_path, payload)
         tracking.set_tags(uri, run_id, {tracking.LATENT_BANK_DIGEST_TAG: file_sha256(out_path)})
 
-        with staged_directory(plots_dir) as folder:
+        with staged_directory(plots_dir, FIGURE_FOLDER) as folder:
             save_sample_grid(fake_final, heldout, folder / "samples_final.png",
                              f"EMA generator, SWD {swd_final['mean']:.1f}")
             save_sample_grid(fake_untrained, heldout, folder / "samples_untrained.png",

@@ -41,7 +41,7 @@ from endoflow.data.shard_format import (
 )
 from endoflow.evaluation import plots
 from endoflow.geometry.pose import mean_step, step_root
-from endoflow.io import file_sha256, save_figure, staged_directory, write_csv, write_json
+from endoflow.io import FIGURE_FOLDER, file_sha256, save_figure, staged_directory, write_csv, write_json
 from endoflow.locations import absolute_location, home_project, local_file
 from endoflow.models.mlflow_model import log_mlflow_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
@@ -246,7 +246,7 @@ def write_training_outputs(params: Params, root: Path, state: TrainState, run_id
     save_model_file(root / params.train.out, ModelRecord(params=params, state=best.model, epoch=best.epoch,
                                                          val=best.val, mlflow_run_id=run_id, baselines=baselines))
     history = pd.DataFrame(state.history)
-    with staged_directory(root / params.train.plots) as folder:
+    with staged_directory(root / params.train.plots, FIGURE_FOLDER) as folder:
         write_csv(folder / "history.csv", history)
         keys = [k for k in ("train_loss", "val_abs_rel", "val_rmse", "lr") if k in history]
         save_figure(folder / "curves.png", plots.training_curves_figure(state.history, keys))
