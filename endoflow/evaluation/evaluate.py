@@ -43,13 +43,8 @@ import torch
 from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig, Precision
 from endoflow.evaluation import metrics, plots
-<<<<<<< ours
 from endoflow.evaluation.results import EVALUATION_FILE, dvc_metrics, headline_metrics
-from endoflow.io import save_figure, staged_directory, write_csv, write_json
-=======
-from endoflow.evaluation.results import EVALUATION_FILE, headline_metrics
 from endoflow.io import FIGURE_FOLDER, marked_output, save_figure, staged_directory, write_csv, write_json
->>>>>>> theirs
 from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
 from endoflow.data.shard_format import manifest_location, read_manifest
