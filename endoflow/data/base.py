@@ -1,21 +1,8 @@
-"""What every dataset reader produces: sequences of frames in one convention.
+"""What every dataset reader produces: sequences of frames in one convention, and the error for bad input.
 
-Conventions (the same everywhere downstream, so nothing needs to know where data came from):
-
-- RGB: ``H x W x 3`` ``uint8``, RGB channel order.
-- Depth: ``H x W`` ``float32`` z-depth in centimetres (distance along the optical axis, not ray length);
-  ``0`` where there is no reading.
-- Pose: ``4 x 4`` ``float64`` camera-to-world ``T_world_cam`` in the OpenCV camera convention (x right,
-  y down, z forward), right-handed, translation in centimetres. ``None`` where the dataset has no pose,
-  and where its pose file holds a non-finite value (NaN, inf) for the frame: the reader reports those
-  frames, with the file, in ``Sequence.problems`` and warns.
-- K: ``3 x 3`` pixel intrinsics for the stored image size, pixel centres at integer coordinates.
-- Frame numbers: the dataset's own, sorted. A difference larger than the sequence's regular step
-  (:func:`frame_step`) is a gap, reported like a bad pose; temporal neighbours never span one.
-
-Readers convert at this boundary (SimCol's left-handed Unity poses, SceneNet's ray-length depth in mm,
-EndoSLAM's units) and raise :class:`DataFormatError` naming the file and what was expected when input
-does not match the documented layout.
+RGB ``uint8``, z-depth in cm (0 = no reading), poses ``T_world_cam`` (OpenCV, cm; ``None`` where unknown), pixel K
+at the stored size. Readers convert at this boundary and raise :class:`DataFormatError` naming the file. See
+docs/datasets.md (conventions, reported problems) and docs/architecture.md, "Conventions".
 """
 
 from __future__ import annotations

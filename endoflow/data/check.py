@@ -1,27 +1,8 @@
 """``endoflow data check``: does the ground truth explain the motion?
 
-For sampled target frames t of each sequence, each neighbour s (t + 1 and t - 1) is warped into t with t's
-GT depth, the GT relative pose ``T_s_t = inv(T_world_s) @ T_world_t`` and K. Over the pixels that have
-depth and land inside the neighbour, the mean absolute RGB error (values in [0, 1]) of the GT warp is
-compared with that of the identity pose (the unwarped neighbour), and the sequence is flagged when
-``ratio = gt_error / identity_error`` exceeds ``max_ratio``. With correct depth, poses, K and conventions
-the warp explains most of the change between frames; a wrong handedness, depth unit or pose direction
-pushes the ratio to about 1 or above.
-
-The light of an endoscope travels with the camera, so a neighbour that is closer to the wall is brighter
-all over (inverse-square fall-off): a photometric change that no pose can explain. Before comparing, each
-of the two images (GT warp, unwarped neighbour) is given the per-channel gain that best fits it to the
-target (least squares over the compared pixels), so that ``ratio`` measures geometry. The uncompensated
-errors are reported too (``plain_*``). On the real SimCol3D sample (frames 0-9 of S1): ratio 0.45 (plain
-0.70); with the poses left in Unity's handedness 0.88 (0.99), read as world-to-camera 1.41 (1.44), with
-depth taken as mm 0.93 (0.94).
-
-Tunables are keyword arguments of :func:`check_dataset` (the CLI uses the defaults):
-``max_ratio`` (0.7): a sequence is flagged when its (gain-compensated) ratio exceeds it;
-``max_frames`` (10): target frames sampled per sequence, evenly spaced, to bound the run time.
-
-Frames without a valid pose (none in the data, or NaN / inf in the pose file, which the reader reports) are
-neither targets nor neighbours; their count is part of each sequence's result and of the printed table.
+Warps sampled frames' neighbours into them with the ground-truth depth, pose and K, and flags a sequence whose
+warp error (after a per-channel gain fit) is not well below the unwarped neighbour's. See docs/datasets.md,
+"Ground-truth check".
 """
 
 from __future__ import annotations

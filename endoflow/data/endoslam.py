@@ -1,42 +1,7 @@
-"""EndoSLAM reader: the synthetic UnityCam layout and the real-camera layout (``docs/datasets.md``).
+"""EndoSLAM reader: the synthetic UnityCam layout and the real-camera layouts (HighCam, LowCam, ...).
 
-UnityCam (VR-Caps simulator, 320x320, 30 fps)::
-
-    <root>/UnityCam/<Organ>/Frames/image_0000.png
-                            Pixelwise Depths/aov_image_0000.png
-                            Poses/<organ>_position_rotation.csv     header tX,tY,tZ,rX,rY,rZ,rW,time(s)
-
-- Poses are Unity's left-handed camera-to-world (scalar-last quaternion), converted like SimCol3D's:
-  ``P = TM @ [[R(q), t * unitycam_translation_to_cm], [0, 1]] @ TM`` with ``TM = diag(1, -1, 1, 1)``.
-- Depth: 8-bit maps with equal colour channels; ``value / 255 * depth_full_scale_cm``; with
-  ``depth_is_ray_length`` the distance along the pixel's ray is turned into z-depth (``r / |K^-1 [u v 1]|``).
-  ``0`` stays ``0``.
-- K: ``data.endoslam.intrinsics`` (pixel K for the stored frames) or else the third-party UnityCam K
-  (:data:`UNITYCAM_K`, for 320x320) scaled to the stored size.
-
-**Pose-to-frame alignment rule.** The simulator logs a pose per physics step, so the CSV need not have one
-row per frame. Rows with a missing, non-numeric or non-finite value (NaN, inf) are dropped first. If the
-remaining rows are as many as the frames, row ``i`` is frame ``i``. Otherwise frames are aligned by time: the
-frame with number ``n`` was taken at ``t0 + (n - n0) / fps`` (``t0`` = first logged time, ``n0`` = first frame
-number), and its pose is interpolated between the two logged poses around that time (translation linearly,
-rotation by slerp along the shorter arc); frames after the last logged time get a NaN pose. Each adjustment
-emits a warning and is recorded in ``Sequence.problems``.
-
-Real cameras (HighCam, LowCam, ...)::
-
-    <root>/Cameras/<Cam>/<Organ>/<Trajectory>/Frames/frame_000000.jpg
-                                               Poses/<one>.xlsx   columns ImageFrame, Pose_Index, trans_x,
-                                                                  trans_y, trans_z, quot_x, quot_y, quot_z, quot_w
-
-- A pose row belongs to the frame whose file number equals ``ImageFrame``; rows with a missing or non-finite
-  value are dropped (reported), and frames without a row get NaN.
-- Translation times ``camera_translation_to_cm``; rotations are taken as right-handed OpenCV camera-to-world
-  unless ``camera_poses_left_handed`` (then converted like UnityCam's).
-- K only from ``data.endoslam.intrinsics`` (the calibration ships as MATLAB sessions); no depth.
-
-Sequence names: ``UnityCam/Colon``, ``HighCam/Colon-IV/TumorfreeTrajectory_1``; group = organ without its
-roman-numeral suffix (``Colon``, ``Small Intestine``); split = ``data.endoslam.split``. ``Calibration`` folders
-are skipped.
+Converts Unity's left-handed poses and the 8-bit depth maps into the convention of :mod:`endoflow.data.base`,
+aligning pose rows logged per physics step to frames by time. See docs/datasets.md, "EndoSLAM".
 """
 
 from __future__ import annotations

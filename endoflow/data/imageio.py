@@ -1,9 +1,8 @@
 """Image files in and out, with the bit depth and channel order checked rather than guessed.
 
-OpenCV's default ``imread`` flag silently turns 16-bit PNGs into 8-bit BGR, which would halve SimCol3D's
-depth resolution and scramble its colours; everything here decodes with ``IMREAD_UNCHANGED`` and then checks
-what it got. Arrays returned and accepted use RGB(A) channel order (OpenCV's BGR(A) stays inside this
-module). Every problem raises :class:`~endoflow.data.base.DataFormatError` naming the file.
+Everything decodes with ``IMREAD_UNCHANGED`` (OpenCV's default flag turns 16-bit PNGs into 8-bit BGR) and
+uses RGB(A) order outside this module; every problem raises :class:`~endoflow.data.base.DataFormatError`
+naming the file.
 """
 
 from __future__ import annotations

@@ -1,18 +1,7 @@
 """SceneNet RGB-D reader (depth for the latent-bank pretraining), in the common convention of ``base``.
 
-Layout (``docs/datasets.md``)::
-
-    <root>/{train,val}/<part>/<trajectory>/depth/<n>.png    photo/<n>.jpg    n = 0, 25, 50, ...
-
-- Depth: 16-bit millimetres of EUCLIDEAN RAY LENGTH; converted to z-depth in cm with
-  ``z = r / |K^-1 [u v 1]|`` (``0`` = no reading stays ``0``).
-- K from the camera's field of view (60 x 45 degrees), for the stored size: ``fx = (W/2) / tan(30 deg)``,
-  ``fy = (H/2) / tan(22.5 deg)``, and the centre ``cx = W/2 - 0.5``, ``cy = H/2 - 0.5`` because the dataset
-  puts pixel centres at ``+0.5`` while we put them at integers (320x240: 277.128, 289.706, 159.5, 119.5).
-- No poses (they live in protobuf files the latent bank does not need). RGB is served when ``photo/`` exists.
-- Frames sorted by number, optionally the first ``data.scenenet.max_frames_per_trajectory``; split from the
-  top folder; group = part folder; sequence name ``<split>/<part>/<trajectory>``. Missing frame numbers are
-  not reported: the latent bank uses single depth maps, never temporal neighbours.
+Turns the millimetres of ray length into z-depth in cm with K from the camera's field of view; reads no poses.
+See docs/datasets.md, "SceneNet RGB-D".
 """
 
 from __future__ import annotations

@@ -1,24 +1,7 @@
 """SimCol3D reader: the challenge's own layout, converted to the common convention of :mod:`endoflow.data.base`.
 
-Layout (``docs/datasets.md``)::
-
-    <root>/SyntheticColon_I/   cam.txt  SavedPosition_S1.txt  SavedRotationQuaternion_S1.txt  ...
-                               Frames_S1/FrameBuffer_0000.png  Frames_S1/Depth_0000.png  ...
-    <root>/SyntheticColon_II/  (B sequences)     <root>/SyntheticColon_III/  (O sequences)
-
-- Frames: 16-bit RGBA PNGs holding 8-bit values times 256 (decoded exactly to 8-bit RGB).
-- Depth: 16-bit grey PNG, z-depth in cm = ``value / 255 / 256 * 20``.
-- K: ``cam.txt`` read literally as a row-major 3x3 (as the official code does), unless
-  ``data.simcol.intrinsics`` overrides it; either describes ``reference_size``-wide images and is scaled
-  to the stored size.
-- Poses: line ``n`` of ``SavedPosition_<seq>.txt`` (``tx ty tz``, cm) and ``SavedRotationQuaternion_<seq>.txt``
-  (``qx qy qz qw``) belong to frame ``n``; they are Unity's left-handed camera-to-world and are converted with
-  the official ``P = TM @ [[R(q), t], [0, 1]] @ TM``, ``TM = diag(1, -1, 1, 1)`` (quaternion sign flips do
-  not change ``R(q)``). A frame whose line holds NaN or inf has no pose (reported, not fatal).
-- Split by sequence name (``data.simcol.test``, then ``data.simcol.val``, else train); group = scene folder.
-
-Poses are parsed when the sequence is listed (so a short pose file fails early); images are decoded only
-when a frame is requested.
+Decodes the 16-bit frames and depth maps, reads ``cam.txt`` literally and converts Unity's left-handed poses.
+See docs/datasets.md, "SimCol3D".
 """
 
 from __future__ import annotations

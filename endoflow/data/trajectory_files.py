@@ -1,28 +1,8 @@
 """Camera-path files, the one home of their formats: TUM, KITTI and the SimCol3D challenge's relative poses.
 
-Every function takes or returns poses as ``[N, 4, 4]`` float64 camera-to-world ``T_world_cam``: OpenCV camera
-(x right, y down, z forward), right-handed, translation in cm (``docs/architecture.md``, "Conventions").
-No unit or axis conversion happens here: the files hold exactly these numbers.
-
-- TUM RGB-D (:func:`write_tum`, :func:`read_tum`): one line per pose, ``timestamp tx ty tz qx qy qz qw``
-  (seconds; cm; unit quaternion, scalar last, sign chosen with ``qw >= 0``), after ``#`` comment lines that
-  state the convention and units.
-- KITTI odometry (:func:`write_kitti`, :func:`read_kitti`): one line per pose, the 12 numbers of the top
-  3 x 4 of ``T_world_cam``, row-major. KITTI files have no header, so the convention and unit are stated in a
-  sidecar JSON file ``<path>.json`` (:func:`kitti_sidecar_path`) written beside the poses.
-- SimCol3D challenge (:func:`write_simcol_relative_pose`, :func:`write_simcol_relative_poses`,
-  :func:`read_simcol_relative_poses`): ``<sequence folder>/pose/FrameBuffer_XXXX_to_FrameBuffer_YYYY.txt``,
-  one per consecutive pair of frames, each one line of the 16 numbers of ``T_i_j = inv(P_i) @ P_j``
-  (row-major, last row ``0 0 0 1``); ``docs/datasets.md``, "Challenge prediction format".
-
-TUM and KITTI numbers are written as Python's shortest round-trip text (``repr``), so reading gives back the
-same float64 bits. The challenge files keep the 9 significant digits evaluation has always written (every
-float32 survives them exactly, and the network's poses are float32): about 1e-9 relative.
-
-Writes are atomic (:mod:`endoflow.io`). Bad input, written or read (a wrong shape, a non-finite number, a
-rotation that is not orthonormal within :data:`ROTATION_TOLERANCE` or is a reflection, a short or
-unreadable line) raises :class:`~endoflow.data.base.DataFormatError` naming the file, the line and what was
-expected.
+Every function takes or returns ``[N, 4, 4]`` float64 ``T_world_cam`` (OpenCV camera, cm) and converts nothing;
+writes are atomic, and a bad pose or line raises DataFormatError naming the file and line. See docs/outputs.md,
+"Camera-path files".
 """
 
 from __future__ import annotations
