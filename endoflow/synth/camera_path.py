@@ -1,12 +1,8 @@
 """A colonoscope-like camera trajectory along a tube: poses ``T_world_cam`` (OpenCV, cm), exact by construction.
 
-Calibrated on real SimCol3D poses (docs/synthetic_data.md has the statistics side by side): a colonoscope moves
-about 1.35 mm and turns about 0.1 degree per frame, nearly at constant velocity. The camera here moves along a
-smoothed copy of the centreline in phases (advancing, withdrawing with the view still down the lumen, or
-pausing), each at a speed of its own, with gentle ramps between them; it drifts slowly off the centreline,
-sways and rolls slowly, and now and then turns deliberately (the view swings a few degrees over a second or
-two). Every motion is smooth, so consecutive frames differ by small rigid motions that change little from one
-frame to the next.
+Smooth phases of advancing, withdrawing and pausing along the centreline, with slow drift, sway, roll and now
+and then a deliberate turn, calibrated on real SimCol3D poses. See docs/synthetic_data.md, "Camera, light and
+mucosa".
 """
 
 from __future__ import annotations

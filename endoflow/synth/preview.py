@@ -1,11 +1,7 @@
 """A picture of synthetic frames beside their depth maps (``docs/img/synthetic_frames.png``).
 
-Usage: ``python -m endoflow.synth.preview docs/img/synthetic_frames.png [--size 192] [--seed 0]
-[--real ../shared/samples/simcol3d]``.
-One row per scene (SimCol3D I, II, III, two EndoSLAM organs, a SceneNet room): two frames of a sequence
-with their depth maps, rendered exactly as the writers render them. With ``--real`` (a SimCol3D root), the
-first row shows the first and last frame of its first sequence, read by the SimCol3D reader, beside the
-built-in SimCol3D rows.
+Usage: ``python -m endoflow.synth.preview OUT.png [--size 192] [--seed 0] [--real SIMCOL3D_ROOT]``; the rows
+are rendered exactly as the writers render them. See docs/synthetic_data.md.
 """
 
 from __future__ import annotations

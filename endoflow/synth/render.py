@@ -1,11 +1,7 @@
 """Render one frame of a tube scene: RGB lit by a light at the camera, and exact z-depth at pixel centres.
 
-Shading: the light sits at the camera centre (as on an endoscope tip) with inverse-square fall-off
-(``1 / (d^2 + a^2)``: a ring of LEDs of radius ``a`` around the lens),
-Lambertian diffuse plus a Blinn-Phong highlight (with a co-located light the half vector is the view
-direction), natural vignetting ``cos^p`` of the angle off the optical axis, then gamma 2.2. RGB is the
-mean of ``supersample x supersample`` sub-pixel samples (anti-aliasing); depth is taken at pixel centres,
-where the reader's K puts them (integer coordinates).
+RGB is supersampled; depth is taken where the readers' K puts the pixel centres (integer coordinates). The
+shading model: docs/synthetic_data.md, "Camera, light and mucosa".
 """
 
 from __future__ import annotations

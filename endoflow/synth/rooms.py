@@ -1,9 +1,7 @@
 """Indoor box scenes for the SceneNet layout: a room with furniture-like blocks, seen by a moving camera.
 
-The latent bank only needs plausible indoor depth maps, so a room is an axis-aligned box (seen from
-inside) with axis-aligned blocks standing on the floor or hanging on the walls, and rays are cast exactly
-against them (slab method). World frame: x, y horizontal, z up, cm. The photo is flat-shaded so that it
-is recognisable, nothing more.
+Rays are cast exactly against axis-aligned boxes (slab method); world frame x, y horizontal, z up, cm. See
+docs/synthetic_data.md, "Camera, light and mucosa" (SceneNet rooms).
 """
 
 from __future__ import annotations

@@ -1,8 +1,6 @@
 """Scene presets (shape, motion, mucosa, light) and the sequence generator shared by the tube layouts.
 
-``SyntheticColon_I`` and ``_II`` share the colon shape with different mucosa and light (as in the real
-dataset); ``_III`` differs in shape (narrower, deeper folds, tighter bends) and texture. The EndoSLAM organs
-are the narrower, small-intestine-like variants (the stomach is wide with shallow rugae).
+See docs/synthetic_data.md, "Camera, light and mucosa" (scenes).
 """
 
 from __future__ import annotations

@@ -1,9 +1,7 @@
 """Procedural mucosa: a texture atlas in (arc length, angle) coordinates of the tube wall.
 
-Rows follow the arc length (``texel_cm`` per row), columns the angle around the centreline (periodic:
-column 0 continues column ``width - 1``). Values are linear-light albedo in [0, 1]: a pink-orange base
-mottled at several scales, branching submucosal vessels drawn as random walks that fork, and a fine grain,
-so that photometric losses have texture to work with at every distance.
+Rows follow the arc length, columns the angle (periodic); values are linear-light albedo in [0, 1]. See
+docs/synthetic_data.md, "Camera, light and mucosa".
 """
 
 from __future__ import annotations

@@ -1,23 +1,7 @@
 """A colon-like tube made of conical slabs, and its exact intersection with camera rays.
 
-Geometry. The centreline is a polyline of joints ``c_0 .. c_J``; segment ``j`` runs from ``c_j`` along the unit
-direction ``u_j`` for ``L_j`` cm. Around segment ``j`` the wall is the cone (a quadric)
-``|p - c_j - a u_j| = r_j + k_j a`` with ``a = (p - c_j) . u_j`` (radius ``r_j`` at the joint, slope ``k_j``).
-Slab ``j`` is the region between the joint planes ``j`` and ``j + 1`` (normal ``n_j``, through ``c_j``); at a
-bend the plane is the mitre plane (normal along ``u_{j-1} + u_j``), so consecutive slabs tile the tube.
-
-Watertight by construction: the mitre plane reflects one segment's axis onto the next, so two cylinders of
-equal radius meet in exactly the same curve; two cones meet exactly when their joint is straight (the
-plane is then perpendicular to both axes). The builder therefore bends the centreline only at joints
-between two cylinders of equal radius, and puts haustral folds and radius changes on straight runs.
-
-Texture coordinates are continuous too: the length along the wall's profile (so that steep fold faces
-are not stretched) interpolates between the two joint planes, and
-the angle is measured in a parallel-transported frame ``(e1_j, e2_j)`` that the mitre reflection carries
-from one segment onto the next.
-
-Units: cm. Depth: rays are unnormalised ``d = R K^-1 [u, v, 1]``, so the ray parameter ``t`` of a hit is
-its z-depth in the camera.
+Watertight by construction, with texture coordinates continuous across joints; units cm. Rays are
+``R K^-1 [u, v, 1]``, so a hit's ray parameter is its z-depth. See docs/synthetic_data.md, "How a colon is made".
 """
 
 from __future__ import annotations

@@ -1,27 +1,8 @@
 """Write procedural data in the native layouts of SimCol3D, EndoSLAM (UnityCam) and SceneNet RGB-D.
 
-The bytes follow ``docs/datasets.md`` so that our readers (and anyone else's) read synthetic and real
-data alike; each layout goes through the conversions a real copy needs (SimCol's and UnityCam's
-left-handed poses, SceneNet's ray-length depth in mm):
-
-- ``simcol``: ``SyntheticColon_I/`` (sequences S1..SN), ``_II/`` (B1..BN), ``_III/`` (O1..O min(N, 3),
-  another shape and texture), each with the real ``cam.txt`` (K for 475-px frames, scaled by the readers),
-  ``SavedPosition_<seq>.txt`` (``tx ty tz``), ``SavedRotationQuaternion_<seq>.txt`` (``qx qy qz qw``) in
-  Unity's left-handed frame (``M = TM P TM``, ``TM = diag(1, -1, 1, 1)``), and ``Frames_<seq>/`` with
-  ``FrameBuffer_%04d.png`` (16-bit RGBA: 8-bit values x 256, alpha 65280) and ``Depth_%04d.png`` (16-bit
-  grey, z-depth ``value / 255 / 256 * 20`` cm, here at full 16-bit precision).
-- ``endoslam``: ``UnityCam/<Organ>/Frames/image_%04d.png`` (8-bit RGB), ``Pixelwise Depths/aov_image_%04d.png``
-  (8-bit RGBA, equal channels, ``value / 255 * data.endoslam.depth_full_scale_cm``), ``Poses/<organ>_position_
-  rotation.csv`` (``tX,tY,tZ,rX,rY,rZ,rW,time(s)``, Unity left-handed, one row per frame). Organs in order:
-  Colon, Small Intestine, Stomach. Rendered with the documented UnityCam K scaled to the size.
-- ``scenenet``: ``<split>/0/<trajectory>/photo/<n>.jpg`` and ``depth/<n>.png`` (uint16 mm of ray length),
-  ``n = 0, 25, 50, ...``; every tenth trajectory goes to ``val``. ``size`` 128 gives the native 320x240.
-
-Every sequence is rendered into a hidden temporary folder next to its final place and swapped into place
-when complete (:func:`endoflow.io.staged_directory`), so an interrupted run leaves no half sequence and two
-processes never share a temporary. Sequences are independent (their random streams derive from the seed,
-the layout and the sequence), so the output is the same bytes whatever the number of worker processes.
-Format constants (depth scales, UnityCam size and K, the CSV header, scene folders) are the readers'.
+The bytes follow docs/datasets.md with the readers' own format constants, so our readers read synthetic and
+real data alike. Each sequence is staged and swapped in whole, and its bytes do not depend on the number of
+worker processes. See docs/synthetic_data.md, "What is written".
 """
 
 from __future__ import annotations
