@@ -4,7 +4,8 @@ Every writer in endoflow goes through this module (``docs/architecture.md``, "At
 
 - :func:`atomic_path` yields a unique temporary name in the target's folder (so two processes writing the
   same target never share a temporary); on success the file is flushed to disk and renamed over the
-  target, on failure the temporary is removed and the old target, if any, is left untouched.
+  target, on failure the temporary is removed and the old target, if any, is left untouched; an ``OSError``
+  of the write names the target (a full disk's error names no file).
 - :func:`write_bytes`, :func:`write_text`, :func:`write_json`, :func:`write_csv`, :func:`save_figure` and
   :func:`save_torch` are built on it.
 - :func:`staged_directory` fills a unique temporary sibling folder and swaps it in whole
@@ -68,18 +69,42 @@ def atomic_path(path: str | Path, durable: bool = True) -> Iterator[Path]:
     The temporary keeps ``path``'s suffix, for writers that choose a format by file name.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = temporary_sibling(path, suffix=path.suffix)
+    with _naming_target(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        temporary = temporary_sibling(path, suffix=path.suffix)
     try:
-        yield temporary
-        if durable:
-            _fsync_file(temporary)
-        os.replace(temporary, path)
+        with _naming_target(path, temporary):
+            yield temporary
+            if durable:
+                _fsync_file(temporary)
+            os.replace(temporary, path)
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
     if durable:
-        _fsync_folder(path.parent)
+        with _naming_target(path):
+            _fsync_folder(path.parent)
+
+
+@contextmanager
+def _naming_target(target: str | Path, temporary: Path | None = None) -> Iterator[None]:
+    """Re-raise an ``OSError`` of writing ``target`` naming ``target``: a full disk's error (``ENOSPC``) names no
+    file, and one naming the temporary names a file that is gone. An error naming another file (an input the
+    writer read) is raised as it is."""
+    try:
+        yield
+    except OSError as error:
+        if error.errno is None or not _about_written_file(error, Path(target), temporary):
+            raise
+        raise OSError(error.errno, f"{error.strerror} while writing", str(target)) from error
+
+
+def _about_written_file(error: OSError, target: Path, temporary: Path | None) -> bool:
+    """Whether ``error`` is about the file being written: it names no file, the target or its temporary."""
+    if error.filename is None:
+        return True
+    name = Path(os.fsdecode(error.filename))
+    return name in (target, temporary) or name.name.startswith(f".{target.name}{TEMPORARY_MARK}")
 
 
 @contextmanager
@@ -101,8 +126,9 @@ def atomic_location(location: str | Path, durable: bool = True) -> Iterator[Path
         return
     with tempfile.TemporaryDirectory(prefix="endoflow-upload-") as folder:
         temporary = Path(folder) / posixpath.basename(path)
-        yield temporary
-        fs.put_file(str(temporary), path)
+        with _naming_target(location, temporary):
+            yield temporary
+            fs.put_file(str(temporary), path)
 
 
 def write_bytes(path: str | Path, data: bytes, durable: bool = True) -> None:

@@ -6,6 +6,8 @@ The audit's case: a ``state.pt`` planted in the Ray storage path ran code when `
 
 from __future__ import annotations
 
+import errno
+import os
 import random
 from dataclasses import replace
 from pathlib import Path
@@ -195,3 +197,56 @@ def test_the_worker_config_survives_pickling_and_a_misspelt_field_fails_on_the_d
     with pytest.raises(TypeError, match="train_shard"):
         WorkerConfig(Params(), train_shard=(), val_shards=(), latent_bank=None, tracking_uri="", run_id="",
                      resume_from=None)
+
+
+# ---------------------------------------------------------------------- what a failed training advises
+class WorkerGroupFailure(Exception):
+    """Ray's wrapping of worker errors: ``worker_failures`` maps a rank to its error."""
+
+    def __init__(self, failures: dict) -> None:
+        super().__init__("Training failed due to worker errors")
+        self.worker_failures = failures
+
+
+def test_rerun_is_advised_only_where_it_helps() -> None:
+    from endoflow.training.loop import NonFiniteLossError
+    from endoflow.training.ray_trainer import training_failure
+
+    storage = "/project/checkpoints"
+    shard = "/project/data/shards/simcol/val-000000.tar"
+    repeating = {
+        "damaged validation shard": DataFormatError(shard, "SHA-256 differs from the manifest's"),
+        "refused random state": DataFormatError(f"{storage}/run/epoch-0001/rng-rank-0.pt", "refused to load"),
+        "full disk": OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), f"{storage}/run/epoch-0002/state.pt"),
+        "non-finite loss": NonFiniteLossError("non-finite training loss at epoch 1, step 1; lower train.lr"),
+    }
+    for case, error in repeating.items():
+        message = training_failure(WorkerGroupFailure({1: error, 0: error}), storage)
+        assert "rerun the stage to resume" not in message or "disk" in message, case
+        assert str(error) in message, case
+    assert f"until {shard} is rebuilt or removed" in training_failure(repeating["damaged validation shard"], storage)
+    assert f"ray.storage_path {storage}" in training_failure(repeating["full disk"], storage)
+
+    lost = training_failure(WorkerGroupFailure({0: RuntimeError("the worker's node was lost")}), storage)
+    assert lost == ("training failed: RuntimeError: the worker's node was lost (rerun the stage to resume from "
+                    "the last checkpoint)")
+
+
+def test_a_full_disk_during_training_names_the_storage_path_and_fails_the_run(tmp_path: Path, monkeypatch) -> None:
+    from endoflow.training.ray_trainer import TrainingError
+    from tests.test_ray import project
+
+    params = project(tmp_path)
+    params.ray = params.ray.model_copy(update={"storage_path": str(tmp_path / "checkpoints")})
+
+    def disk_full_on_the_workers(*_args, **_kwargs):
+        raise WorkerGroupFailure({0: OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))})
+
+    monkeypatch.setattr("endoflow.training.ray_trainer.fit_on_ray", disk_full_on_the_workers)
+    with pytest.raises(TrainingError, match=r"No space left on device \(a rerun repeats this") as caught:
+        train(params, tmp_path)
+
+    assert f"ray.storage_path {tmp_path / 'checkpoints'}" in str(caught.value)
+    uri = tracking.tracking_uri(params, tmp_path)
+    runs = tracking.client(uri).search_runs([tracking.ensure_experiment(params, tmp_path, "endoflow")])
+    assert [r.info.status for r in runs] == ["FAILED"]

@@ -76,7 +76,9 @@ LOGGED_LOSSES = ("total", "photometric", "smoothness", "kl")
 
 
 class NonFiniteLossError(RuntimeError):
-    """The training loss became NaN or infinite; the message names the epoch and step."""
+    """The training loss became NaN or infinite; the message names the epoch and step and what to change."""
+
+    rerun_repeats = True  # resumed from the last checkpoint, training computes the same loss again
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ training is reopened likewise.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import posixpath
@@ -31,6 +32,7 @@ import pandas as pd
 
 from endoflow import tracking
 from endoflow.config import ConfigError, Params, flatten_params, training_keys
+from endoflow.data.base import DataFormatError
 from endoflow.data.loader import list_shards, raw_samples
 from endoflow.data.shard_format import (
     DEPTH_MEMBER,
@@ -52,6 +54,10 @@ from endoflow.training.worker_config import WorkerConfig
 
 class TrainingError(RuntimeError):
     """Training failed on the workers; the message carries the workers' own error."""
+
+
+# A full disk or quota, a read-only file system, missing permission: a rerun fails the same way until fixed.
+REPEATING_OS_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM})
 
 
 # what ``train.metrics`` holds for DVC, under ``train``: {name with its unit: key of the training summary} (the
@@ -154,8 +160,7 @@ def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: 
             except ConfigError:
                 raise  # a setting the cluster cannot hold: rerunning would not help, the message names the key
             except Exception as exc:
-                raise TrainingError(f"training failed (rerun the stage to resume from the last checkpoint): "
-                                    f"{worker_error(exc)}") from exc
+                raise TrainingError(training_failure(exc, storage)) from exc
             finally:
                 log_ray_lines(config, ray_log)
     summary = write_training_outputs(params, root, saved.state, config.run_id, baselines, fingerprint)
@@ -229,14 +234,32 @@ def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str
         return load_training_state(folder)
 
 
-def worker_error(exc: BaseException) -> str:
-    """The first worker's own error message when Ray wraps it, else the exception's text."""
+def training_failure(exc: BaseException, storage: str) -> str:
+    """What the user reads when training fails: the first worker's own error, and what to do about it."""
+    cause = worker_cause(exc)
+    return f"training failed: {type(cause).__name__}: {cause}{next_step(cause, storage)}"
+
+
+def worker_cause(exc: BaseException) -> BaseException:
+    """The first worker's own error when Ray wraps it, else ``exc``."""
     failures = getattr(exc, "worker_failures", None)
     if failures:
         first = failures[min(failures)]
-        cause = getattr(first, "cause", None) or first
-        return f"{type(cause).__name__}: {cause}"
-    return f"{type(exc).__name__}: {exc}"
+        return getattr(first, "cause", None) or first
+    return exc
+
+
+def next_step(cause: BaseException, storage: str) -> str:
+    """Advice to rerun the stage only where a rerun can help (a lost worker, node or connection): it resumes
+    from the last checkpoint and meets an error of the data, the disk or the computation again."""
+    if isinstance(cause, DataFormatError):
+        return f" (a rerun repeats this until {cause.path} is rebuilt or removed)"
+    if isinstance(cause, OSError) and cause.errno in REPEATING_OS_ERRORS:
+        return (f" (a rerun repeats this until the disk or its permissions are fixed; training writes checkpoints "
+                f"to ray.storage_path {storage}; then rerun the stage to resume from the last checkpoint)")
+    if getattr(cause, "rerun_repeats", False):
+        return ""  # its message says what to change
+    return " (rerun the stage to resume from the last checkpoint)"
 
 
 def write_training_outputs(params: Params, root: Path, state: TrainState, run_id: str,
