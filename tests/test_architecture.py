@@ -19,6 +19,7 @@ FORBIDDEN = {
     "endoflow.config": ["endoflow."],
     "endoflow.locations": ["endoflow."],
     "endoflow.progress": ["endoflow."],
+    "endoflow.shapes": ["endoflow."],
     "endoflow.ray_runtime": ["endoflow.data", "endoflow.models", "endoflow.training", "endoflow.evaluation",
                              "endoflow.synth"],
     "endoflow.synth": ["endoflow.models", "endoflow.training", "endoflow.evaluation"],
