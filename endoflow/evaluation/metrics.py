@@ -30,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from endoflow.geometry.pose import rotation_angle_deg
+from endoflow.shapes import check_shape
 
 PAPER_MIN_DEPTH_CM = 1e-3
 PAPER_MAX_DEPTH_CM = 20.0
@@ -53,7 +54,7 @@ def paper_depth_errors(gt_cm: np.ndarray, pred_cm: np.ndarray) -> dict[str, floa
     Returns:
         ``abs_rel, sq_rel, rmse, rmse_log, l1, a1, a2, a3`` and the applied ``ratio``.
     """
-    gt_cm, pred_cm = _same_shape_2d(gt_cm, pred_cm)
+    gt_cm, pred_cm = _same_shape_2d("gt_cm", gt_cm, "pred_cm", pred_cm)
     mask = gt_cm > 0
     if not mask.any():
         raise ValueError("paper depth protocol: the GT depth map has no valid (> 0) pixel")
@@ -87,8 +88,8 @@ def simcol_depth_scale(pred_unit: np.ndarray, gt_cm: np.ndarray) -> float:
         pred_unit: ``N x H x W`` predictions in ``[0, 1]`` (depth / 20 cm), already clipped.
         gt_cm: ``N x H x W`` GT depth in cm.
     """
-    pred_means = _image_means(pred_unit)
-    gt_means = _image_means(np.asarray(gt_cm, dtype=np.float64) / SIMCOL_DEPTH_RANGE_CM)
+    pred_means = _image_means(pred_unit, "pred_unit")
+    gt_means = _image_means(np.asarray(gt_cm, dtype=np.float64) / SIMCOL_DEPTH_RANGE_CM, "gt_cm")
     denominator = float(np.sum(pred_means * pred_means))
     if denominator <= 0:
         raise ValueError("SimCol3D depth protocol: every prediction of the sequence is zero")
@@ -103,7 +104,7 @@ def simcol_depth_errors(pred_unit: np.ndarray, gt_cm: np.ndarray, scale: float) 
         gt_cm: ``H x W`` GT depth in cm.
         scale: the sequence's scale from :func:`simcol_depth_scale`.
     """
-    pred_unit, gt_cm = _same_shape_2d(pred_unit, gt_cm)
+    pred_unit, gt_cm = _same_shape_2d("pred_unit", pred_unit, "gt_cm", gt_cm)
     pred = np.asarray(pred_unit, dtype=np.float64) * scale * SIMCOL_DEPTH_RANGE_CM
     gt = np.asarray(gt_cm, dtype=np.float64)
     diff = pred - gt
@@ -126,8 +127,7 @@ def simcol_depth_sequence(pred_cm: np.ndarray, gt_cm: np.ndarray) -> dict[str, o
     """
     pred_cm = np.asarray(pred_cm)
     gt_cm = np.asarray(gt_cm)
-    if pred_cm.ndim != 3 or pred_cm.shape != gt_cm.shape:
-        raise ValueError(f"expected pred and gt as N x H x W of equal shape, got {pred_cm.shape}, {gt_cm.shape}")
+    check_shape("gt_cm", gt_cm, "N,H,W", **check_shape("pred_cm", pred_cm, "N,H,W"))
     pred_unit = depth_to_simcol_unit(pred_cm)
     scale = simcol_depth_scale(pred_unit, gt_cm)
     per_frame = [simcol_depth_errors(p, g, scale) for p, g in zip(pred_unit, gt_cm)]
@@ -238,25 +238,22 @@ def mean_over(records: list[dict[str, float]], keys: tuple[str, ...]) -> dict[st
     return {key: float(np.mean([r[key] for r in records])) for key in keys}
 
 
-def _image_means(stack: np.ndarray) -> np.ndarray:
+def _image_means(stack: np.ndarray, name: str) -> np.ndarray:
     stack = np.asarray(stack, dtype=np.float64)
-    if stack.ndim != 3:
-        raise ValueError(f"expected N x H x W depth maps, got shape {stack.shape}")
+    check_shape(name, stack, "N,H,W")
     return stack.mean(axis=(1, 2))
 
 
-def _same_shape_2d(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _same_shape_2d(a_name: str, a: np.ndarray, b_name: str, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a = np.asarray(a)
     b = np.asarray(b)
-    if a.ndim != 2 or a.shape != b.shape:
-        raise ValueError(f"expected two H x W depth maps of equal shape, got {a.shape} and {b.shape}")
+    check_shape(b_name, b, "H,W", **check_shape(a_name, a, "H,W"))
     return a, b
 
 
 def _pose_stack(poses: np.ndarray, what: str) -> np.ndarray:
     poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-        raise ValueError(f"expected {what} as N x 4 x 4, got shape {poses.shape}")
+    check_shape(what, poses, "N,4,4")
     if not np.isfinite(poses).all():
         raise ValueError(f"{what} contain non-finite values")
     return poses

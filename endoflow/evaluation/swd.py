@@ -14,6 +14,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from endoflow.shapes import check_shape
+
 _BINOMIAL = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0])
 PATCH = 7
 
@@ -58,8 +60,7 @@ def sliced_wasserstein(
     a: torch.Tensor, b: torch.Tensor, directions: int, repeats: int, generator: torch.Generator
 ) -> float:
     """Sliced Wasserstein-1 distance between equally sized point sets ``a, b [N, D]``."""
-    if a.shape != b.shape:
-        raise ValueError(f"descriptor sets differ in shape: {tuple(a.shape)} vs {tuple(b.shape)}")
+    check_shape("b", b, "N,D", **check_shape("a", a, "N,D"))
     a_np, b_np = a.float().cpu().numpy(), b.float().cpu().numpy()
     total = 0.0
     for _ in range(repeats):
@@ -87,8 +88,7 @@ def multiscale_swd(
     Returns:
         ``{"levels": [finest, ..., coarsest], "mean": average over levels}``.
     """
-    if real.shape != fake.shape or real.ndim != 4:
-        raise ValueError(f"expected two [N, C, H, W] sets of one shape, got {tuple(real.shape)}, {tuple(fake.shape)}")
+    check_shape("fake", fake, "N,C,H,W", **check_shape("real", real, "N,C,H,W"))
     if min(real.shape[-2:]) < max(min_resolution, PATCH):
         raise ValueError(f"images {tuple(real.shape[-2:])} smaller than min_resolution {min_resolution}")
     generator = torch.Generator().manual_seed(seed)

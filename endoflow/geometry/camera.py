@@ -13,6 +13,8 @@ from typing import TypeVar
 import numpy as np
 import torch
 
+from endoflow.shapes import check_shape
+
 ArrayOrTensor = TypeVar("ArrayOrTensor", np.ndarray, torch.Tensor)
 
 
@@ -24,8 +26,7 @@ def scale_intrinsics(K: ArrayOrTensor, sx: float, sy: float) -> ArrayOrTensor:
     ``fx' = fx * sx`` and ``cx' = (cx + 0.5) * sx - 0.5`` (the same with ``sy`` for ``fy``, ``cy``).
     Cropping is a separate shift of ``cx``, ``cy``. Works on numpy arrays and tensors, batched.
     """
-    if K.shape[-2:] != (3, 3):
-        raise ValueError(f"K: expected shape [..., 3, 3], got {tuple(K.shape)}")
+    check_shape("K", K, "...,3,3")
     scaled = K.clone() if isinstance(K, torch.Tensor) else np.array(K, dtype=np.float64)
     scaled[..., 0, 0] = K[..., 0, 0] * sx
     scaled[..., 0, 1] = K[..., 0, 1] * sx
@@ -40,8 +41,7 @@ def intrinsics_inverse(K: torch.Tensor) -> torch.Tensor:
 
     Cheaper than a general inverse, and on GPU it needs no linear-algebra library call or sync.
     """
-    if K.shape[-2:] != (3, 3):
-        raise ValueError(f"K: expected shape [..., 3, 3], got {tuple(K.shape)}")
+    check_shape("K", K, "...,3,3")
     fx, skew, cx = K[..., 0, 0], K[..., 0, 1], K[..., 0, 2]
     fy, cy = K[..., 1, 1], K[..., 1, 2]
     zero, one = torch.zeros_like(fx), torch.ones_like(fx)
@@ -69,11 +69,9 @@ def pixel_grid(height: int, width: int, device: torch.device, dtype: torch.dtype
 
 def backproject(depth: torch.Tensor, K_inv: torch.Tensor) -> torch.Tensor:
     """3D points ``[B, 3, H*W]`` in the camera frame from z-depth ``[B, 1, H, W]`` and ``K^-1`` ``[B, 3, 3]``."""
-    if depth.ndim != 4 or depth.shape[1] != 1:
-        raise ValueError(f"depth: expected shape [B, 1, H, W], got {tuple(depth.shape)}")
-    if K_inv.shape != (depth.shape[0], 3, 3):
-        raise ValueError(f"K_inv: expected shape [{depth.shape[0]}, 3, 3], got {tuple(K_inv.shape)}")
-    height, width = depth.shape[-2:]
+    sizes = check_shape("depth", depth, "B,1,H,W")
+    check_shape("K_inv", K_inv, "B,3,3", B=sizes["B"])
+    height, width = sizes["H"], sizes["W"]
     rays = K_inv @ pixel_grid(height, width, depth.device, depth.dtype)
     return rays * depth.reshape(depth.shape[0], 1, -1)
 
@@ -84,9 +82,7 @@ def project(points: torch.Tensor, K: torch.Tensor, eps: float = 1e-6) -> torch.T
     ``z`` is clamped to at least ``eps`` so points on or behind the camera plane stay finite; callers that
     need them masked test ``points[:, 2] > 0`` themselves.
     """
-    if points.ndim != 3 or points.shape[1] != 3:
-        raise ValueError(f"points: expected shape [B, 3, N], got {tuple(points.shape)}")
-    if K.shape != (points.shape[0], 3, 3):
-        raise ValueError(f"K: expected shape [{points.shape[0]}, 3, 3], got {tuple(K.shape)}")
+    sizes = check_shape("points", points, "B,3,N")
+    check_shape("K", K, "B,3,3", B=sizes["B"])
     homogeneous = K @ points
     return homogeneous[:, :2] / homogeneous[:, 2:3].clamp(min=eps)

@@ -22,21 +22,18 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 
+from endoflow.shapes import check_shape
+
 ArrayOrTensor = TypeVar("ArrayOrTensor", np.ndarray, torch.Tensor)
 
 # Unity (left-handed, y up) <-> OpenCV (right-handed, y down): flip the y axis on both sides.
 TM = np.diag([1.0, -1.0, 1.0, 1.0])
 
 
-def _check_last_dims(x: torch.Tensor | np.ndarray, dims: tuple[int, ...], name: str) -> None:
-    if x.ndim < len(dims) or tuple(x.shape[-len(dims) :]) != dims:
-        raise ValueError(f"{name}: expected shape [..., {', '.join(map(str, dims))}], got {tuple(x.shape)}")
-
-
 # ----------------------------------------------------------------------------------------- torch
 def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
     """Rotation matrices ``[..., 3, 3]`` from axis-angle vectors ``[..., 3]`` (angle = norm, radians)."""
-    _check_last_dims(axis_angle, (3,), "axis_angle")
+    check_shape("axis_angle", axis_angle, "...,3")
     lead = axis_angle.shape[:-1]
     flat = axis_angle.reshape(-1, 3)
     # kornia's Rodrigues has no low-precision path; compute in float32 at least.
@@ -47,7 +44,7 @@ def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
 
 def matrix_to_axis_angle(rotation: torch.Tensor) -> torch.Tensor:
     """Axis-angle vectors ``[..., 3]`` (angle in [0, pi]) of rotation matrices ``[..., 3, 3]``."""
-    _check_last_dims(rotation, (3, 3), "rotation")
+    check_shape("rotation", rotation, "...,3,3")
     lead = rotation.shape[:-2]
     compute_dtype = torch.promote_types(rotation.dtype, torch.float32)
     axis_angle = rotation_matrix_to_axis_angle(rotation.reshape(-1, 3, 3).to(compute_dtype))
@@ -56,7 +53,7 @@ def matrix_to_axis_angle(rotation: torch.Tensor) -> torch.Tensor:
 
 def pose_vec_to_matrix(vec: torch.Tensor) -> torch.Tensor:
     """4x4 rigid transforms ``[..., 4, 4]`` from pose vectors ``[..., 6]`` = (axis-angle, translation)."""
-    _check_last_dims(vec, (6,), "vec")
+    check_shape("vec", vec, "...,6")
     rotation = axis_angle_to_matrix(vec[..., :3])
     top = torch.cat([rotation, vec[..., 3:, None]], dim=-1)
     bottom = torch.zeros_like(top[..., :1, :])
@@ -69,7 +66,7 @@ def matrix_to_pose_vec(T: torch.Tensor) -> torch.Tensor:
 
     Inverse of :func:`pose_vec_to_matrix` for rotation angles below pi.
     """
-    _check_last_dims(T, (4, 4), "T")
+    check_shape("T", T, "...,4,4")
     return torch.cat([matrix_to_axis_angle(T[..., :3, :3]), T[..., :3, 3]], dim=-1)
 
 
@@ -79,7 +76,7 @@ def invert_pose(T: ArrayOrTensor) -> ArrayOrTensor:
 
     Exact for rigid transforms and cheaper and better conditioned than a general matrix inverse.
     """
-    _check_last_dims(T, (4, 4), "T")
+    check_shape("T", T, "...,4,4")
     rotation_t = T[..., :3, :3].swapaxes(-1, -2)
     translation = -(rotation_t @ T[..., :3, 3:4])
     if isinstance(T, torch.Tensor):
@@ -122,7 +119,7 @@ def chain_step(T_world_prev: np.ndarray, T_cur_prev: np.ndarray) -> np.ndarray:
 def mean_step(steps: np.ndarray) -> np.ndarray:
     """The constant-velocity step of ``N x 4 x 4`` relative poses: their mean pose vector (axis-angle,
     translation) as a ``4 x 4`` transform; the identity when ``N`` is 0."""
-    _check_last_dims(steps, (4, 4), "steps")
+    check_shape("steps", steps, "...,4,4")
     if len(steps) == 0:
         return np.eye(4)
     vectors = matrix_to_pose_vec(torch.from_numpy(np.asarray(steps, np.float64))).numpy()
@@ -136,7 +133,7 @@ def step_root(steps: np.ndarray, count: int) -> np.ndarray:
     ``S`` turns about ``T``'s axis by a ``count``-th of its angle, and its translation ``t_S`` is the one those
     steps chain to ``t_T``: ``(I + R_S + ... + R_S^(count-1)) t_S = t_T``. Rotation angles below pi.
     """
-    _check_last_dims(steps, (4, 4), "steps")
+    check_shape("steps", steps, "...,4,4")
     if count < 1:
         raise ValueError(f"count must be positive, got {count}")
     steps = np.asarray(steps, np.float64)
@@ -167,7 +164,7 @@ def motion_statistics(T_world_cam: np.ndarray) -> dict[str, float]:
     ``|t(Q_{i+1}) - t(Q_i)|`` and ``rotation_change_deg`` the angle of ``R(Q_i)^T R(Q_{i+1})`` (how far the
     motion departs from constant velocity), and ``forward_share`` the share of steps along the camera's view
     (positive z)."""
-    _check_last_dims(T_world_cam, (4, 4), "T_world_cam")
+    check_shape("T_world_cam", T_world_cam, "...,4,4")
     if len(T_world_cam) < 3:
         raise ValueError(f"motion statistics need at least 3 poses, got {len(T_world_cam)}")
     steps = relative_pose(T_world_cam[:-1], T_world_cam[1:])
@@ -189,7 +186,7 @@ def quaternion_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
     harmless).
     """
     q = np.asarray(q, dtype=np.float64)
-    _check_last_dims(q, (4,), "q")
+    check_shape("q", q, "...,4")
     norm = np.linalg.norm(q, axis=-1, keepdims=True)
     if np.any(norm == 0):
         raise ValueError("quaternion of zero norm")
@@ -205,7 +202,7 @@ def quaternion_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
 def matrix_to_quaternion_xyzw(R: np.ndarray) -> np.ndarray:
     """Unit quaternions ``[..., 4]`` (qx, qy, qz, qw) of rotation matrices ``[..., 3, 3]``, with qw >= 0."""
     R = np.asarray(R, dtype=np.float64)
-    _check_last_dims(R, (3, 3), "R")
+    check_shape("R", R, "...,3,3")
     # Each of 4 equivalent formulas divides by one component; use the largest one for stability.
     trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
     squares = np.stack(
@@ -243,12 +240,12 @@ def unity_to_opencv(M: np.ndarray) -> np.ndarray:
     camera looking along +z.
     """
     M = np.asarray(M, dtype=np.float64)
-    _check_last_dims(M, (4, 4), "M")
+    check_shape("M", M, "...,4,4")
     return TM @ M @ TM
 
 
 def opencv_to_unity(P: np.ndarray) -> np.ndarray:
     """Inverse of :func:`unity_to_opencv` (``TM`` is its own inverse)."""
     P = np.asarray(P, dtype=np.float64)
-    _check_last_dims(P, (4, 4), "P")
+    check_shape("P", P, "...,4,4")
     return TM @ P @ TM

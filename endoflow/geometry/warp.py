@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from endoflow.geometry.camera import backproject, intrinsics_inverse, project
+from endoflow.shapes import check_shape
 
 # Sampling in bf16/fp16 puts the grid's normalised coordinates on an 8-bit mantissa (half-pixel error at
 # 256 px), so low-precision images are sampled in float32 and the result cast back.
@@ -23,17 +24,10 @@ _BORDER_TOLERANCE = 1e-3
 
 
 def _check_inputs(image_src: torch.Tensor, depth_tgt: torch.Tensor, T: torch.Tensor, K: torch.Tensor) -> None:
-    if image_src.ndim != 4:
-        raise ValueError(f"image_src: expected shape [B, C, H, W], got {tuple(image_src.shape)}")
-    batch, _, height, width = image_src.shape
-    expected = {
-        "depth_tgt": (depth_tgt, (batch, 1, height, width)),
-        "T_src_tgt": (T, (batch, 4, 4)),
-        "K": (K, (batch, 3, 3)),
-    }
-    for name, (tensor, shape) in expected.items():
-        if tuple(tensor.shape) != shape:
-            raise ValueError(f"{name}: expected shape {list(shape)}, got {list(tensor.shape)}")
+    sizes = check_shape("image_src", image_src, "B,C,H,W")
+    check_shape("depth_tgt", depth_tgt, "B,1,H,W", **sizes)
+    check_shape("T_src_tgt", T, "B,4,4", **sizes)
+    check_shape("K", K, "B,3,3", **sizes)
 
 
 def project_target_pixels(

@@ -10,6 +10,8 @@ from typing import Callable
 
 import torch
 
+from endoflow.shapes import check_same_shape
+
 
 def critic_loss(real_scores: torch.Tensor, fake_scores: torch.Tensor) -> torch.Tensor:
     """``mean(D(fake)) - mean(D(real))``: the negated Wasserstein estimate the critic minimises."""
@@ -29,8 +31,7 @@ def gradient_penalty(
     One ``a ~ U(0, 1)`` per sample; ``fake`` is detached (the penalty trains the critic only). The gradient
     is taken with ``create_graph=True`` so the penalty itself back-propagates into the critic's weights.
     """
-    if real.shape != fake.shape:
-        raise ValueError(f"real, fake: expected one shape, got {tuple(real.shape)}, {tuple(fake.shape)}")
+    check_same_shape("real", real, "fake", fake)
     alpha = torch.rand((real.shape[0],) + (1,) * (real.ndim - 1), device=real.device, dtype=real.dtype)
     interpolates = (alpha * real.detach() + (1 - alpha) * fake.detach()).requires_grad_(True)
     scores = critic(interpolates)

@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from endoflow.config import LossConfig
+from endoflow.shapes import check_shape
 
 # SSIM stabilisers for a dynamic range of 1 (Wang et al. 2004: (0.01 L)^2, (0.03 L)^2).
 _C1 = 0.01**2
@@ -29,10 +30,7 @@ def _local_mean(x: torch.Tensor) -> torch.Tensor:
 
 def ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Per-pixel SSIM dissimilarity ``(1 - SSIM) / 2`` in [0, 1], ``[B, C, H, W]``, over 3x3 windows."""
-    if x.shape != y.shape or x.ndim != 4:
-        raise ValueError(
-            f"x, y: expected two [B, C, H, W] tensors of one shape, got {tuple(x.shape)}, {tuple(y.shape)}"
-        )
+    check_shape("y", y, "B,C,H,W", **check_shape("x", x, "B,C,H,W"))
     mu_x, mu_y = _local_mean(x), _local_mean(y)
     var_x = _local_mean(x * x) - mu_x * mu_x
     var_y = _local_mean(y * y) - mu_y * mu_y
@@ -50,9 +48,7 @@ def photometric_error(
     ``mse``: squared difference (the paper's loss). ``ssim_l1``: ``ssim_weight * ssim_map + (1 -
     ssim_weight) * |pred - target|`` (Monodepth2, 0.85). Both averaged over channels.
     """
-    if pred.shape != target.shape or pred.ndim != 4:
-        raise ValueError(f"pred, target: expected two [B, C, H, W] tensors of one shape, "
-                         f"got {tuple(pred.shape)}, {tuple(target.shape)}")
+    check_shape("target", target, "B,C,H,W", **check_shape("pred", pred, "B,C,H,W"))
     if kind == "mse":
         return (pred - target).square().mean(1, keepdim=True)
     if kind == "ssim_l1":

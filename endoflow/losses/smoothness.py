@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from endoflow.shapes import check_shape
+
 
 def edge_aware_smoothness(disp: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
     """Scalar ``mean(|dx d| exp(-|dx I|)) + mean(|dy d| exp(-|dy I|))`` on mean-normalised disparity.
@@ -15,10 +17,8 @@ def edge_aware_smoothness(disp: torch.Tensor, image: torch.Tensor) -> torch.Tens
         image: ``[B, C, H, W]`` colour image; resized to ``(h, w)`` by area averaging when larger, so a
             coarse scale's disparity can be paired with the full-resolution image.
     """
-    if disp.ndim != 4 or disp.shape[1] != 1:
-        raise ValueError(f"disp: expected shape [B, 1, H, W], got {tuple(disp.shape)}")
-    if image.ndim != 4 or image.shape[0] != disp.shape[0]:
-        raise ValueError(f"image: expected shape [{disp.shape[0]}, C, H, W], got {tuple(image.shape)}")
+    sizes = check_shape("disp", disp, "B,1,H,W")
+    check_shape("image", image, "B,C,h,w", B=sizes["B"])  # any size: resized to the disparity's below
     if image.shape[-2:] != disp.shape[-2:]:
         image = F.interpolate(image, size=disp.shape[-2:], mode="area")
     normalised = disp / (disp.mean(dim=(2, 3), keepdim=True) + 1e-7)

@@ -26,6 +26,7 @@ from endoflow.losses.kl import kl_standard_normal
 from endoflow.losses.photometric import identity_error, reprojection_loss
 from endoflow.losses.smoothness import edge_aware_smoothness
 from endoflow.models.endoflow_model import EndoflowModel, PoseEstimate
+from endoflow.shapes import check_shape
 
 REQUIRED_KEYS = ("prev", "cur", "next", "K")
 
@@ -34,14 +35,10 @@ def _check_batch(batch: dict) -> None:
     missing = [k for k in REQUIRED_KEYS if k not in batch]
     if missing:
         raise ValueError(f"batch lacks {missing}; expected the loader's keys {list(REQUIRED_KEYS)}")
-    shape = batch["cur"].shape
-    if len(shape) != 4 or shape[1] != 3:
-        raise ValueError(f"batch['cur']: expected [B, 3, H, W], got {tuple(shape)}")
+    sizes = check_shape("batch['cur']", batch["cur"], "B,3,H,W")
     for key in ("prev", "next"):
-        if batch[key].shape != shape:
-            raise ValueError(f"batch[{key!r}]: expected {tuple(shape)}, got {tuple(batch[key].shape)}")
-    if tuple(batch["K"].shape) != (shape[0], 3, 3):
-        raise ValueError(f"batch['K']: expected [{shape[0]}, 3, 3], got {tuple(batch['K'].shape)}")
+        check_shape(f"batch[{key!r}]", batch[key], "B,3,H,W", **sizes)
+    check_shape("batch['K']", batch["K"], "B,3,3", **sizes)
 
 
 def pose_kl(poses: list[PoseEstimate]) -> torch.Tensor:
