@@ -63,14 +63,8 @@ from endoflow.config import Params
 from endoflow.data.frame_encoding import resize_rgb
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.io import atomic_path
-from endoflow.models.endoflow_model import build_model
-from endoflow.models.model_file import (
-    ModelRecord,
-    TrainingBaselines,
-    load_model_file,
-    load_trained_model,
-    save_model_file,
-)
+from endoflow.models.endoflow_model import build_model, load_trained_model
+from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_model_file, save_model_file
 from endoflow.reconstruction import measure
 from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame, open_frames
 from endoflow.reconstruction.reconstruct import ReconstructOptions, reconstruct

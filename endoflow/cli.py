@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import Any, Iterator, Optional, Sequence
 
 from endoflow.config import ConfigError, load_params
-from endoflow.data.base import DATASETS, DataFormatError
+from endoflow.data.base import DATASETS
+from endoflow.errors import DataFormatError
 from endoflow.io import OutputFolderError
 from endoflow.sweep import STUDIES
 

@@ -7,7 +7,8 @@ Every writer in endoflow goes through this module (``docs/architecture.md``, "At
   target, on failure the temporary is removed and the old target, if any, is left untouched; an ``OSError``
   of the write names the target (a full disk's error names no file).
 - :func:`write_bytes`, :func:`write_text`, :func:`write_json`, :func:`write_csv`, :func:`save_figure` and
-  :func:`save_torch` are built on it.
+  :func:`save_torch` are built on it; :func:`load_plain_torch_file` reads torch files back, tensors and
+  plain data only.
 - :func:`staged_directory` fills a unique temporary sibling folder and swaps it in whole
   (:func:`replace_directory`), so a reader never sees a half-filled folder. A folder is only replaced when it
   is missing, empty or an earlier output of the same kind (:class:`OutputKind`), or when the user forces it;
@@ -26,9 +27,11 @@ import hashlib
 import io
 import json
 import os
+import pickle
 import posixpath
 import shutil
 import tempfile
+import zipfile
 from contextlib import contextmanager
 from dataclasses import dataclass
 from fnmatch import fnmatch
@@ -38,7 +41,10 @@ from typing import Any, Callable, Iterable, Iterator, Optional
 import fsspec
 from fsspec.implementations.local import LocalFileSystem
 
+from endoflow.errors import DataFormatError
+
 TEMPORARY_MARK = ".tmp-"
+_ZIP_MAGIC = b"PK\x03\x04"  # how every torch.save file begins
 
 
 def temporary_sibling(path: Path, suffix: str = "") -> Path:
@@ -175,6 +181,32 @@ def save_torch(path: str | Path, payload: Any) -> None:
     buffer = io.BytesIO()
     torch.save(payload, buffer)
     write_bytes(path, buffer.getvalue())
+
+
+def load_plain_torch_file(source: str | Path | bytes, what: str, name: Optional[str] = None) -> Any:
+    """``torch.load(weights_only=True)`` of a path or of a file's bytes, with errors that name the file.
+
+    The one loader of every torch file endoflow reads (what :func:`save_torch` writes). Anything that needs more
+    than tensors and plain data to load (a pickled object, which could run code) is refused, as is a file that
+    is not a torch archive at all (``torch.save`` writes zip archives).
+    """
+    import torch
+
+    label = name or str(source)
+    data = source if isinstance(source, bytes) else Path(source).read_bytes()
+    if not data.startswith(_ZIP_MAGIC):
+        raise DataFormatError(label, f"not a torch file (no zip archive header: truncated, empty or another kind of "
+                                     f"file); expected {what}")
+    try:
+        return torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        # torch's text goes on to explain how to allowlist the global: advice we do not pass on
+        reason = next((line.strip() for line in str(exc).splitlines() if "Unsupported" in line), "").split(". ")[0]
+        raise DataFormatError(label, f"refused to load: it holds objects other than tensors and plain data, which "
+                                     f"could run code ({reason or 'weights-only load failed'}); expected {what}") from None
+    except (RuntimeError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:  # how torch reports damage
+        raise DataFormatError(label, f"not a readable torch file, truncated or corrupt ({str(exc).splitlines()[0][:200]}); "
+                                     f"expected {what}") from None
 
 
 class OutputFolderError(RuntimeError):

@@ -1,4 +1,5 @@
-"""The layer picture of docs/architecture.md, checked on the imports: lower layers never import higher ones."""
+"""The layer picture of docs/architecture.md, checked on the imports: lower layers never import higher ones, and no
+module imports itself through others (a circle of imports has no lowest module to read first)."""
 
 from __future__ import annotations
 
@@ -9,13 +10,18 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "endoflow"
 
+# endoflow's packages and modules: io.py, the lowest layer with config.py, imports only the errors every layer raises
+TOP_LEVEL = sorted(f"endoflow.{path.stem if path.is_file() else path.name}" for path in PACKAGE.iterdir()
+                   if (path.suffix == ".py" and path.stem != "__init__") or (path / "__init__.py").is_file())
+
 # Preprocessing's writer: its entry points, plan, staging, engines and the writing of one shard.
 SHARD_WRITING = ["endoflow.data.shards", "endoflow.data.shard_plan", "endoflow.data.shard_staging",
                  "endoflow.data.shard_engines", "endoflow.data.shard_writer"]
 
 # module prefix -> endoflow modules it must not import (directly, at any place in the file)
 FORBIDDEN = {
-    "endoflow.io": ["endoflow."],
+    "endoflow.errors": ["endoflow."],
+    "endoflow.io": [module for module in TOP_LEVEL if module != "endoflow.errors"],
     "endoflow.config": ["endoflow."],
     "endoflow.locations": ["endoflow."],
     "endoflow.progress": ["endoflow."],
@@ -66,3 +72,48 @@ def test_no_module_imports_a_layer_above_it(path: Path) -> None:
         if name == prefix or name.startswith(prefix + "."):
             wrong = sorted(i for i in imports for f in forbidden if i == f or i.startswith(f.rstrip(".") + "."))
             assert not wrong, f"{name} imports {wrong}, a layer above it (docs/architecture.md)"
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Each endoflow module -> the endoflow modules it imports (anywhere in the file: a lazy import still runs)."""
+    paths = {module_name(path): path for path in PACKAGE.rglob("*.py")}
+    return {name: imported_modules(path) & set(paths) - {name} for name, path in paths.items()}
+
+
+def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The groups of modules that import one another round a circle (strongly connected, more than one module)."""
+    order, low, stack, on_stack, circles = {}, {}, [], set(), []
+
+    def visit(module: str) -> None:
+        order[module] = low[module] = len(order)
+        stack.append(module)
+        on_stack.add(module)
+        for imported in sorted(graph[module]):
+            if imported not in order:
+                visit(imported)
+                low[module] = min(low[module], low[imported])
+            elif imported in on_stack:
+                low[module] = min(low[module], order[imported])
+        if low[module] == order[module]:
+            group = []
+            while not group or group[-1] != module:
+                group.append(stack.pop())
+                on_stack.discard(group[-1])
+            if len(group) > 1:
+                circles.append(sorted(group))
+
+    for module in sorted(graph):
+        if module not in order:
+            visit(module)
+    return circles
+
+
+def test_no_modules_import_one_another_in_a_circle() -> None:
+    circles = import_circles(import_graph())
+    assert not circles, "modules that import one another in a circle (move what both need to a lower module):\n" + \
+        "\n".join("  " + ", ".join(group) for group in circles)
+
+
+def test_a_circle_of_imports_is_found() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": set()}
+    assert import_circles(graph) == [["a", "b", "c"]]

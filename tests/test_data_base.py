@@ -3,7 +3,7 @@
 import pickle
 from pathlib import Path
 
-from endoflow.data.base import DataFormatError
+from endoflow.errors import DataFormatError
 
 
 def test_data_format_error_names_file_and_problem():

@@ -21,9 +21,9 @@ import torch
 from endoflow.cli import main as cli_main
 from endoflow.config import Params
 from endoflow.models import export
-from endoflow.models.endoflow_model import build_model
+from endoflow.models.endoflow_model import build_model, load_trained_model
 from endoflow.models.export import ExportVerificationError, export_onnx, verify_graph
-from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_trained_model, save_model_file
+from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 
 SIZE = 64  # the smallest size the depth network accepts (its deepest features are 2x2)
 # The untrained pose head predicts almost the identity; this bias (x 0.01 in the network) makes the mean

@@ -10,12 +10,12 @@ import pytest
 
 from endoflow.cli import main
 from endoflow.config import Params
-from endoflow.data.base import DataFormatError
 from endoflow.data.endoslam import EndoSLAMReader
 from endoflow.data.inspect import format_inspection, inspect_dataset
 from endoflow.data.registry import detect_dataset, open_reader
 from endoflow.data.scenenet import SceneNetReader
 from endoflow.data.simcol import SimColReader
+from endoflow.errors import DataFormatError
 from tests.fixtures_native import write_endoslam_unitycam, write_scenenet, write_simcol
 from tests.samples import SIMCOL_SAMPLE
 

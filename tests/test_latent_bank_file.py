@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from endoflow.data.base import DataFormatError
+from endoflow.errors import DataFormatError
 from endoflow.models.latent_bank import (
     GeneratorSpec,
     LatentBankGenerator,

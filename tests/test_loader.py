@@ -21,7 +21,6 @@ import torch
 import webdataset as wds
 
 from endoflow.config import ConfigError, params_from_dict
-from endoflow.data.base import DataFormatError
 from endoflow.data.loader import (
     PREFETCH_BATCHES,
     batches_per_epoch,
@@ -47,6 +46,7 @@ from endoflow.data.shard_format import (
 )
 from endoflow.data.shards import write_dataset_shards
 from endoflow.devices import batch_to_device
+from endoflow.errors import DataFormatError
 from endoflow.training.ray_trainer import training_fingerprint
 from tests.test_config import defaults_with
 from tests.test_shards import SyntheticSource, native_pose, small_params

@@ -19,9 +19,9 @@ from endoflow.cli import main as cli
 from endoflow.config import Params
 from endoflow.geometry.pose import invert_pose
 from endoflow.io import file_sha256
-from endoflow.models.endoflow_model import build_model
+from endoflow.models.endoflow_model import build_model, load_trained_model
 from endoflow.models.mlflow_model import example_frames, local_model_file, log_mlflow_model, using_store
-from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_trained_model, save_model_file
+from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from tests.small_model import small_model_params
 
 SIZE = 64

@@ -11,7 +11,7 @@ import torch
 
 from endoflow.cli import main as cli_main
 from endoflow.config import Params, load_params
-from endoflow.data.base import DataFormatError
+from endoflow.errors import DataFormatError
 from endoflow.geometry.pose import invert_pose, pose_vec_to_matrix
 from endoflow.models.critic import Critic
 from endoflow.models.endoflow_model import build_model

@@ -26,8 +26,9 @@ import yaml
 
 from endoflow.config import load_params, params_from_dict, params_to_dict
 from endoflow.evaluation.results import evaluation_path
+from endoflow.io import load_plain_torch_file
 from endoflow.models.endoflow_model import generator_spec
-from endoflow.models.model_file import load_model_file, load_plain_torch_file
+from endoflow.models.model_file import load_model_file
 from tests.project_clone import PROJECT, clone_project, pipeline_env
 
 PAPER = PROJECT / "presets" / "paper.yaml"

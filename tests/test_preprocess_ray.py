@@ -21,9 +21,9 @@ import yaml
 from ray.cluster_utils import Cluster
 
 from endoflow.config import Params, params_to_dict
-from endoflow.data.base import DataFormatError
 from endoflow.data.shard_engines import stop_tasks
 from endoflow.data.shards import preprocess_dataset
+from endoflow.errors import DataFormatError
 from endoflow.io import TEMPORARY_MARK
 from tests.fixtures_native import write_simcol
 

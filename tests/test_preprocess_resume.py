@@ -13,10 +13,10 @@ import pyarrow.parquet as pq
 import pytest
 
 from endoflow.config import Params
-from endoflow.data.base import DataFormatError
 from endoflow.data.registry import open_reader
 from endoflow.data.shard_format import MANIFEST
 from endoflow.data.shards import preprocess_dataset, write_dataset_shards
+from endoflow.errors import DataFormatError
 from tests.fixtures_native import (
     preprocess_params,
     replace_line,

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from endoflow.config import EndoSLAMConfig
-from endoflow.data.base import DataFormatError
 from endoflow.data.endoslam import EndoSLAMReader, slerp_xyzw
 from endoflow.data.imageio import write_png
+from endoflow.errors import DataFormatError
 from tests.fixtures_native import (
     FLIP_Y,
     quaternion_xyzw,
@@ -208,4 +208,3 @@ def test_requested_layout_missing(tmp_path):
     with pytest.raises(DataFormatError, match="folder not found") as info:
         EndoSLAMReader(tmp_path, replace(EndoSLAMConfig(), layout="camera")).sequences()
     assert info.value.path == tmp_path / "Cameras"
-

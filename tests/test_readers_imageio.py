@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from endoflow.data.base import DataFormatError
 from endoflow.data.imageio import image_size, read_png8_gray, read_png16, read_rgb, write_png
+from endoflow.errors import DataFormatError
 
 RNG = np.random.default_rng(3)
 RGB = RNG.integers(0, 256, size=(6, 9, 3), dtype=np.uint8)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from endoflow.config import SceneNetConfig
-from endoflow.data.base import DataFormatError
 from endoflow.data.imageio import write_png
 from endoflow.data.scenenet import SceneNetReader, scenenet_intrinsics
+from endoflow.errors import DataFormatError
 from tests.fixtures_native import write_scenenet
 
 

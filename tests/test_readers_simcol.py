@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from endoflow.config import SimColConfig
-from endoflow.data.base import DataFormatError
 from endoflow.data.imageio import write_png
 from endoflow.data.simcol import SimColReader
+from endoflow.errors import DataFormatError
 from tests.fixtures_native import SIMCOL_K_475, scaled_K, write_simcol
 from tests.samples import SIMCOL_SAMPLE
 

@@ -16,10 +16,10 @@ from scipy.ndimage import map_coordinates
 
 from endoflow.cli import main as cli
 from endoflow.config import Params
-from endoflow.data.base import DataFormatError
 from endoflow.data.imageio import read_png16
 from endoflow.data.registry import open_reader
 from endoflow.data.frame_encoding import resize_depth, stored_intrinsics
+from endoflow.errors import DataFormatError
 from endoflow.models.endoflow_model import build_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames

@@ -20,7 +20,6 @@ import numpy as np
 import pytest
 import webdataset as wds
 
-from endoflow.data.base import DataFormatError
 from endoflow.data.loader import list_shards, rank_batches, raw_samples, triplet_dataset
 from endoflow.data.shard_format import (
     DEPTH_ONLY_MEMBERS,
@@ -34,6 +33,7 @@ from endoflow.data.shard_format import (
     shard_entries,
 )
 from endoflow.data.shards import write_dataset_shards
+from endoflow.errors import DataFormatError
 from tests.test_shards import SyntheticSource, small_params
 
 

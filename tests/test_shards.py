@@ -23,13 +23,14 @@ import pytest
 import webdataset as wds
 
 from endoflow.config import Params
-from endoflow.data.base import DataFormatError, Sequence
+from endoflow.data.base import Sequence
 from endoflow.data.frame_encoding import stored_intrinsics
 from endoflow.data.shard_engines import ShardProgress, check_shards_arrived, pool_context
 from endoflow.data.shard_plan import DEPTH_UNIT_CM
 from endoflow.data.shard_writer import ShardResult
 from endoflow.data.shards import preprocess_dataset, write_dataset_shards
 from endoflow.data.shard_format import MANIFEST, SHARD_TABLE_KEY, ShardEntry, shard_digests
+from endoflow.errors import DataFormatError
 from tests.samples import SIMCOL_SAMPLE
 
 NATIVE_K = np.array([[40.0, 0.0, 31.0], [0.0, 42.0, 22.5], [0.0, 0.0, 1.0]])

@@ -18,14 +18,9 @@ import torch
 
 from endoflow import tracking
 from endoflow.config import Params
-from endoflow.data.base import DataFormatError
-from endoflow.models.model_file import (
-    ModelRecord,
-    TrainingBaselines,
-    load_model_file,
-    load_trained_model,
-    save_model_file,
-)
+from endoflow.errors import DataFormatError
+from endoflow.models.endoflow_model import load_trained_model
+from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_model_file, save_model_file
 from endoflow.training.checkpoint import (
     BestEpoch,
     TrainingCheckpoint,

@@ -9,7 +9,6 @@ from typing import Callable
 import numpy as np
 import pytest
 
-from endoflow.data.base import DataFormatError
 from endoflow.data.trajectory_files import (
     ROTATION_TOLERANCE,
     kitti_sidecar_path,
@@ -22,6 +21,7 @@ from endoflow.data.trajectory_files import (
     write_simcol_relative_poses,
     write_tum,
 )
+from endoflow.errors import DataFormatError
 
 
 # ------------------------------------------------------------------------------------------ helpers

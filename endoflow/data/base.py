@@ -16,20 +16,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from endoflow.config import DATASETS, DEPTH_ONLY_DATASETS  # noqa: F401  (re-exported: readers' names)
-
-
-class DataFormatError(ValueError):
-    """Input does not match the documented layout. The message names the file and what was expected."""
-
-    def __init__(self, path: str | Path, problem: str) -> None:
-        self.path = Path(path)
-        self.problem = problem
-        super().__init__(f"{path}: {problem}")
-
-    def __reduce__(self):
-        # Default exception pickling replays args (the joined message) into __init__, which takes two:
-        # without this, an error raised in a worker process reaches the parent as a broken pool.
-        return (type(self), (str(self.path), self.problem))
+from endoflow.errors import DataFormatError
 
 
 @dataclass

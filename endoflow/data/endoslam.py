@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from endoflow.config import EndoSLAMConfig
-from endoflow.data.base import DataFormatError, DatasetReader, Sequence
+from endoflow.data.base import DatasetReader, Sequence
 from endoflow.data.imageio import image_size, read_png8_gray, read_rgb
 from endoflow.data.layout import (
     checked_intrinsics,
@@ -28,6 +28,7 @@ from endoflow.data.layout import (
     sized_loader,
     subfolders,
 )
+from endoflow.errors import DataFormatError
 from endoflow.geometry.camera import scale_intrinsics
 from endoflow.geometry.pose import unity_to_opencv
 

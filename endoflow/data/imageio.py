@@ -1,7 +1,7 @@
 """Image files in and out, with the bit depth and channel order checked rather than guessed.
 
 Everything decodes with ``IMREAD_UNCHANGED`` (OpenCV's default flag turns 16-bit PNGs into 8-bit BGR) and
-uses RGB(A) order outside this module; every problem raises :class:`~endoflow.data.base.DataFormatError`
+uses RGB(A) order outside this module; every problem raises :class:`~endoflow.errors.DataFormatError`
 naming the file.
 """
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from endoflow.data.base import DataFormatError
+from endoflow.errors import DataFormatError
 from endoflow.io import write_bytes
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -128,4 +128,3 @@ def write_png(path: str | Path, array: np.ndarray) -> None:
     if not ok:
         raise ValueError(f"write_png {path}: OpenCV could not encode {_describe(array)}")
     write_bytes(path, encoded.tobytes(), durable=False)
-

@@ -13,9 +13,10 @@ from typing import Any, Optional
 import numpy as np
 
 from endoflow.config import Params
-from endoflow.data.base import DataFormatError, Sequence
+from endoflow.data.base import Sequence
 from endoflow.data.layout import shown_numbers
 from endoflow.data.registry import open_reader
+from endoflow.errors import DataFormatError
 from endoflow.geometry.pose import motion_statistics
 
 DEFAULT_SAMPLED_FRAMES = 3

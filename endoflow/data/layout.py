@@ -10,7 +10,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from endoflow.data.base import DataFormatError, missing_frame_ids
+from endoflow.data.base import missing_frame_ids
+from endoflow.errors import DataFormatError
 from endoflow.geometry.pose import quaternion_xyzw_to_matrix
 
 SHOWN_NUMBERS = 5

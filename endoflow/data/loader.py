@@ -31,7 +31,6 @@ import torch
 import webdataset as wds
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from endoflow.data.base import DataFormatError
 from endoflow.data.shard_format import (
     ShardEntry,
     collate_samples,
@@ -40,6 +39,7 @@ from endoflow.data.shard_format import (
     shard_entries,
     split_shards,
 )
+from endoflow.errors import DataFormatError
 
 # Batches each loader process keeps ready ahead of the training loop (DataLoader's prefetch_factor): with W
 # processes up to 2 W collated batches wait in shared memory (/dev/shm; containers may need --shm-size).
@@ -138,7 +138,7 @@ def rank_batches(
     loader_workers`` samples (the rank's memory for it stays that of one buffer) and the parts interleave
     batch by batch. A run resumes exactly only with the value it started with. ``pin_memory``: batches come
     in page-locked memory, for fast copies to a CUDA device. A damaged shard raises
-    :class:`~endoflow.data.base.DataFormatError` naming it, as it does when this process reads it.
+    :class:`~endoflow.errors.DataFormatError` naming it, as it does when this process reads it.
     """
     epoch_data = rank_epoch(urls, rank, world_size, batch_size, epoch, seed, shuffle_buffer, entries, max_batches)
     return _raising_failures(epoch_loader(epoch_data, loader_workers, pin_memory))

@@ -6,12 +6,13 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from endoflow.config import Params
-from endoflow.data.base import DATASETS, DataFormatError, DatasetReader
+from endoflow.data.base import DATASETS, DatasetReader
 from endoflow.data.endoslam import EndoSLAMReader
 from endoflow.data.scenenet import SPLITS as SCENENET_SPLITS
 from endoflow.data.scenenet import SceneNetReader
 from endoflow.data.simcol import SCENES as SIMCOL_SCENES
 from endoflow.data.simcol import SimColReader
+from endoflow.errors import DataFormatError
 
 
 def _looks_like_simcol(root: Path) -> bool:

@@ -13,9 +13,10 @@ from typing import Optional
 import numpy as np
 
 from endoflow.config import SceneNetConfig
-from endoflow.data.base import DataFormatError, DatasetReader, Sequence
+from endoflow.data.base import DatasetReader, Sequence
 from endoflow.data.imageio import image_size, read_png16, read_rgb
 from endoflow.data.layout import checked_size, natural_key, numbered_files, ray_length_to_z_factor, sized_loader, subfolders
+from endoflow.errors import DataFormatError
 
 SPLITS = ("train", "val")
 HFOV_DEG = 60.0

@@ -22,10 +22,11 @@ import cv2
 import fsspec
 
 from endoflow.config import RayConfig
-from endoflow.data.base import DataFormatError, Sequence
+from endoflow.data.base import Sequence
 from endoflow.data.shard_plan import EncodeSettings, ShardSpec
 from endoflow.data.shard_staging import folder_entries
 from endoflow.data.shard_writer import ShardResult, write_shard
+from endoflow.errors import DataFormatError
 from endoflow.progress import format_duration
 from endoflow.ray_runtime import connect_ray
 

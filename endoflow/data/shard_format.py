@@ -22,7 +22,7 @@ manifest is the list of shards (:func:`split_shards`): one that is listed but mi
 of a shard (:func:`read_shard`) is checked against the manifest: each sample as it is read (its key, its
 members, their SHA-256), so a reader that stops part-way through a shard has still checked all it used; and at
 the shard's end its sample count and the SHA-256 of its bytes. A mismatch is a
-:class:`~endoflow.data.base.DataFormatError` naming the shard file and what was expected.
+:class:`~endoflow.errors.DataFormatError` naming the shard file and what was expected.
 
 A shard is read only if it is a regular file holding an uncompressed tar of plain-file members, each no larger
 than the file: a device, a FIFO (or a link to one), a compressed or sparse archive is refused before anything is
@@ -50,8 +50,8 @@ import pyarrow.parquet as pq
 import torch
 from webdataset.tariterators import group_by_keys
 
-from endoflow.data.base import DataFormatError
 from endoflow.devices import unit_float_images
+from endoflow.errors import DataFormatError
 
 SPLITS = ("train", "val", "test")
 MANIFEST = "manifest.parquet"

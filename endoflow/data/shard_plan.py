@@ -25,8 +25,9 @@ from typing import Iterable
 import numpy as np
 
 from endoflow.config import Params, params_to_dict
-from endoflow.data.base import DEPTH_ONLY_DATASETS, DataFormatError, Sequence, slug
+from endoflow.data.base import DEPTH_ONLY_DATASETS, Sequence, slug
 from endoflow.data.shard_format import FORMAT_VERSION, SPLITS, shard_name
+from endoflow.errors import DataFormatError
 
 # cm per stored depth count: colon data up to 65.535 cm at 10 um steps (finer than SimCol3D's own 0.078 cm);
 # indoor scenes up to 65.5 m at 1 mm.

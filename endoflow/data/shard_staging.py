@@ -21,9 +21,9 @@ from pathlib import Path
 import fsspec
 from fsspec.implementations.local import LocalFileSystem
 
-from endoflow.data.base import DataFormatError
 from endoflow.data.shard_format import MANIFEST, ShardEntry, manifest_bytes, shard_digests
 from endoflow.data.shard_plan import ShardSpec
+from endoflow.errors import DataFormatError
 from endoflow.io import files_only, replace_directory, write_bytes
 
 PLAN_FILE = "plan.json"

@@ -19,7 +19,7 @@ from typing import Optional
 import numpy as np
 import webdataset as wds
 
-from endoflow.data.base import DataFormatError, Sequence
+from endoflow.data.base import Sequence
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.data.shard_format import (
     DEPTH_MEMBER,
@@ -30,6 +30,7 @@ from endoflow.data.shard_format import (
     sample_sha256,
 )
 from endoflow.data.shard_plan import EncodeSettings, SampleSpec, ShardSpec, sample_positions
+from endoflow.errors import DataFormatError
 from endoflow.io import atomic_location
 
 # TarWriter streams 10 KiB tar records; a large file buffer makes them few large writes (bench_tar_writer.py).

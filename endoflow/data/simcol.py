@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from endoflow.config import SimColConfig
-from endoflow.data.base import DataFormatError, DatasetReader, Sequence
+from endoflow.data.base import DatasetReader, Sequence
 from endoflow.data.imageio import image_size, read_png16, read_rgb
 from endoflow.data.layout import (
     checked_intrinsics,
@@ -21,6 +21,7 @@ from endoflow.data.layout import (
     report_non_finite_rows,
     sized_loader,
 )
+from endoflow.errors import DataFormatError
 from endoflow.geometry.camera import scale_intrinsics
 from endoflow.geometry.pose import unity_to_opencv
 

@@ -13,7 +13,7 @@ from typing import Optional
 
 import numpy as np
 
-from endoflow.data.base import DataFormatError
+from endoflow.errors import DataFormatError
 from endoflow.geometry.pose import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix, relative_pose
 from endoflow.io import files_only, staged_directory, write_json, write_text
 

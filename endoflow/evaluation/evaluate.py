@@ -50,8 +50,9 @@ from endoflow.data.trajectory_files import write_simcol_relative_pose
 from endoflow.data.shard_format import manifest_location, read_manifest
 from endoflow.devices import autocast, images_to_device, resolve_device, to_compute_layout, use_cpu_threads
 from endoflow.locations import absolute_location
+from endoflow.models.endoflow_model import load_trained_model
 from endoflow.models.mlflow_model import is_model_uri, local_model_file
-from endoflow.models.model_file import TrainingBaselines, load_trained_model
+from endoflow.models.model_file import TrainingBaselines
 
 DEPTH_METHODS = ("model", "constant_depth", "mean_depth_map")
 POSE_METHODS = ("model", "constant_velocity")

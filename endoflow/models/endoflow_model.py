@@ -17,14 +17,17 @@ Depth: disparity ``sigma`` in (0, 1) maps linearly to inverse depth between ``1 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from torch import nn
 
 from endoflow.config import ModelConfig, Params
+from endoflow.errors import DataFormatError
 from endoflow.geometry.pose import invert_pose, pose_vec_to_matrix
 from endoflow.models.depth_net import DepthNet
 from endoflow.models.latent_bank import GeneratorSpec, LatentBankGenerator, load_generator
+from endoflow.models.model_file import ModelRecord, load_model_file
 from endoflow.models.pose_net import PoseNet
 
 
@@ -123,3 +126,16 @@ def build_model(params: Params, latent_bank_path: str | None) -> EndoflowModel:
     if params.model.latent_bank:
         generator = load_generator(latent_bank_path) if latent_bank_path else LatentBankGenerator(generator_spec(params))
     return EndoflowModel(params.model, generator)
+
+
+def load_trained_model(path: str | Path, device: torch.device) -> tuple[EndoflowModel, ModelRecord]:
+    """The trained model in eval mode on ``device``, rebuilt from the params stored with it in its model file."""
+    record = load_model_file(path)
+    # the bank's weights are part of the state dict: build an empty one, then load everything
+    model = build_model(record.params, latent_bank_path=None)
+    try:
+        model.load_state_dict(record.state)
+    except RuntimeError as exc:  # missing, unexpected or misshapen tensors
+        raise DataFormatError(path, f"weights do not fit the architecture of its params "
+                                    f"({' '.join(str(exc).split())[:300]})") from None
+    return model.to(device).eval(), record

@@ -34,7 +34,8 @@ import torch
 from torch import nn
 
 from endoflow.io import atomic_path, file_sha256, write_json
-from endoflow.models.model_file import ModelRecord, load_trained_model
+from endoflow.models.endoflow_model import load_trained_model
+from endoflow.models.model_file import ModelRecord
 
 # torchlib (the dynamo exporter's op library) is written for opset 18: asking for it means no version
 # conversion pass, and onnxruntime supports it from 1.14 on.

@@ -30,8 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from endoflow.data.base import DataFormatError
-from endoflow.models.model_file import load_plain_torch_file
+from endoflow.errors import DataFormatError
+from endoflow.io import load_plain_torch_file
 
 LATENT_BANK_FORMAT = "endoflow.latent_bank/2"  # 2: the synthesis convolutions record their init_scale
 _RERUN = "(re)run the pretrain_latent_bank stage to write it"
@@ -331,7 +331,7 @@ def load_generator(path: str | Path) -> LatentBankGenerator:
     """Rebuild the generator saved by :func:`endoflow.training.pretrain.pretrain_latent_bank`, on the CPU.
 
     Only tensors and plain data are unpickled (``weights_only=True``). Raises ``FileNotFoundError`` for a
-    missing file and :class:`~endoflow.data.base.DataFormatError` for one that is truncated, corrupt, holds
+    missing file and :class:`~endoflow.errors.DataFormatError` for one that is truncated, corrupt, holds
     other objects, or is not a latent bank of this format; both messages name the file.
     """
     payload = _read_payload(Path(path))

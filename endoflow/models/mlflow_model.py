@@ -48,7 +48,7 @@ class EndoflowPyfunc:
     def load_context(self, context: Any) -> None:
         import torch
 
-        from endoflow.models.model_file import load_trained_model
+        from endoflow.models.endoflow_model import load_trained_model
 
         self.device = torch.device("cpu")
         self.model, _ = load_trained_model(context.artifacts[MODEL_FILE_ARTIFACT], self.device)

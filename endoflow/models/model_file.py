@@ -9,9 +9,6 @@ for the trivial baselines of the evaluation).
 
 from __future__ import annotations
 
-import io
-import pickle
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
@@ -20,12 +17,11 @@ import numpy as np
 import torch
 
 from endoflow.config import ConfigError, Params, params_from_dict, params_to_dict
-from endoflow.data.base import DataFormatError
-from endoflow.io import save_torch
+from endoflow.errors import DataFormatError
+from endoflow.io import load_plain_torch_file, save_torch
 
 # 2: the latent bank's init-scaled convolutions carry an init_scale buffer in the state dict.
 MODEL_FORMAT = 2
-_ZIP_MAGIC = b"PK\x03\x04"
 
 
 @dataclass
@@ -99,40 +95,3 @@ def load_model_file(path: str | Path) -> ModelRecord:
     return ModelRecord(params=params, state=raw["model"], epoch=int(raw["epoch"]), val=raw["val"],
                        mlflow_run_id=raw["mlflow_run_id"], baselines=TrainingBaselines.from_record(raw["baselines"]))
 
-
-def load_trained_model(path: str | Path, device: torch.device) -> tuple[torch.nn.Module, ModelRecord]:
-    """The trained model in eval mode on ``device``, rebuilt from the params stored with it."""
-    from endoflow.models.endoflow_model import build_model
-
-    record = load_model_file(path)
-    # the bank's weights are part of the state dict: build an empty one, then load everything
-    model = build_model(record.params, latent_bank_path=None)
-    try:
-        model.load_state_dict(record.state)
-    except RuntimeError as exc:  # missing, unexpected or misshapen tensors
-        raise DataFormatError(path, f"weights do not fit the architecture of its params "
-                                    f"({' '.join(str(exc).split())[:300]})") from None
-    return model.to(device).eval(), record
-
-
-def load_plain_torch_file(source: str | Path | bytes, what: str, name: Optional[str] = None) -> Any:
-    """``torch.load(weights_only=True)`` of a path or of a file's bytes, with errors that name the file.
-
-    Anything that needs more than tensors and plain data to load (a pickled object, which could run code)
-    is refused, as is a file that is not a torch archive at all (``torch.save`` writes zip archives).
-    """
-    label = name or str(source)
-    data = source if isinstance(source, bytes) else Path(source).read_bytes()
-    if not data.startswith(_ZIP_MAGIC):
-        raise DataFormatError(label, f"not a torch file (no zip archive header: truncated, empty or another kind of "
-                                     f"file); expected {what}")
-    try:
-        return torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as exc:
-        # torch's text goes on to explain how to allowlist the global: advice we do not pass on
-        reason = next((line.strip() for line in str(exc).splitlines() if "Unsupported" in line), "").split(". ")[0]
-        raise DataFormatError(label, f"refused to load: it holds objects other than tensors and plain data, which "
-                                     f"could run code ({reason or 'weights-only load failed'}); expected {what}") from None
-    except (RuntimeError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:  # how torch reports damage
-        raise DataFormatError(label, f"not a readable torch file, truncated or corrupt ({str(exc).splitlines()[0][:200]}); "
-                                     f"expected {what}") from None

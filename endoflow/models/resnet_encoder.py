@@ -15,8 +15,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from endoflow.config import ENCODER_STRIDE
-from endoflow.data.base import DataFormatError
-from endoflow.models.model_file import load_plain_torch_file
+from endoflow.errors import DataFormatError
+from endoflow.io import load_plain_torch_file
 
 # Feature channels at strides 2, 4, 8, 16, 32.
 CHANNELS = (64, 64, 128, 256, 512)

@@ -18,10 +18,11 @@ import numpy as np
 import yaml
 
 from endoflow.config import Params
-from endoflow.data.base import DataFormatError, Sequence
+from endoflow.data.base import Sequence
 from endoflow.data.imageio import read_rgb
 from endoflow.data.registry import open_reader
 from endoflow.data.simcol import parse_cam_txt
+from endoflow.errors import DataFormatError
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")

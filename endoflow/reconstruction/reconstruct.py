@@ -39,7 +39,7 @@ from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_dep
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.geometry.pose import chain_step
 from endoflow.io import marked_output, staged_directory, write_bytes, write_json
-from endoflow.models.model_file import load_trained_model
+from endoflow.models.endoflow_model import load_trained_model
 from endoflow.progress import format_duration
 from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply

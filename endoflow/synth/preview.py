@@ -16,9 +16,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from endoflow.config import Params  # noqa: E402
-from endoflow.data.base import DataFormatError  # noqa: E402
 from endoflow.data.simcol import SimColReader  # noqa: E402
 from endoflow.data.scenenet import scenenet_intrinsics  # noqa: E402
+from endoflow.errors import DataFormatError  # noqa: E402
 from endoflow.io import save_figure  # noqa: E402
 from endoflow.synth.render import MAX_DEPTH_CM, render_tube_frame  # noqa: E402
 from endoflow.synth.rooms import render_room  # noqa: E402

@@ -12,7 +12,7 @@ the model that ``train.out`` is written from)::
                       must be disjoint)
 
 Every file is tensors and plain data, loaded with ``weights_only=True``
-(:func:`endoflow.models.model_file.load_plain_torch_file`): a planted file that would run code is refused with
+(:func:`endoflow.io.load_plain_torch_file`): a planted file that would run code is refused with
 an error naming it. The data order needs no saved state: it is drawn from ``(seed, epoch, rank)``.
 """
 
@@ -31,9 +31,8 @@ import fsspec
 import numpy as np
 import torch
 
-from endoflow.io import save_torch, write_text
-from endoflow.data.base import DataFormatError
-from endoflow.models.model_file import load_plain_torch_file
+from endoflow.errors import DataFormatError
+from endoflow.io import load_plain_torch_file, save_torch, write_text
 
 STATE_FILE = "state.pt"
 TRAINING_STATE = "an endoflow training state (state.pt of a Ray checkpoint)"

@@ -50,10 +50,10 @@ import torch
 import torch.nn.functional as F
 
 from endoflow.config import SWD_MIN_RESOLUTION, Params
-from endoflow.data.base import DataFormatError
 from endoflow.data.loader import list_shards, raw_samples
 from endoflow.data.shard_format import decode_sample, manifest_location
 from endoflow.devices import autocast, compute_dtype, resolve_device, to_compute_layout, use_cpu_threads
+from endoflow.errors import DataFormatError
 from endoflow.evaluation.swd import multiscale_swd
 from endoflow.io import FIGURE_FOLDER, file_sha256, save_figure, save_torch, staged_directory, write_json
 from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty

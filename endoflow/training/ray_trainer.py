@@ -32,7 +32,6 @@ import pandas as pd
 
 from endoflow import tracking
 from endoflow.config import ConfigError, Params, flatten_params, training_keys
-from endoflow.data.base import DataFormatError
 from endoflow.data.loader import list_shards, raw_samples
 from endoflow.data.shard_format import (
     DEPTH_MEMBER,
@@ -41,6 +40,7 @@ from endoflow.data.shard_format import (
     decode_meta,
     manifest_location,
 )
+from endoflow.errors import DataFormatError
 from endoflow.evaluation import plots
 from endoflow.geometry.pose import mean_step, step_root
 from endoflow.io import FIGURE_FOLDER, file_sha256, save_figure, staged_directory, write_csv, write_json
