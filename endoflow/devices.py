@@ -1,25 +1,8 @@
 """Where a stage computes and in what precision: the one home of both choices.
 
-Device names (``synth.device``, ``latent_bank.device``, ``eval.device``; training takes its device from Ray,
-``ray.use_gpu``): ``auto`` is the first CUDA GPU when torch sees one, else the CPU; ``cpu``, ``cuda`` and
-``cuda:N`` ask for that device, and a device this machine lacks fails naming the key that asked for it.
-
-Precision (``train.precision``, ``latent_bank.precision``, ``eval.precision``): ``float32``, ``bf16`` (bf16
-autocast: convolutions and matrix products in bfloat16, ops that autocast does not list in their inputs'
-dtype; weights, gradients and the optimiser stay float32), or ``auto``: bf16 on a CUDA GPU that computes bf16
-natively (compute capability 8.0, Ampere, or newer), float32 elsewhere. bf16 on the CPU is allowed (it is how
-the tests run the bf16 code path) but no faster there. Geometry stays float32 whatever the precision:
-:mod:`endoflow.geometry.warp` turns autocast off inside the warp.
-
-Channels-last memory layout goes with bf16 on CUDA only, where tensor-core convolutions want it; elsewhere
-tensors keep the default layout, so CPU numbers stay what they were.
-
-CPU threads (``threads``): every process that computes sets torch's thread count from params
-(:func:`use_cpu_threads`), since the count changes float results.
-
-Images travel as 8-bit colour (``uint8``, a quarter of float32's bytes through loader processes' shared memory
-and the host-to-device copy) and become float32 in [0, 1] on their device (:func:`unit_float_images`, the one
-definition of that scaling).
+A device key's value (``auto``, ``cpu``, ``cuda``, ``cuda:N``) as a torch device, failing with the key's name;
+a precision key's value as bf16 autocast or float32 (channels-last with bf16 on CUDA); torch's CPU thread count;
+8-bit images to float in [0, 1] (:func:`unit_float_images`). See docs/method.md, "Devices and precision".
 """
 
 from __future__ import annotations

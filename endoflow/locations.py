@@ -1,11 +1,8 @@
 """Where inputs and outputs live: local paths (relative to the project root) or fsspec URLs.
 
-Ray workers run in their own session folders, so every local location crossing into a worker is made
-absolute first; URLs (``s3://...``, ``file:///...``) reach every node of a cluster as they are.
-
-What outlives a run (the MLflow store, Ray's checkpoints) belongs to the project a run was started in, which for
-a DVC experiment run in a temporary copy (``dvc exp run --queue`` then ``dvc queue start``, or ``--temp``) is
-not the folder the stage runs in: :func:`home_project` finds it.
+Local paths are made absolute before they cross into a Ray worker (which runs in a session folder of its own);
+URLs pass as they are. :func:`home_project` finds the project whose MLflow store and Ray checkpoints a run uses,
+also from a DVC experiment's temporary copy. See docs/architecture.md, "Contracts and their homes".
 """
 
 from __future__ import annotations

@@ -1,9 +1,7 @@
 """DVC stage `evaluate` (foreach test set): trained model -> metrics, plots and challenge-format predictions.
 
-Usage: ``python -m stages.evaluate TESTSET`` (a key of ``eval.test_sets`` in ``params.yaml``); writes
-``<eval.metrics>/TESTSET.json``, ``<eval.plots>/TESTSET/`` and ``<eval.predictions>/TESTSET/``, logs the
-metrics and plots into the MLflow run of the training that produced ``eval.model``, and prints a summary: per
-protocol, the model beside its baselines.
+Usage: ``python -m stages.evaluate TESTSET`` (a key of ``eval.test_sets``); logs into the MLflow run of the
+training that produced ``eval.model``. What it writes: docs/outputs.md, "`evaluate@<test set>`".
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
 """DVC stage `preprocess` (foreach dataset): native layout -> WebDataset shards + manifest.parquet.
 
-Usage: ``python -m stages.preprocess {simcol,endoslam,scenenet}``; reads ``params.yaml`` and writes
-``<preprocess.out>/<dataset>/`` (a local path, made absolute against the working folder, or an fsspec URL).
-An interrupted run resumes from ``<preprocess.out>/.<dataset>.partial/`` (on an object store, from the
-shards already in ``<preprocess.out>/<dataset>/``). ``preprocess.engine: ray`` writes the shards as Ray
-tasks on the cluster at ``ray.address``.
+Usage: ``python -m stages.preprocess {simcol,endoslam,scenenet}``; an interrupted run resumes, and
+``preprocess.engine: ray`` writes the shards as Ray tasks. See docs/datasets.md, "Shards", and docs/cluster.md.
 """
 
 from __future__ import annotations

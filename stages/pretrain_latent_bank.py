@@ -1,8 +1,7 @@
 """DVC stage `pretrain_latent_bank`: SceneNet depth shards -> the pretrained generative latent bank.
 
-Usage: ``python -m stages.pretrain_latent_bank [--params params.yaml]``; reads ``latent_bank.shards`` and writes
-``latent_bank.out``, ``latent_bank.metrics`` and ``latent_bank.plots``, logs an MLflow run in
-``tracking.latent_bank_experiment``, and ends with one line: the SWD before and after, and its floor.
+Usage: ``python -m stages.pretrain_latent_bank [--params params.yaml]``; logs an MLflow run in
+``tracking.latent_bank_experiment``. See docs/method.md, "Generative latent bank".
 """
 
 from __future__ import annotations

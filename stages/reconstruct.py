@@ -1,9 +1,7 @@
-"""DVC stage `reconstruct` (foreach sequence): the trained model's depth, camera path and fused surface of a
-built-in test sequence, measured against its exact ground truth.
+"""DVC stage `reconstruct` (foreach sequence): a built-in test sequence reconstructed, measured on its ground truth.
 
-Usage: ``python -m stages.reconstruct NAME`` (a key of ``reconstruct.sequences`` in ``params.yaml``); writes
-``<reconstruct.out>/NAME/`` (what ``endoflow reconstruct`` writes), ``<reconstruct.metrics>/NAME.json`` and
-``<reconstruct.plots>/NAME/``, logs them into the model's MLflow run and prints the path and surface tables.
+Usage: ``python -m stages.reconstruct NAME`` (a key of ``reconstruct.sequences``); logs into the model's MLflow
+run. See docs/reconstruction.md, "Measured on exact ground truth".
 """
 
 from __future__ import annotations

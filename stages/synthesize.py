@@ -1,8 +1,7 @@
 """DVC stage `synthesize`: procedural data with exact ground truth in the native layouts.
 
-Usage: ``python -m stages.synthesize [--params params.yaml]``; writes ``<synth.out>/SimCol3D``,
-``<synth.out>/EndoSLAM`` and ``<synth.out>/SceneNet`` with the sizes in ``synth.*`` (and the EndoSLAM depth
-scale, pose unit and frame rate of ``data.endoslam``, so that the reader decodes what was written).
+Usage: ``python -m stages.synthesize [--params params.yaml]``; renders with ``data.endoslam``'s depth scale,
+pose unit and frame rate, so that the reader decodes what was written. See docs/synthetic_data.md.
 """
 
 from __future__ import annotations

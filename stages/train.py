@@ -1,9 +1,7 @@
 """DVC stage `train`: shards + latent bank -> trained model, on Ray Train (DDP), tracked in MLflow.
 
-Usage: ``python -m stages.train``; reads ``params.yaml`` (``train.*``, ``ray.*``, ``model.*``, ``loss.*``) and
-writes ``train.out`` (models/endoflow.pt), ``train.metrics`` (metrics/train.json) and ``train.plots``
-(plots/train/). Re-running after an interruption resumes from the latest Ray checkpoint in
-``ray.storage_path``; progress lines show loss, samples per second and time left.
+Usage: ``python -m stages.train [--params params.yaml]``; a rerun after an interruption resumes from the newest
+Ray checkpoint in ``ray.storage_path``. See docs/cluster.md and docs/outputs.md, "`train`".
 """
 
 from __future__ import annotations

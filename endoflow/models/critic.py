@@ -1,10 +1,6 @@
 """The WGAN-GP critic for latent-bank pretraining: a residual CNN grown progressively with the generator.
 
-A 1x1 "from-depth" convolution per resolution feeds a chain of residual downsampling blocks, finest first,
-down to ``start_resolution``, where a minibatch-standard-deviation feature, a 3x3 convolution and a linear
-layer give one unbounded score per map (higher = more real). When a resolution is new, its input fades in
-from the 2x average-pooled map entering the next coarser block, with weight ``alpha`` (as ProGAN). There is
-no batch normalisation: the gradient penalty is per sample.
+One unbounded score per depth map (higher = more real). See docs/method.md, "Generative latent bank".
 """
 
 from __future__ import annotations

@@ -1,17 +1,8 @@
 """DepthNet: ResNet-18 encoder, optional frozen generative latent bank, Monodepth2-style disparity decoder.
 
-With ``model.latent_bank`` (the paper's section 3.1), the encoder features ``h`` are prompts to the frozen
-pretrained generator: at each generator block, new trainable layers turn the encoder features of the
-matching resolution into a *spatial* style map (one style per pixel, so the bank's output follows the
-image layout; a pooled style vector would throw away where things are), and new trainable AdaIN blocks
-fuse it into the frozen upsampling cascade. Blocks pair with encoder levels from the coarsest up: block 0
-(the learned constant, resized to the H/32 grid) with the stride-32 features, block 1 with stride 16, and
-so on, for as many blocks as the bank has (at most five). Because the cascade runs on the encoder's own
-grid and each block doubles it, any input size divisible by 32 works, powers of two or not.
-
-The decoder concatenates ``[h, a]`` at every resolution (``a`` = bank features, where the bank has a block
-for that resolution) and outputs sigmoid disparities at scales 0..scales-1 (full resolution first).
-Without the bank the network is the same encoder and decoder with no ``a`` (the paper's ablation).
+With ``model.latent_bank`` the encoder's features drive the frozen generator through per-pixel style maps and
+new AdaIN blocks, and the decoder reads both; without it, the same encoder and decoder (the paper's ablation).
+See docs/method.md, "DepthNet".
 """
 
 from __future__ import annotations

@@ -1,22 +1,9 @@
-"""The generative latent bank: a StyleGAN-like generator of one-channel depth maps.
+"""The generative latent bank: a StyleGAN-like generator of one-channel depth maps, and its file.
 
-Two modes share one set of weights:
-
-- Generative (pretraining, :meth:`LatentBankGenerator.forward`): a Gaussian latent ``z`` goes through
-  the mapping network to a style vector ``w``; a learned constant at ``start_resolution`` is upsampled by
-  transposed convolutions, block by block, to ``resolution``. Every block injects per-pixel noise with a
-  learned per-channel strength and modulates its features with AdaIN driven by ``w``. A 1x1 "to-depth"
-  convolution per resolution allows progressive growing: at a new resolution the output fades in from the
-  upsampled coarser output with weight ``alpha``.
-- Latent bank (:meth:`LatentBankGenerator.bank_features`): the frozen cascade (constant, transposed and
-  3x3 convolutions, noise strengths) is driven by *spatial* style maps computed from an image encoder, fused
-  by AdaIN blocks the caller owns and trains (the paper's "new set of trainable AdaIN blocks"). It returns the
-  feature map of every block. The cascade runs on the caller's grid: the constant is resized to the
-  coarsest style map and each block exactly doubles it, so any grid ``(h, w) * 2^k`` works, not only powers
-  of two.
-
-Depth maps are in the normalised space of :mod:`endoflow.training.pretrain` (log-depth centred per map,
-in [-1, 1]).
+Two modes share one set of weights: generating depth maps for pretraining (:meth:`LatentBankGenerator.forward`)
+and, frozen, giving DepthNet the feature map of every block (:meth:`LatentBankGenerator.bank_features`);
+``models/latent_bank.pt`` holds its spec and weights (:func:`load_generator`). See docs/method.md, "Generative
+latent bank" and "DepthNet".
 """
 
 from __future__ import annotations

@@ -1,12 +1,8 @@
 """PoseNet: a pair encoder with Gaussian heads over the 6-DoF relative pose (the paper's VAE encoder).
 
-``forward(target, source)`` reads the two RGB frames stacked on the channel axis (6 channels, ResNet-18)
-and returns the mean and log-variance of the pose vector ``(rx, ry, rz, tx, ty, tz)`` (axis-angle in
-radians, translation in the depth unit, cm) of ``T_source_target``: the transform mapping points in the
-target camera frame into the source camera frame. Heads follow Monodepth2's pose decoder (1x1 squeeze, two
-3x3 convolutions, spatial mean); the mean is scaled by 0.01 so the initial motion is near identity, and the
-log-variance starts near ``logvar_init`` (a small spread, so early samples do not swamp the warp). With
-``pose_vae`` false there is no log-variance head and ``logvar`` is ``None``.
+``forward(target, source)`` returns the mean and log-variance (``None`` without ``pose_vae``) of the pose vector
+``(rx, ry, rz, tx, ty, tz)`` (axis-angle in radians, cm) of ``T_source_target``. See docs/method.md,
+"VAE-constrained PoseNet".
 """
 
 from __future__ import annotations

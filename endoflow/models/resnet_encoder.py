@@ -1,9 +1,7 @@
 """ResNet-18 encoder (He et al. 2016) returning features at five resolutions, as Monodepth2 uses it.
 
-Written here (no torchvision). Parameter names follow the common ResNet-18 layout (``conv1``, ``bn1``,
-``layer1.0.conv1`` ...), so an ImageNet ResNet-18 state dict saved locally loads with
-:func:`load_imagenet_weights`; for inputs of several stacked images the first convolution's weights are
-repeated and divided by the number of images (Monodepth2's trick), keeping activations at the same scale.
+Written here (no torchvision), with the common ResNet-18 parameter names, so that an ImageNet state dict saved
+locally loads (:func:`load_imagenet_weights`). See docs/method.md, "DepthNet".
 """
 
 from __future__ import annotations

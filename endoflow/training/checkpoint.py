@@ -1,19 +1,8 @@
 """The training state: what a Ray checkpoint holds, so that an interrupted run resumes exactly.
 
-Ray checkpoint folder (one per finished epoch, persisted by Ray to ``ray.storage_path``; Ray keeps the newest
-``train.keep_checkpoints``, and every ``state.pt`` carries the best epoch's weights, so pruning never loses
-the model that ``train.out`` is written from)::
-
-    state.pt          rank 0: model, optimiser, scheduler, and the :class:`TrainState` (epoch, global step,
-                      best epoch with its weights, history)
-    rng-rank-<r>.pt   every rank: its torch (CPU and CUDA), NumPy and Python random states after the epoch
-    rank-<r>.json     every rank: the sample keys it trained on this epoch, a SHA-256 of its weights, and the
-                      Ray node and process it ran in (an audit of data parallelism: weights must agree, keys
-                      must be disjoint)
-
-Every file is tensors and plain data, loaded with ``weights_only=True``
-(:func:`endoflow.io.load_plain_torch_file`): a planted file that would run code is refused with
-an error naming it. The data order needs no saved state: it is drawn from ``(seed, epoch, rank)``.
+One folder per finished epoch: ``state.pt`` (rank 0: model, optimiser, scheduler and :class:`TrainState`, with the
+best epoch's weights), ``rng-rank-<r>.pt`` and ``rank-<r>.json`` (every rank); tensors and plain data, loaded
+weights-only. See docs/outputs.md, "`train`".
 """
 
 from __future__ import annotations

@@ -1,13 +1,7 @@
 """Fail fast when the connected Ray cluster cannot hold the training workers.
 
-Ray Train reserves a placement group of ``ray.num_workers`` bundles (``ray.cpus_per_worker`` CPUs, and one GPU
-with ``ray.use_gpu``) and waits, silently and without a time limit, until the cluster has room: on a cluster
-too small it waits forever. What the cluster has is only known once Ray is connected, so this check runs
-then, before the trainer starts; :mod:`endoflow.config` already rejects what it can see at load.
-
-Ray Train's own actor: Ray Train v2 (the default of the installed Ray 2.60) runs its controller actor with no
-CPU; Ray Train v1 (older Ray, or ``RAY_TRAIN_V2_ENABLED=0``) reserves one CPU for its trainer actor. The check
-compares ``ScalingConfig.total_resources`` of the Ray Train in use, which counts that actor when it needs a CPU.
+Ray Train waits without a time limit for room for its workers; this check runs once Ray is connected, before the
+trainer starts, and names the ``ray.*`` key to change. See docs/cluster.md.
 """
 
 from __future__ import annotations
