@@ -94,4 +94,3 @@ def load_model_file(path: str | Path) -> ModelRecord:
         raise DataFormatError(path, f"the params stored in the model file are not valid: {exc}") from None
     return ModelRecord(params=params, state=raw["model"], epoch=int(raw["epoch"]), val=raw["val"],
                        mlflow_run_id=raw["mlflow_run_id"], baselines=TrainingBaselines.from_record(raw["baselines"]))
-
