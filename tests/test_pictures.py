@@ -1,7 +1,8 @@
 """Pictures of a reconstruction: the sampler keeps a few evenly spaced frames of a stream of any length in bounded
 memory; the MP4 shows each frame beside its depth, one video frame per input frame; the contact sheet is a PNG
-with the frames, the path from the top and the side, and the surface seen by a z-buffered splat whose nearest
-point wins; the depth preview is TURBO of inverse depth over the model's range."""
+with the frames, the path from the top and the side (beside the ground truth's where there is one), and the surface
+seen by a z-buffered splat whose nearest point wins, each depth picture with a colour bar in cm; the depth preview
+is TURBO of inverse depth over the model's range."""
 
 from __future__ import annotations
 
@@ -17,8 +18,10 @@ from matplotlib.figure import Figure
 from endoflow.reconstruction.pictures import (
     BACKGROUND,
     DEFAULT_FPS,
+    GROUND_TRUTH_LABEL,
     FrameSampler,
     SideBySideVideo,
+    contact_sheet,
     depth_preview,
     draw_path_side,
     draw_path_top,
@@ -30,6 +33,7 @@ from endoflow.reconstruction.pictures import (
 )
 
 SIZE = 64
+PREVIEW_RANGE_CM = (1.0, 20.0)  # the depth range of gradient_preview's colours
 
 
 def gradient_rgb(height: int = SIZE, width: int = SIZE) -> np.ndarray:
@@ -39,7 +43,7 @@ def gradient_rgb(height: int = SIZE, width: int = SIZE) -> np.ndarray:
 
 def gradient_preview(height: int = SIZE, width: int = SIZE) -> np.ndarray:
     v, u = np.mgrid[0:height, 0:width]
-    return depth_preview((2.0 + 0.1 * u + 0.05 * v).astype(np.float32), 1.0, 20.0)
+    return depth_preview((2.0 + 0.1 * u + 0.05 * v).astype(np.float32), *PREVIEW_RANGE_CM)
 
 
 def pose(rotation: np.ndarray = np.eye(3), translation: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
@@ -273,15 +277,15 @@ def sample(index: int) -> tuple[int, np.ndarray, np.ndarray]:
 
 def test_the_contact_sheet_is_a_wide_png_written_atomically(tmp_path: Path) -> None:
     vertices, colours = tube(20_000)
-    write_contact_sheet(tmp_path / "sheet.png", [sample(i) for i in range(0, 60, 12)], path_along_z(60), vertices,
-                        colours, "S5: 60 frames, 64 px, 43 fps")
+    write_contact_sheet(tmp_path / "sheet.png", [sample(i) for i in range(0, 60, 12)], PREVIEW_RANGE_CM,
+                        path_along_z(60), vertices, colours, "S5: 60 frames, 64 px, 43 fps")
     image = cv2.imread(str(tmp_path / "sheet.png"))
     assert image is not None and image.shape[1] >= 1500 and image.shape[0] >= 800
     assert [p.name for p in tmp_path.iterdir()] == ["sheet.png"]
 
 
 def test_a_sheet_of_one_frame_and_no_surface_is_drawn_too(tmp_path: Path) -> None:
-    write_contact_sheet(tmp_path / "sheet.png", [sample(0)], path_along_z(1), np.zeros((0, 3)),
+    write_contact_sheet(tmp_path / "sheet.png", [sample(0)], PREVIEW_RANGE_CM, path_along_z(1), np.zeros((0, 3)),
                         np.zeros((0, 3), np.uint8), "one frame")
     image = cv2.imread(str(tmp_path / "sheet.png"))
     assert image is not None and image.shape[1] >= 1500
@@ -290,7 +294,47 @@ def test_a_sheet_of_one_frame_and_no_surface_is_drawn_too(tmp_path: Path) -> Non
 def test_a_sheet_without_frames_or_with_colours_that_do_not_match_the_vertices_is_refused(tmp_path: Path) -> None:
     vertices, colours = tube(100)
     with pytest.raises(ValueError, match="at least one sampled frame"):
-        write_contact_sheet(tmp_path / "sheet.png", [], path_along_z(3), vertices, colours, "t")
+        write_contact_sheet(tmp_path / "sheet.png", [], PREVIEW_RANGE_CM, path_along_z(3), vertices, colours, "t")
     with pytest.raises(ValueError, match="100 vertices but 99 colours"):
-        write_contact_sheet(tmp_path / "sheet.png", [sample(0)], path_along_z(3), vertices, colours[1:], "t")
+        write_contact_sheet(tmp_path / "sheet.png", [sample(0)], PREVIEW_RANGE_CM, path_along_z(3), vertices,
+                            colours[1:], "t")
+    with pytest.raises(ValueError, match="ground-truth path: expected 3 x 3 positions"):
+        write_contact_sheet(tmp_path / "sheet.png", [sample(0)], PREVIEW_RANGE_CM, path_along_z(3), vertices,
+                            colours, "t", gt_positions=np.zeros((2, 3)))
     assert not (tmp_path / "sheet.png").exists()
+
+
+def colour_bars(figure: Figure) -> dict[str, object]:
+    """``{label: colour bar}`` of the figure's colour bars (an inset colour bar is a child of its panel)."""
+    every = [*figure.axes, *(child for axes in figure.axes for child in axes.child_axes)]
+    return {axes._colorbar.ax.get_xlabel(): axes._colorbar for axes in every if hasattr(axes, "_colorbar")}
+
+
+def test_every_depth_picture_of_the_sheet_has_a_colour_bar_in_cm_with_the_previews_colours() -> None:
+    vertices, colours = tube(2_000)
+    sheet = contact_sheet([sample(0), sample(12)], PREVIEW_RANGE_CM, path_along_z(20), vertices, colours, "t")
+    bars = colour_bars(sheet)
+    assert set(bars) == {"depth (cm)", "depth from the view (cm)"}
+    near, far = PREVIEW_RANGE_CM
+    depths = np.array([1.0, 1.3, 2.0, 3.5, 7.0, 19.0])
+    expected = depth_preview(depths[None].astype(np.float32), near, far)[0] / 255.0
+    # the bar's table and depth_preview's quantise inverse depth alike up to one entry of TURBO's 256
+    np.testing.assert_allclose(bars["depth (cm)"].mappable.to_rgba(depths)[:, :3], expected, atol=0.04)
+    ticks = bars["depth (cm)"].get_ticks()
+    assert ticks.min() == pytest.approx(near) and ticks.max() == pytest.approx(far)
+
+
+def test_the_sheet_draws_the_ground_truth_path_beside_the_models_where_given() -> None:
+    vertices, colours = tube(2_000)
+    poses = path_along_z(20)
+    truth = poses[:, :3, 3] + np.array([0.5, 0.0, 0.0])
+    sheet = contact_sheet([sample(0)], PREVIEW_RANGE_CM, poses, vertices, colours, "t", gt_positions=truth)
+    top, side = (axes for axes in sheet.axes if axes.get_title().startswith("camera path"))
+    for axes, (horizontal, vertical) in ((top, (0, 2)), (side, (2, 1))):
+        (drawn,) = [line for line in axes.get_lines() if line.get_label() == GROUND_TRUTH_LABEL]
+        np.testing.assert_allclose(drawn.get_xdata(), truth[:, horizontal])
+        np.testing.assert_allclose(drawn.get_ydata(), truth[:, vertical])
+        assert GROUND_TRUTH_LABEL in [text.get_text() for text in axes.get_legend().get_texts()]
+    without = contact_sheet([sample(0)], PREVIEW_RANGE_CM, poses, vertices, colours, "t")
+    assert not [line for axes in without.axes for line in axes.get_lines()
+                if line.get_label() == GROUND_TRUTH_LABEL]

@@ -271,12 +271,25 @@ def test_the_command_line_logs_a_reconstruction_into_mlflow_even_without_the_mod
 
 
 def test_the_pictures_show_frames_depth_path_and_surface(scene: Path, model_file: Path, params: Params,
-                                                         tmp_path: Path) -> None:
+                                                         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import av
 
+    from endoflow.reconstruction import pictures, reconstruct as module
+
+    calls = []
+
+    def recording_sheet(*args) -> None:
+        calls.append(args)
+        pictures.write_contact_sheet(*args)
+
+    monkeypatch.setattr(module, "write_contact_sheet", recording_sheet)
     run(scene, model_file, tmp_path / "out", params, "S1")
     sheet = cv2.imread(str(tmp_path / "out" / "sheet.png"))
     assert sheet is not None and sheet.shape[1] >= 1200
+    # the previews' depth range for the colour bar, and the sequence's ground-truth path to draw beside the model's
+    (_, _, depth_range, _, _, _, _, gt_positions), = calls
+    assert list(depth_range) == json.loads((tmp_path / "out" / "depth" / "depth.json").read_text())["preview_range_cm"]
+    assert gt_positions.shape == (FRAMES, 3) and np.isfinite(gt_positions).all()
     with av.open(str(tmp_path / "out" / "video.mp4")) as container:
         assert sum(1 for _ in container.decode(video=0)) == FRAMES
 

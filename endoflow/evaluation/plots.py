@@ -15,6 +15,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
+# y labels of the training history's columns (``plots/train/history.csv``)
+CURVE_LABELS = {"train_loss": "training loss", "val_abs_rel": "val Abs Rel", "val_rmse": "val RMSE (cm)",
+                "lr": "learning rate"}
+
 
 def trajectory_figure(title: str, gt_positions: np.ndarray, predicted: Mapping[str, np.ndarray]) -> Figure:
     """Top (x-z) and side (z-y) views of ``N x 3`` camera positions in cm, GT against each prediction.
@@ -43,10 +47,11 @@ def depth_examples_figure(title: str, examples: Sequence[Mapping[str, object]]) 
     """One row per example: RGB, GT depth, predicted depth (median-scaled) and its absolute error (cm).
 
     Each example maps ``rgb`` (``H x W x 3`` in [0, 1]), ``gt`` and ``pred`` (``H x W`` cm) and ``label``.
-    GT and prediction share one colour scale per row; pixels without GT are shown black in the error map.
+    GT and prediction share one colour scale per row, with one colour bar; pixels without GT are shown black in
+    the error map. Constrained layout keeps the colour bars' labels clear of the next panel.
     """
     rows = max(len(examples), 1)
-    figure, axes = plt.subplots(rows, 4, figsize=(12, 3 * rows), squeeze=False)
+    figure, axes = plt.subplots(rows, 4, figsize=(13, 3 * rows), squeeze=False, layout="constrained")
     for row, example in zip(axes, examples):
         gt = np.asarray(example["gt"], dtype=np.float64)
         pred = np.asarray(example["pred"], dtype=np.float64)
@@ -57,9 +62,9 @@ def depth_examples_figure(title: str, examples: Sequence[Mapping[str, object]]) 
         row[0].imshow(np.clip(example["rgb"], 0, 1))
         row[1].imshow(np.where(valid, gt, np.nan), cmap="magma_r", vmin=0, vmax=vmax)
         image = row[2].imshow(scaled, cmap="magma_r", vmin=0, vmax=vmax)
-        figure.colorbar(image, ax=row[2], fraction=0.046, label="depth (cm)")
+        figure.colorbar(image, ax=list(row[1:3]), shrink=0.9, label="depth (cm)")
         error_image = row[3].imshow(error, cmap="inferno")
-        figure.colorbar(error_image, ax=row[3], fraction=0.046, label="|error| (cm)")
+        figure.colorbar(error_image, ax=row[3], shrink=0.9, label="|error| (cm)")
         row[3].set_facecolor("black")
         for axis, name in zip(row, ("RGB", "GT depth", "prediction (median-scaled)", "absolute error")):
             axis.set_title(f"{example['label']}: {name}" if name == "RGB" else name, fontsize=9)
@@ -85,12 +90,12 @@ def error_curves_figure(title: str, curves: Mapping[str, Mapping[str, np.ndarray
 
 
 def training_curves_figure(history: Sequence[Mapping[str, float]], keys: Sequence[str]) -> Figure:
-    """Per-epoch curves of ``keys`` from the training history (one panel each)."""
+    """Per-epoch curves of ``keys`` from the training history (one panel each), labelled with their units."""
     figure, axes = plt.subplots(len(keys), 1, figsize=(7, 2.5 * len(keys)), squeeze=False)
     epochs = [record["epoch"] for record in history]
     for axis, key in zip(axes[:, 0], keys):
         axis.plot(epochs, [record.get(key, np.nan) for record in history], marker="o")
-        axis.set(ylabel=key)
+        axis.set(ylabel=CURVE_LABELS.get(key, key))
         axis.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("epoch")
     figure.tight_layout()

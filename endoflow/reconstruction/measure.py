@@ -5,9 +5,10 @@ perfect.
 What is compared (all in the ground truth's world frame, cm):
 
 - **Path**: APE of positions (RMSE, mean, median) and RPE between consecutive frames (translation in cm,
-  rotation in degrees), computed with ``evo`` after aligning the path onto the ground-truth path (Umeyama on
-  positions, as ``evo``'s ``align``): Sim(3) for the model (monocular: its scale is unknown), SE(3) for the
-  constant-velocity baseline (metric: the training set's mean step).
+  rotation in degrees), computed with ``evo`` after aligning the path onto the ground-truth path
+  (:mod:`endoflow.reconstruction.alignment`: Umeyama on positions, as ``evo``'s ``align``): Sim(3) for the model
+  (monocular: its scale is unknown), SE(3) for the constant-velocity baseline (metric: the training set's mean
+  step).
 - **Surface**: the ground-truth surface is the renderer's exact geometry where the sequence sees it, sampled by
   back-projecting each frame's exact depth along the exact poses and thinned to one point per half voxel. A
   reconstruction's mesh vertices are mapped by its path's alignment; *accuracy* is the distance from each vertex
@@ -30,7 +31,6 @@ Baselines with a metric scale are aligned by SE(3), the model by Sim(3): the usu
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -45,6 +45,7 @@ from endoflow.data.trajectory_files import read_tum
 from endoflow.devices import use_cpu_threads
 from endoflow.io import write_bytes, write_csv, write_json
 from endoflow.models.model_file import TrainingBaselines, load_model_file
+from endoflow.reconstruction.alignment import Alignment, align_trajectory, trajectories
 from endoflow.reconstruction.frames import DatasetFrames, FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import TSDFVolume, read_ply_vertices
 from endoflow.reconstruction.reconstruct import ReconstructOptions, log_reconstruction, reconstruct
@@ -65,18 +66,6 @@ KD_TREE_LEAF_SIZE = 256
 MAX_MEASURED_POINTS = 100_000
 MEASUREMENT_FILE = "measurement.json"  # every figure, beside the reconstruction it measures
 PATH_ERRORS_FILE = "path_errors.csv"  # per-frame position errors of each path row, charted by `dvc plots`
-
-
-@dataclass(frozen=True)
-class Alignment:
-    """``p_gt = scale * R @ p + t``: maps a reconstruction's world into the ground truth's."""
-
-    rotation: np.ndarray
-    translation: np.ndarray
-    scale: float
-
-    def apply(self, points: np.ndarray) -> np.ndarray:
-        return self.scale * points @ self.rotation.T + self.translation
 
 
 def measure_reconstruction(source: FrameSource, out_dir: Path, baselines: TrainingBaselines) -> dict:
@@ -135,12 +124,9 @@ def path_errors(gt_poses: np.ndarray, poses: np.ndarray, with_scale: bool) -> di
     """``evo`` APE (positions) and RPE (consecutive frames) of ``poses`` after aligning them onto ``gt_poses``
     (Sim(3) ``with_scale``, else SE(3)); ``alignment`` holds the transform, ``per_frame`` the position errors."""
     from evo.core import metrics
-    from evo.core.trajectory import PoseTrajectory3D
 
-    stamps = np.arange(len(gt_poses), dtype=np.float64)
-    reference = PoseTrajectory3D(poses_se3=list(gt_poses), timestamps=stamps)
-    estimate = PoseTrajectory3D(poses_se3=list(poses), timestamps=stamps)
-    alignment = _align(estimate, reference, with_scale)
+    reference, estimate = trajectories(gt_poses, poses)
+    alignment = align_trajectory(estimate, reference, with_scale)
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((reference, estimate))
     result = {"ate_rmse": float(ape.get_statistic(metrics.StatisticsType.rmse)),
@@ -154,28 +140,6 @@ def path_errors(gt_poses: np.ndarray, poses: np.ndarray, with_scale: bool) -> di
             rpe.process_data((reference, estimate))
             result[key] = float(rpe.get_statistic(metrics.StatisticsType.mean))
     return {**result, "alignment": alignment, "per_frame": np.asarray(ape.error, np.float64)}
-
-
-def _align(estimate, reference, with_scale: bool) -> Alignment:
-    """Umeyama alignment of positions (``evo``'s ``align``), in place; a path too short or too straight to fix a
-    rotation is aligned at its first pose instead (and scaled by the ratio of path lengths)."""
-    from evo.core.geometry import GeometryException
-
-    first_gt, first = reference.poses_se3[0].copy(), estimate.poses_se3[0].copy()
-    try:
-        rotation, translation, scale = estimate.align(reference, correct_scale=with_scale)
-        return Alignment(np.asarray(rotation), np.asarray(translation), float(scale))
-    except GeometryException:
-        scale = _length_ratio(reference.positions_xyz, estimate.positions_xyz) if with_scale else 1.0
-        transform = first_gt @ np.linalg.inv(first)
-        estimate.scale(scale)
-        estimate.align_origin(reference)
-        return Alignment(transform[:3, :3], first_gt[:3, 3] - scale * transform[:3, :3] @ first[:3, 3], scale)
-
-
-def _length_ratio(reference: np.ndarray, estimate: np.ndarray) -> float:
-    length = float(np.linalg.norm(np.diff(estimate, axis=0), axis=1).sum())
-    return float(np.linalg.norm(np.diff(reference, axis=0), axis=1).sum()) / length if length > 0 else 1.0
 
 
 def surface_errors(vertices: np.ndarray, gt_points: np.ndarray, voxel_cm: float) -> dict[str, float]:

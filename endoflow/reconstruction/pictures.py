@@ -6,10 +6,12 @@
   the build has it, else MPEG-4 part 2), one video frame per input frame, never holding more than one. Panels
   smaller than :data:`MIN_VIDEO_HEIGHT` are enlarged by an integer factor with nearest neighbour (sharp pixels,
   and encoders work on blocks of 16 px: a 64 px video would be four blocks tall).
-- :func:`write_contact_sheet` renders one PNG: the sampled frames above their depth previews, the camera path
-  from the top and from the side, and the fused surface as a z-buffered point splat (:func:`splat_points`) from a
-  virtual camera behind and above the first one.
-- :func:`depth_preview` is the colour map of every depth preview: TURBO of inverse depth over the model's range.
+- :func:`write_contact_sheet` renders one PNG: the sampled frames above their depth previews and its colour bar,
+  the camera path from the top and from the side (beside the ground-truth path where there is one), and the fused
+  surface as a z-buffered point splat (:func:`splat_points`) from a virtual camera behind and above the first
+  one, in its colours and by depth (with a colour bar).
+- :func:`depth_preview` is the colour map of every depth preview: TURBO of inverse depth over a range;
+  :func:`depth_colour_bar` draws its scale in cm.
 
 Conventions (``docs/architecture.md``): OpenCV camera (x right, y down, z forward), poses ``T_world_cam``
 camera-to-world, lengths in cm; images are ``H x W x 3`` uint8 in RGB order; pixel centres at integer
@@ -33,7 +35,9 @@ import cv2
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.cm import ScalarMappable
 from matplotlib.collections import LineCollection
+from matplotlib.colors import FuncNorm, ListedColormap
 from matplotlib.figure import Figure
 from matplotlib.gridspec import GridSpecBase
 
@@ -56,6 +60,8 @@ SPLAT_BUDGET = 2_000_000  # point squares per splat: 200k vertices at 3 x 3 px t
 BACKGROUND = (24, 24, 24)  # dark, so the tissue's colours stand out
 DIRECTION_MARKS = 12  # viewing-direction segments drawn along the path
 EMPTY_SURFACE_TEXT = "no surface (fusion off or nothing observed)"
+COLOUR_BAR_TICKS = 5  # depth ticks of a colour bar, evenly spaced in inverse depth as its colours are
+GROUND_TRUTH_LABEL = "ground truth (Sim(3)-aligned)"
 
 
 def depth_preview(depth_cm: np.ndarray, min_depth_cm: float, max_depth_cm: float) -> np.ndarray:
@@ -65,6 +71,25 @@ def depth_preview(depth_cm: np.ndarray, min_depth_cm: float, max_depth_cm: float
         inverse = (1.0 / depth_cm - 1.0 / max_depth_cm) / (1.0 / min_depth_cm - 1.0 / max_depth_cm)
     colours = cv2.applyColorMap(np.clip(inverse * 255, 0, 255).astype(np.uint8), cv2.COLORMAP_TURBO)
     return colours[..., ::-1].copy()
+
+
+def depth_colour_bar(figure: Figure, near_cm: float, far_cm: float, label: str, **placement) -> None:
+    """A colour bar of :func:`depth_preview`'s colours over ``[near_cm, far_cm]``: the TURBO table against inverse
+    depth (near at 0, far at 1 along the bar), ticks in cm evenly spaced in inverse depth; ``placement`` goes to
+    :meth:`Figure.colorbar` (``cax`` or ``ax``, orientation)."""
+    table = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1] / 255.0
+    # the norm puts depth d at 1 - x along the bar, x = (1/d - 1/far) / (1/near - 1/far) being d's place in
+    # depth_preview's table: the bar's table runs the other way, so d gets depth_preview's colour
+    norm = FuncNorm((minus_inverse, minus_inverse), vmin=near_cm, vmax=far_cm)
+    bar = figure.colorbar(ScalarMappable(norm, ListedColormap(table[::-1])), label=label, **placement)
+    ticks = 1.0 / np.linspace(1.0 / near_cm, 1.0 / far_cm, COLOUR_BAR_TICKS)
+    bar.set_ticks(ticks, labels=[f"{tick:.2g}" if tick < 10 else f"{tick:.0f}" for tick in ticks])
+
+
+def minus_inverse(values: np.ndarray) -> np.ndarray:
+    """``-1 / values``, increasing with depth, and its own inverse (matplotlib's axes also ask it about 0)."""
+    with np.errstate(divide="ignore"):
+        return -1.0 / np.asarray(values, dtype=np.float64)
 
 
 class FrameSampler:
@@ -285,12 +310,25 @@ def splat_footprint(pixels: np.ndarray, size: int, points: int) -> int:
     return int(np.clip(math.ceil(1.5 * spacing), 1, min(FOOTPRINT_BLOCK, affordable)))  # 1.5: points lie unevenly
 
 
-def write_contact_sheet(path: Path, samples: list[Sample], poses: np.ndarray, vertices: np.ndarray,
-                        colours: np.ndarray, title: str) -> None:
-    """One PNG at ``path`` (about 1600 px wide): ``samples`` (``(index, rgb, preview)``, at least one) as frames
-    above their depth, the camera path ``poses`` (``N x 4 x 4`` camera-to-world, cm, N >= 1) from the top and the
-    side, and the surface ``vertices`` (``V x 3`` cm, V may be 0) with ``colours`` (``V x 3`` uint8) splatted from
-    a virtual camera behind and above the first camera, in colour and by depth; ``title`` on top."""
+def write_contact_sheet(path: Path, samples: list[Sample], depth_range_cm: tuple[float, float], poses: np.ndarray,
+                        vertices: np.ndarray, colours: np.ndarray, title: str,
+                        gt_positions: Optional[np.ndarray] = None) -> None:
+    """:func:`contact_sheet` as one PNG at ``path`` (about 1600 px wide), written atomically."""
+    figure = contact_sheet(samples, depth_range_cm, poses, vertices, colours, title, gt_positions)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=SHEET_DPI)
+    write_bytes(path, buffer.getvalue())
+
+
+def contact_sheet(samples: list[Sample], depth_range_cm: tuple[float, float], poses: np.ndarray,
+                  vertices: np.ndarray, colours: np.ndarray, title: str,
+                  gt_positions: Optional[np.ndarray] = None) -> Figure:
+    """``samples`` (``(index, rgb, preview)``, at least one) as frames above their depth previews (coloured over
+    ``depth_range_cm`` by :func:`depth_preview`, with a colour bar), the camera path ``poses`` (``N x 4 x 4``
+    camera-to-world, cm, N >= 1) from the top and the side, with ``gt_positions`` (``N x 3``, the ground truth in
+    the path's world, aligned as the measurement aligns it) where given, and the surface ``vertices`` (``V x 3``
+    cm, V may be 0) with ``colours`` (``V x 3`` uint8) splatted from a virtual camera behind and above the first
+    camera, in colour and by depth; ``title`` on top."""
     if not samples:
         raise ValueError("a contact sheet needs at least one sampled frame")
     poses = np.asarray(poses, dtype=np.float64)
@@ -300,20 +338,27 @@ def write_contact_sheet(path: Path, samples: list[Sample], poses: np.ndarray, ve
     colours = np.asarray(colours, dtype=np.uint8).reshape(-1, 3)
     if len(vertices) != len(colours):
         raise ValueError(f"surface: {len(vertices)} vertices but {len(colours)} colours")
+    if gt_positions is not None and np.shape(gt_positions) != (len(poses), 3):
+        raise ValueError(f"ground-truth path: expected {len(poses)} x 3 positions, got shape "
+                         f"{np.shape(gt_positions)}")
     columns = max(len(samples), SHEET_MIN_COLUMNS)
-    figure = Figure(figsize=(SHEET_WIDTH_IN, SHEET_WIDTH_IN / columns * 2 + 5.2), dpi=SHEET_DPI)
+    samples_height = SHEET_WIDTH_IN / columns * 2 + 0.6  # two rows of squares and the colour bar under them
+    figure = Figure(figsize=(SHEET_WIDTH_IN, samples_height + 5.6), dpi=SHEET_DPI)
     FigureCanvasAgg(figure)
-    figure.subplots_adjust(left=0.04, right=0.98, top=0.915, bottom=0.05)  # room for a title of two lines
-    rows = figure.add_gridspec(2, 1, height_ratios=[SHEET_WIDTH_IN / columns * 2, 4.2], hspace=0.12)
-    draw_samples(figure, rows[0].subgridspec(2, 2 * columns, hspace=0.15, wspace=0.1), samples, columns)
+    figure.subplots_adjust(left=0.04, right=0.98, top=0.92, bottom=0.07)  # room for a title of two lines
+    rows = figure.add_gridspec(2, 1, height_ratios=[samples_height, 4.6], hspace=0.16)
+    grid = rows[0].subgridspec(3, 2 * columns, hspace=0.15, wspace=0.1,
+                               height_ratios=[SHEET_WIDTH_IN / columns] * 2 + [0.12])
+    draw_samples(figure, grid, samples, columns)
+    sampled = slice(columns - len(samples), columns + len(samples))  # the colour bar spans the samples
+    depth_colour_bar(figure, *depth_range_cm, "depth (cm)", cax=figure.add_subplot(grid[2, sampled]),
+                     orientation="horizontal")
     views = rows[1].subgridspec(1, 4, wspace=0.3)
-    draw_path_top(figure.add_subplot(views[0]), poses)
-    draw_path_side(figure.add_subplot(views[1]), poses)
+    draw_path_top(figure.add_subplot(views[0]), poses, gt_positions)
+    draw_path_side(figure.add_subplot(views[1]), poses, gt_positions)
     draw_surface(figure.add_subplot(views[2]), figure.add_subplot(views[3]), vertices, colours, poses[0])
     figure.suptitle(title, fontsize=14, wrap=True, y=0.995)  # a long input path wraps rather than running off the sheet
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=SHEET_DPI)
-    write_bytes(path, buffer.getvalue())
+    return figure
 
 
 def draw_samples(figure: Figure, grid: GridSpecBase, samples: list[Sample], columns: int) -> None:
@@ -331,21 +376,23 @@ def draw_samples(figure: Figure, grid: GridSpecBase, samples: list[Sample], colu
             axis.axis("off")
 
 
-def draw_path_top(axis: Axes, poses: np.ndarray) -> None:
+def draw_path_top(axis: Axes, poses: np.ndarray, gt_positions: Optional[np.ndarray] = None) -> None:
     """The path seen looking down (+y) onto the x-z plane: x to the right, z (forward) up."""
-    draw_path(axis, poses, horizontal=0, vertical=2)
+    draw_path(axis, poses, horizontal=0, vertical=2, gt_positions=gt_positions)
     axis.set(title="camera path from the top", xlabel="x (cm)", ylabel="z (cm)")
 
 
-def draw_path_side(axis: Axes, poses: np.ndarray) -> None:
+def draw_path_side(axis: Axes, poses: np.ndarray, gt_positions: Optional[np.ndarray] = None) -> None:
     """The path seen from the side on the z-y plane: z (forward) to the right, y (down) pointing down."""
-    draw_path(axis, poses, horizontal=2, vertical=1)
+    draw_path(axis, poses, horizontal=2, vertical=1, gt_positions=gt_positions)
     axis.invert_yaxis()
     axis.set(title="camera path from the side", xlabel="z (cm)", ylabel="y (cm, down)")
 
 
-def draw_path(axis: Axes, poses: np.ndarray, horizontal: int, vertical: int) -> None:
-    """Positions on two world axes, short segments of the camera's +z every few frames, start and end marked."""
+def draw_path(axis: Axes, poses: np.ndarray, horizontal: int, vertical: int,
+              gt_positions: Optional[np.ndarray] = None) -> None:
+    """Positions on two world axes, short segments of the camera's +z every few frames, start and end marked; the
+    ground-truth path under it where given, so a path that went wrong shows."""
     positions = poses[:, :3, 3]
     extent = float(np.ptp(positions, axis=0).max())
     length = 0.08 * extent if extent > 1e-6 else 1.0  # a still camera still shows where it looks
@@ -353,6 +400,9 @@ def draw_path(axis: Axes, poses: np.ndarray, horizontal: int, vertical: int) -> 
     tips = positions[marked] + length * poses[marked, :3, 2]
     segments = np.stack([positions[marked], tips], axis=1)[:, :, [horizontal, vertical]]
     axis.add_collection(LineCollection(segments, colors="tab:orange", linewidths=1.0, label="viewing direction"))
+    if gt_positions is not None:
+        axis.plot(gt_positions[:, horizontal], gt_positions[:, vertical], color="black", linestyle="--",
+                  linewidth=1.2, label=GROUND_TRUTH_LABEL)
     axis.plot(positions[:, horizontal], positions[:, vertical], color="tab:blue", linewidth=1.2, label="path")
     axis.scatter(positions[:1, horizontal], positions[:1, vertical], color="tab:green", s=30, zorder=3,
                  label="start")
@@ -361,7 +411,7 @@ def draw_path(axis: Axes, poses: np.ndarray, horizontal: int, vertical: int) -> 
                      zorder=3, label="end")
     axis.set_aspect("equal", adjustable="datalim")
     axis.grid(alpha=0.3)
-    axis.legend(fontsize=7, loc="best")
+    axis.legend(fontsize=7, loc="best", framealpha=0.6)  # the path shows through where it must pass under
 
 
 def draw_surface(colour_axis: Axes, depth_axis: Axes, vertices: np.ndarray, colours: np.ndarray,
@@ -385,4 +435,7 @@ def draw_surface(colour_axis: Axes, depth_axis: Axes, vertices: np.ndarray, colo
     near = max(float(near), 1e-3)  # points behind the view are not drawn; inverse depth needs near > 0
     depth_colours = depth_preview(np.clip(z, near, far)[:, None], float(near), float(max(far, near * 1.001)))[:, 0]
     depth_axis.imshow(paint(visible, depth_colours, SPLAT_SIZE, SPLAT_SIZE), interpolation="nearest")
-    depth_axis.set_title(f"by depth from the view ({near:.1f}-{far:.1f} cm)")
+    depth_axis.set_title("by depth from the view")
+    # under the view, not taken from it: both views of the surface stay the same size
+    depth_colour_bar(depth_axis.figure, float(near), float(max(far, near * 1.001)), "depth from the view (cm)",
+                     cax=depth_axis.inset_axes([0.0, -0.09, 1.0, 0.045]), orientation="horizontal")

@@ -41,6 +41,7 @@ from endoflow.geometry.pose import chain_step
 from endoflow.io import marked_output, staged_directory, write_bytes, write_json
 from endoflow.models.endoflow_model import load_trained_model
 from endoflow.progress import format_duration
+from endoflow.reconstruction.alignment import ground_truth_in_path_world
 from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply
 from endoflow.reconstruction.pictures import FrameSampler, SideBySideVideo, depth_preview, write_contact_sheet
@@ -136,10 +137,10 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
             **path.ground_truth_scale(),
         }
         write_json(stage / "reconstruction.json", summary)
-        write_contact_sheet(stage / "sheet.png", sampler.samples, np.stack(path.poses),
+        write_contact_sheet(stage / "sheet.png", sampler.samples, shown, np.stack(path.poses),
                             mesh.vertices if mesh is not None else np.zeros((0, 3)),
                             mesh.colours if mesh is not None else np.zeros((0, 3), np.uint8),
-                            sheet_title(source, summary))
+                            sheet_title(source, summary), ground_truth_in_path_world(path.gt_poses, path.poses))
     print(f"[reconstruct] {path.count} frames in {format_duration(seconds)} ({path.count / seconds:.1f} frames/s) "
           f"-> {out_dir}", file=sys.stderr)
     return summary
