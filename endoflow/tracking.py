@@ -13,6 +13,12 @@ runs named after their DVC experiment or what distinguishes them (:func:`run_nam
 commit tags of its "Source" column, and our own tags linking a training run to its DVC experiment, its inputs'
 fingerprint and the pretraining run of its latent bank.
 
+A lost store never stops training: a write to a tracking server that cannot be reached fails after a few
+seconds (:data:`QUICK_HTTP_SETTINGS`, MLflow's own retries take about 4 minutes per call), warns once, and every
+later write of this process to that store is skipped at once; the metrics and the run's end go to
+``<project>/mlflow-unlogged/<run id>.jsonl`` instead (:func:`keep_unlogged`), which :func:`replay_unlogged` sends
+once the server is back.
+
 Browse with ``mlflow ui --backend-store-uri sqlite:///$PWD/mlflow.db`` from the project root.
 """
 
@@ -25,7 +31,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Optional
+from typing import Any, Callable, Iterable, Mapping, Optional
 
 from mlflow import MlflowClient
 from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param, RunStatus
@@ -57,6 +63,15 @@ MODEL_RUN_TAG = "endoflow.model_run_id"
 # what MLflow's UI shows beside a dataset input: what the run used it for
 DATASET_CONTEXT_TAG = "mlflow.data.context"
 MLFLOW_DIGEST_CHARS = 32  # the store's digest column holds 36 characters
+# MLflow retries a request for about 4 minutes by default (7 retries, backoff factor 2, a 120 s timeout), so a
+# lost tracking server stalled training that long per call; these apply where the environment sets none
+QUICK_HTTP_SETTINGS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "2", "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "1",
+                       "MLFLOW_HTTP_REQUEST_TIMEOUT": "15"}
+# in the project: what a lost store did not take, one JSON object a line, per run
+UNLOGGED_FOLDER = "mlflow-unlogged"
+
+_lost_stores: dict[str, str] = {}  # tracking URI -> why this process stopped writing to it
+_unlogged_files: dict[str, Path] = {}  # run id -> where its metrics go while its store is lost
 
 # MLflow announces at INFO, on the terminal, each table it creates in a new store: library noise
 logging.getLogger("mlflow.store.db.utils").setLevel(logging.WARNING)
@@ -78,8 +93,78 @@ def artifact_location(params: Params, project_root: str | Path) -> Optional[str]
 
 
 def client(uri: str) -> MlflowClient:
-    """A client bound to ``uri`` for runs and for registered models (no process-wide URI is set or read)."""
+    """A client bound to ``uri`` for runs and for registered models (no process-wide URI is set or read), its
+    HTTP requests given up after a few seconds unless the environment says otherwise (:data:`QUICK_HTTP_SETTINGS`,
+    read by MLflow at every request)."""
+    for name, value in QUICK_HTTP_SETTINGS.items():
+        os.environ.setdefault(name, value)
     return MlflowClient(tracking_uri=uri, registry_uri=uri)
+
+
+# ------------------------------------------------------------------------------------ a lost store
+def best_effort(uri: str, what: str, write: Callable[[], Any], run_id: Optional[str] = None) -> bool:
+    """Run ``write``, which sends ``what`` to the store at ``uri``, unless this process has lost that store;
+    returns whether it was written.
+
+    The first failure loses the store: one warning on stderr (naming where the metrics of ``run_id`` are kept),
+    and every later write to it is skipped at once, so a lost tracking server neither stops nor stalls training.
+    """
+    if uri in _lost_stores:
+        return False
+    try:
+        write()
+    except (MlflowException, OSError) as exc:  # requests' errors are OSErrors
+        _lost_stores[uri] = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
+        kept = f"; metrics are kept in {unlogged_file(run_id)}" if run_id else ""
+        print(f"warning: MLflow at {uri} did not take {what} ({_lost_stores[uri]}); this process logs nothing "
+              f"more to it{kept}", file=sys.stderr)
+        return False
+    return True
+
+
+def keep_unlogged_in(run_id: str, file: str | Path) -> None:
+    """Where this process keeps what the store of run ``run_id`` does not take (a Ray worker is told the driver's
+    :func:`unlogged_file`)."""
+    _unlogged_files[run_id] = Path(file)
+
+
+def unlogged_file(run_id: str) -> Path:
+    """The file that keeps what the store of ``run_id`` did not take: the one set by :func:`start_run`,
+    :func:`run_for_model` or :func:`keep_unlogged_in`, else ``mlflow-unlogged/<run id>.jsonl`` here."""
+    return _unlogged_files.get(run_id, Path.cwd() / UNLOGGED_FOLDER / f"{run_id}.jsonl")
+
+
+def keep_unlogged(run_id: str, entry: Mapping[str, Any]) -> None:
+    """Append ``entry`` (metrics at a step, or the run's end) to the run's :func:`unlogged_file`.
+
+    Appended, not written atomically: a line cut by a crash is the only possible damage, and replaying skips it.
+    """
+    file = unlogged_file(run_id)
+    file.parent.mkdir(parents=True, exist_ok=True)
+    with open(file, "a", encoding="utf-8") as handle:
+        handle.write(json.dumps(dict(entry)) + "\n")
+
+
+def replay_unlogged(uri: str, file: str | Path) -> int:
+    """Send what a lost store did not take (a :func:`unlogged_file`) to the store at ``uri``: the metrics at
+    their steps and times, then the run's end; the file is removed once all is sent. Returns the entries sent."""
+    file = Path(file)
+    run_id = file.stem
+    entries = []
+    for line in file.read_text(encoding="utf-8").splitlines():
+        try:
+            entries.append(json.loads(line))
+        except ValueError:  # a line cut by a crash
+            continue
+    mlflow_client = client(uri)
+    for entry in entries:
+        if "metrics" in entry:
+            metrics = [Metric(k, float(v), entry["timestamp"], entry["step"]) for k, v in entry["metrics"].items()]
+            mlflow_client.log_batch(run_id, metrics=metrics)
+        else:
+            mlflow_client.set_terminated(run_id, status=entry["status"], end_time=entry["end_time"])
+    file.unlink()
+    return len(entries)
 
 
 def ensure_experiment(params: Params, project_root: str | Path, name: str) -> str:
@@ -151,8 +236,17 @@ def start_run(params: Params, project_root: str | Path, experiment: str, run_nam
     """Open a run with flat params and the git commit; returns its id.
 
     With ``fingerprint``, an unfinished run of the same experiment carrying the same fingerprint (an
-    interrupted training being resumed) is reopened instead, so one training stays one run.
+    interrupted training being resumed) is reopened instead, so one training stays one run. What the store
+    does not take of the run is kept in the project (:func:`project_unlogged_file`).
     """
+    run_id = _open_run(params, project_root, experiment, run_name, fingerprint)
+    keep_unlogged_in(run_id, project_unlogged_file(project_root, run_id))
+    log_params(tracking_uri(params, project_root), run_id, flat_params(params))
+    return run_id
+
+
+def _open_run(params: Params, project_root: str | Path, experiment: str, run_name: str,
+              fingerprint: Optional[str]) -> str:
     uri = tracking_uri(params, project_root)
     mlflow_client = client(uri)
     experiment_id = ensure_experiment(params, project_root, experiment)
@@ -172,9 +266,12 @@ def start_run(params: Params, project_root: str | Path, experiment: str, run_nam
         tags[FINGERPRINT_TAG] = fingerprint
     if dvc_experiment_name():
         tags[DVC_EXPERIMENT_TAG] = dvc_experiment_name()
-    run = mlflow_client.create_run(experiment_id, tags=tags, run_name=run_name)
-    log_params(uri, run.info.run_id, flat_params(params))
-    return run.info.run_id
+    return mlflow_client.create_run(experiment_id, tags=tags, run_name=run_name).info.run_id
+
+
+def project_unlogged_file(project_root: str | Path, run_id: str) -> Path:
+    """``<project>/mlflow-unlogged/<run id>.jsonl`` (the project whose MLflow store the run uses)."""
+    return home_project(project_root) / UNLOGGED_FOLDER / f"{run_id}.jsonl"
 
 
 def source_tags(project_root: str | Path) -> dict[str, str]:
@@ -205,8 +302,15 @@ def run_for_model(params: Params, project_root: str | Path, model_run_id: Option
 
     Otherwise (a model trained elsewhere, or a fresh store) a run of ``tracking.experiment`` tagged with the
     missing id (:data:`MODEL_RUN_TAG`), opened once and found again by every later caller for the same model,
-    with a warning on stderr naming the missing run and the store.
+    with a warning on stderr naming the missing run and the store. What the store does not take of the run is
+    kept in the project (:func:`project_unlogged_file`).
     """
+    run_id = _model_run(params, project_root, model_run_id, run_name)
+    keep_unlogged_in(run_id, project_unlogged_file(project_root, run_id))
+    return run_id
+
+
+def _model_run(params: Params, project_root: str | Path, model_run_id: Optional[str], run_name: str) -> str:
     uri = tracking_uri(params, project_root)
     if model_run_id and run_exists(uri, model_run_id):
         return model_run_id
@@ -225,10 +329,13 @@ def run_for_model(params: Params, project_root: str | Path, model_run_id: Option
 
 
 def set_tags(uri: str, run_id: str, tags: Mapping[str, str]) -> None:
-    """Set (or overwrite) ``tags`` on the run."""
-    mlflow_client = client(uri)
-    for key, value in tags.items():
-        mlflow_client.set_tag(run_id, key, value)
+    """Set (or overwrite) ``tags`` on the run (:func:`best_effort`)."""
+    def write() -> None:
+        mlflow_client = client(uri)
+        for key, value in tags.items():
+            mlflow_client.set_tag(run_id, key, value)
+
+    best_effort(uri, f"tags of run {run_id}", write, run_id)
 
 
 def link_latent_bank(params: Params, project_root: str | Path, run_id: str, bank_digest: str) -> Optional[str]:
@@ -257,25 +364,36 @@ def log_shards_input(uri: str, run_id: str, manifest: str, name: str, context: s
                              else ("local", str(Path(manifest).resolve())))
     dataset = Dataset(name=name, digest=hexdigest, source_type=source_type, source=json.dumps({"uri": location}))
     dataset_input = DatasetInput(dataset, tags=[InputTag(DATASET_CONTEXT_TAG, context)])
-    client(uri).log_inputs(run_id, datasets=[dataset_input])
+    best_effort(uri, f"the dataset input of run {run_id}",
+                lambda: client(uri).log_inputs(run_id, datasets=[dataset_input]), run_id)
     return hexdigest
 
 
 def log_params(uri: str, run_id: str, values: Mapping[str, str]) -> None:
-    """Log params in batches (MLflow caps a batch at 100 params)."""
+    """Log params in batches (MLflow caps a batch at 100 params; :func:`best_effort`)."""
     items = [Param(k, v) for k, v in values.items()]
-    mlflow_client = client(uri)
-    for start in range(0, len(items), 100):
-        mlflow_client.log_batch(run_id, params=items[start:start + 100])
+
+    def write() -> None:
+        mlflow_client = client(uri)
+        for start in range(0, len(items), 100):
+            mlflow_client.log_batch(run_id, params=items[start:start + 100])
+
+    best_effort(uri, f"the params of run {run_id}", write, run_id)
 
 
 def log_metrics(uri: str, run_id: str, values: Mapping[str, float], step: int = 0) -> None:
-    """Log ``values`` at ``step`` in one request (keys are sanitised to MLflow's allowed characters)."""
+    """Log ``values`` at ``step`` in one request (keys are sanitised to MLflow's allowed characters); what the
+    store does not take is kept in the run's :func:`unlogged_file`."""
     now = int(time.time() * 1000)
     metrics = [Metric(metric_key(k), float(v), now, step) for k, v in values.items()]
-    mlflow_client = client(uri)
-    for start in range(0, len(metrics), 1000):
-        mlflow_client.log_batch(run_id, metrics=metrics[start:start + 1000])
+
+    def write() -> None:
+        mlflow_client = client(uri)
+        for start in range(0, len(metrics), 1000):
+            mlflow_client.log_batch(run_id, metrics=metrics[start:start + 1000])
+
+    if not best_effort(uri, f"metrics of run {run_id}", write, run_id):
+        keep_unlogged(run_id, {"step": step, "timestamp": now, "metrics": {m.key: m.value for m in metrics}})
 
 
 def metric_key(key: str) -> str:
@@ -284,25 +402,34 @@ def metric_key(key: str) -> str:
 
 
 def log_dict(uri: str, run_id: str, values: Mapping[str, Any], artifact_file: str) -> None:
-    """Save ``values`` as a JSON artifact."""
-    client(uri).log_dict(run_id, dict(values), artifact_file)
+    """Save ``values`` as a JSON artifact (:func:`best_effort`)."""
+    best_effort(uri, f"{artifact_file} of run {run_id}",
+                lambda: client(uri).log_dict(run_id, dict(values), artifact_file), run_id)
 
 
 def log_figure(uri: str, run_id: str, figure: Any, artifact_file: str) -> None:
-    """Save a matplotlib figure as a PNG artifact."""
-    client(uri).log_figure(run_id, figure, artifact_file)
+    """Save a matplotlib figure as a PNG artifact (:func:`best_effort`)."""
+    best_effort(uri, f"{artifact_file} of run {run_id}",
+                lambda: client(uri).log_figure(run_id, figure, artifact_file), run_id)
 
 
 def log_artifact(uri: str, run_id: str, path: str | Path, artifact_path: Optional[str] = None) -> None:
-    """Upload a file or a folder into the run's artifacts."""
-    mlflow_client = client(uri)
-    if Path(path).is_dir():
-        mlflow_client.log_artifacts(run_id, str(path), artifact_path)
-    else:
-        mlflow_client.log_artifact(run_id, str(path), artifact_path)
+    """Upload a file or a folder into the run's artifacts (:func:`best_effort`: they stay where they are)."""
+    def write() -> None:
+        mlflow_client = client(uri)
+        if Path(path).is_dir():
+            mlflow_client.log_artifacts(run_id, str(path), artifact_path)
+        else:
+            mlflow_client.log_artifact(run_id, str(path), artifact_path)
+
+    best_effort(uri, f"{path} for run {run_id}", write, run_id)
 
 
 def end_run(uri: str, run_id: str, failed: bool = False) -> None:
-    """Mark the run FINISHED (or FAILED, so a rerun with the same inputs reopens it)."""
+    """Mark the run FINISHED (or FAILED, so a rerun with the same inputs reopens it); with its store lost, the
+    end is kept in the run's :func:`unlogged_file`, and an error of the run stays the one raised."""
     status = RunStatus.to_string(RunStatus.FAILED if failed else RunStatus.FINISHED)
-    client(uri).set_terminated(run_id, status=status)
+    now = int(time.time() * 1000)
+    if not best_effort(uri, f"the end of run {run_id}",
+                       lambda: client(uri).set_terminated(run_id, status=status, end_time=now), run_id):
+        keep_unlogged(run_id, {"status": status, "end_time": now})

@@ -4,13 +4,17 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import socket
 import subprocess
+import time
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import pytest  # noqa: E402
 
 from endoflow import tracking  # noqa: E402
 from endoflow.config import Params  # noqa: E402
@@ -146,3 +150,76 @@ def test_a_queued_dvc_experiment_uses_the_store_of_the_project_it_was_queued_in(
     assert tracking.tracking_uri(params, copy) == f"sqlite:///{project / 'mlflow.db'}"
     assert tracking.artifact_location(params, copy) == (project / "mlartifacts").as_uri()
     assert home_project(copy) == project
+
+
+# ---------------------------------------------------------------------------------- a lost tracking server
+def closed_port() -> int:
+    """A loopback port nothing listens on (bound, then released)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def lost_server_uri(monkeypatch) -> str:
+    """The URI of a tracking server that is gone, with MLflow's retries and timeout set small."""
+    monkeypatch.setattr(tracking, "_lost_stores", {})
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_TIMEOUT", "2")
+    return f"http://127.0.0.1:{closed_port()}"
+
+
+@pytest.fixture
+def lost_server(monkeypatch) -> str:
+    return lost_server_uri(monkeypatch)
+
+
+def unlogged_entries(file: Path) -> list[dict]:
+    return [json.loads(line) for line in file.read_text().splitlines()]
+
+
+def test_a_lost_server_warns_once_keeps_the_metrics_and_the_end_and_never_raises(
+        lost_server: str, tmp_path: Path, capsys) -> None:
+    kept = tmp_path / "project" / tracking.UNLOGGED_FOLDER / "run1.jsonl"
+    tracking.keep_unlogged_in("run1", kept)
+    picture = tmp_path / "curves.png"
+    picture.write_bytes(b"\x89PNG\r\n\x1a\n")
+    started = time.monotonic()
+
+    for step in range(5):
+        tracking.log_metrics(lost_server, "run1", {"loss/total": 0.5 + step}, step=step)
+    tracking.log_artifact(lost_server, "run1", picture, "plots/train")
+    tracking.set_tags(lost_server, "run1", {tracking.LATENT_BANK_DIGEST_TAG: "ab"})
+    tracking.end_run(lost_server, "run1", failed=True)
+
+    assert time.monotonic() - started < 10
+    warnings = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert len(warnings) == 1 and lost_server in warnings[0] and str(kept) in warnings[0]
+    entries = unlogged_entries(kept)
+    assert [(e["step"], e["metrics"]) for e in entries[:-1]] == [(s, {"loss/total": 0.5 + s}) for s in range(5)]
+    assert entries[-1]["status"] == "FAILED"
+
+
+def test_metrics_kept_while_the_server_was_lost_are_replayed_into_the_run(lost_server: str, tmp_path: Path) -> None:
+    params = Params()
+    uri = tracking.tracking_uri(params, tmp_path)
+    run_id = tracking.start_run(params, tmp_path, "exp", "train")
+    tracking.log_metrics(uri, run_id, {"loss/total": 3.0}, step=0)
+    for step in (1, 2):  # the server is lost: the same run, seen through the lost URI
+        tracking.log_metrics(lost_server, run_id, {"loss/total": 3.0 - step}, step=step)
+    tracking.end_run(lost_server, run_id)
+    kept = tracking.project_unlogged_file(tmp_path, run_id)
+
+    assert tracking.replay_unlogged(uri, kept) == 3
+    history = tracking.client(uri).get_metric_history(run_id, "loss/total")
+    assert sorted((m.step, m.value) for m in history) == [(0, 3.0), (1, 2.0), (2, 1.0)]
+    assert tracking.client(uri).get_run(run_id).info.status == "FINISHED"
+    assert not kept.exists()
+
+
+def test_requests_give_up_after_seconds_unless_the_environment_says_otherwise(monkeypatch) -> None:
+    for name in tracking.QUICK_HTTP_SETTINGS:
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_TIMEOUT", "300")
+    tracking.client("http://127.0.0.1:1")  # no request is made
+    assert os.environ["MLFLOW_HTTP_REQUEST_MAX_RETRIES"] == "2"  # MLflow's 7 retried for about 4 minutes
+    assert os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] == "300"

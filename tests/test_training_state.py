@@ -245,3 +245,34 @@ def test_a_full_disk_during_training_names_the_storage_path_and_fails_the_run(tm
     uri = tracking.tracking_uri(params, tmp_path)
     runs = tracking.client(uri).search_runs([tracking.ensure_experiment(params, tmp_path, "endoflow")])
     assert [r.info.status for r in runs] == ["FAILED"]
+
+
+def test_a_lost_tracking_server_neither_stalls_training_nor_hides_its_error(tmp_path: Path, monkeypatch,
+                                                                             capsys) -> None:
+    import json
+    import time
+
+    from endoflow.training.ray_trainer import TrainingError
+    from tests.test_ray import project
+    from tests.test_tracking import lost_server_uri
+
+    params = project(tmp_path)
+    params.tracking.uri = lost_server_uri(monkeypatch)
+
+    def opened_before_the_server_was_lost(_params, root, *_args, **_kwargs) -> str:
+        tracking.keep_unlogged_in("run0", tracking.project_unlogged_file(root, "run0"))
+        return "run0"
+
+    def node_lost(*_args, **_kwargs):
+        raise RuntimeError("the worker's node was lost")
+
+    monkeypatch.setattr(tracking, "start_run", opened_before_the_server_was_lost)
+    monkeypatch.setattr("endoflow.training.ray_trainer.fit_on_ray", node_lost)
+    started = time.monotonic()
+    with pytest.raises(TrainingError, match="the worker's node was lost"):
+        train(params, tmp_path)
+
+    assert time.monotonic() - started < 30
+    assert capsys.readouterr().err.count(f"warning: MLflow at {params.tracking.uri}") == 1
+    kept = tracking.project_unlogged_file(tmp_path, "run0").read_text().splitlines()
+    assert json.loads(kept[-1])["status"] == "FAILED"

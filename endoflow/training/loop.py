@@ -359,6 +359,8 @@ class RankZeroLogger:
         self.active = rank == 0
         self.uri = config.tracking_uri
         self.run_id = config.run_id
+        if self.active and config.unlogged_metrics:
+            tracking.keep_unlogged_in(config.run_id, config.unlogged_metrics)
         self.log_every = config.params.train.log_every
         self.epochs = config.params.train.epochs
         self.precision = config.params.train.precision

@@ -134,8 +134,9 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
                                   "training")
         if latent_bank:
             tracking.link_latent_bank(params, root, run_id, file_sha256(latent_bank))
-        summary = train_in_run(params, root, WorkerConfig(params, tuple(train_urls), tuple(val_urls), latent_bank,
-                                                          uri, run_id, resume_from=None), fingerprint)
+        config = WorkerConfig(params, tuple(train_urls), tuple(val_urls), latent_bank, uri, run_id, resume_from=None,
+                              unlogged_metrics=str(tracking.unlogged_file(run_id)))
+        summary = train_in_run(params, root, config, fingerprint)
     except BaseException:
         tracking.end_run(uri, run_id, failed=True)
         raise
@@ -167,7 +168,8 @@ def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: 
     uri, run_id = config.tracking_uri, config.run_id
     tracking.log_metrics(uri, run_id, {f"best/{k}": v for k, v in summary.items()
                                        if isinstance(v, (int, float)) and not isinstance(v, bool)})
-    log_mlflow_model(uri, run_id, root / params.train.out, params.tracking.registered_model)
+    model_file, registered = root / params.train.out, params.tracking.registered_model
+    tracking.best_effort(uri, "the MLflow model", lambda: log_mlflow_model(uri, run_id, model_file, registered), run_id)
     tracking.log_artifact(uri, run_id, root / params.train.plots, "plots/train")
     return summary
 

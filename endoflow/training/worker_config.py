@@ -13,7 +13,8 @@ class WorkerConfig:
     """The input of :func:`endoflow.training.loop.train_loop_per_worker`.
 
     Locations are absolute paths or fsspec URLs (workers run in their own session folders); ``resume_from``
-    is the newest complete checkpoint the driver found in storage, or ``None``.
+    is the newest complete checkpoint the driver found in storage, or ``None``; ``unlogged_metrics`` is where
+    rank 0 keeps the metrics the MLflow store does not take (:func:`endoflow.tracking.unlogged_file`).
     """
 
     params: Params
@@ -23,3 +24,4 @@ class WorkerConfig:
     tracking_uri: str
     run_id: str
     resume_from: Optional[str]
+    unlogged_metrics: Optional[str] = None
