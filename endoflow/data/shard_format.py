@@ -312,7 +312,8 @@ def _file_kind(info: Mapping) -> str:
     mode = info.get("mode")
     kinds = ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a FIFO"),
              (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a folder"))
-    kind = next((name for test, name in kinds if mode is not None and test(mode)), f"an entry of type {info.get('type')!r}")
+    kind = next((name for test, name in kinds if mode is not None and test(mode)),
+                f"an entry of type {info.get('type')!r}")
     return f"{kind} (through a link)" if info.get("islink") else kind
 
 
