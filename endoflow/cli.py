@@ -84,6 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="cam.txt, YAML/JSON with fx, fy, cx, cy, width, height, or fx,fy,cx,cy in pixels of "
                           "the input frames (a dataset sequence brings its own)")
     rec.add_argument("--size", type=int, default=None, help="square model input in px (default: the model's)")
+    rec.add_argument("--crop", default=None, metavar="X,Y,W,H",
+                     help="use this region of the frames (pixels; e.g. one half of a side-by-side frame); the model "
+                          "sees its centre square (default: the centre square of the whole frame)")
     rec.add_argument("--start", type=int, default=0, help="first frame (position in the input)")
     rec.add_argument("--stop", type=int, default=None, help="stop before this frame")
     rec.add_argument("--stride", type=int, default=1, help="use every K-th frame")
@@ -179,12 +182,14 @@ def _model_summary(args: argparse.Namespace) -> int:
 def _reconstruct(args: argparse.Namespace) -> int:
     from endoflow.devices import use_cpu_threads
     from endoflow.models.model_file import load_model_file
+    from endoflow.reconstruction.crop import Crop
     from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
     from endoflow.reconstruction.reconstruct import ReconstructOptions, log_reconstruction, reconstruct
 
     try:
         options = ReconstructOptions(FrameRange(args.start, args.stop, args.stride), args.size, args.scale,
-                                     args.voxel_cm, args.trunc_cm, args.npy, args.fuse, args.device, args.force)
+                                     args.voxel_cm, args.trunc_cm, args.npy, args.fuse, args.device, args.force,
+                                     Crop.parse(args.crop) if args.crop else None)
     except ValueError as exc:
         print(f"endoflow reconstruct: error: {exc}", file=sys.stderr)
         return 2
@@ -192,7 +197,8 @@ def _reconstruct(args: argparse.Namespace) -> int:
         record = load_model_file(model_path)
         use_cpu_threads(record.params.threads)  # the model's training count: the same depth on any machine
         frames = open_frames(args.input, args.sequence, record.params)
-        summary = reconstruct(frames, intrinsics_for(args.intrinsics, frames), model_path, args.out, options)
+        K = intrinsics_for(args.intrinsics, frames, options.crop)
+        summary = reconstruct(frames, K, model_path, args.out, options)
     if args.mlflow:
         run_id = log_reconstruction(_params_if_present(args.params), Path(".").resolve(), record.mlflow_run_id,
                                     args.out.name, args.out)

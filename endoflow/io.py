@@ -26,6 +26,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 import os
 import pickle
 import posixpath
@@ -149,8 +150,18 @@ def write_text(path: str | Path, text: str, durable: bool = True) -> None:
 
 
 def write_json(path: str | Path, data: Any) -> None:
-    """JSON with 2-space indentation and a final newline (numpy scalars and arrays become plain numbers)."""
-    write_text(path, json.dumps(data, indent=2, default=_plain) + "\n")
+    """JSON with 2-space indentation and a final newline (numpy scalars and arrays become plain numbers).
+
+    Raises:
+        ValueError: naming ``path`` and the key, for a NaN or infinity (JSON has no such numbers: Python would
+            write ``NaN``, which other JSON readers refuse); nothing is written then.
+    """
+    try:
+        text = json.dumps(data, indent=2, default=_plain, allow_nan=False)
+    except ValueError:
+        key, value = _first_non_finite(json.loads(json.dumps(data, default=_plain)))
+        raise ValueError(f"{path}: not written: {key} is {value}, a number JSON cannot hold") from None
+    write_text(path, text + "\n")
 
 
 def write_csv(path: str | Path, table: Any) -> None:
@@ -368,6 +379,18 @@ def _fsync_folder(folder: Path) -> None:
         os.fsync(descriptor)
     finally:
         os.close(descriptor)
+
+
+def _first_non_finite(data: Any, key: str = "") -> Optional[tuple[str, float]]:
+    """The dotted key (list positions in brackets) and value of the first NaN or infinity in plain ``data``."""
+    if isinstance(data, float) and not math.isfinite(data):
+        return key or "the value", data
+    items = data.items() if isinstance(data, dict) else enumerate(data) if isinstance(data, list) else ()
+    for name, value in items:
+        found = _first_non_finite(value, f"{key}.{name}".lstrip(".") if isinstance(data, dict) else f"{key}[{name}]")
+        if found:
+            return found
+    return None
 
 
 def _plain(value: Any) -> Any:

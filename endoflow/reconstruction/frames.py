@@ -9,8 +9,9 @@ depth and poses come along). ``K`` is always in pixels of the input's native fra
 from __future__ import annotations
 
 import json
+import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator, Optional
 
@@ -23,10 +24,14 @@ from endoflow.data.imageio import read_rgb
 from endoflow.data.registry import open_reader
 from endoflow.data.simcol import parse_cam_txt
 from endoflow.errors import DataFormatError
+from endoflow.reconstruction.crop import Crop, crop_image, frame_region, model_view
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 DEFAULT_FOLDER_FPS = 30.0  # timestamps of a folder of images: its frames are taken as 1/30 s apart
+# Plausible field of view of a frame, each axis, degrees: a pinhole camera's is below 180 and endoscopes reach about
+# 170; focal lengths outside (fx = 1 px, or 1e9 px) are in other units or of another image size.
+FIELD_OF_VIEW_DEG = (10.0, 170.0)
 
 
 @dataclass(frozen=True)
@@ -40,6 +45,11 @@ class InputFrame:
     rgb: np.ndarray
     depth_cm: Optional[np.ndarray] = None
     T_world_cam: Optional[np.ndarray] = None
+
+    def cropped(self, region: Crop) -> "InputFrame":
+        """The frame (colour and ground-truth depth) cut to ``region``."""
+        depth = crop_image(self.depth_cm, region) if self.depth_cm is not None else None
+        return replace(self, rgb=crop_image(self.rgb, region), depth_cm=depth)
 
 
 @dataclass(frozen=True)
@@ -106,14 +116,20 @@ class VideoFrames(FrameSource):
             with av.open(str(self.path)) as container:
                 stream = container.streams.video[0]
                 rate = float(stream.average_rate or DEFAULT_FOLDER_FPS)
+                decoded = 0
                 for index, frame in enumerate(container.decode(stream)):
                     if selection.past(index):
                         return
+                    decoded = index + 1
                     if selection.selects(index):
                         seconds = float(frame.pts * stream.time_base) if frame.pts is not None else index / rate
                         yield InputFrame(index, seconds, frame.to_ndarray(format="rgb24"))
         except av.FFmpegError as exc:
             raise DataFormatError(self.path, f"video decoding failed ({exc})") from None
+        if self.length is not None and decoded < self.length:  # a truncated file can end without a decoding error
+            raise DataFormatError(self.path, f"decoding ended after {decoded} of the {self.length} frames the video "
+                                             f"declares: the file is truncated or damaged (--stop {decoded} uses "
+                                             f"the frames before that point)")
 
 
 class FolderFrames(FrameSource):
@@ -186,24 +202,22 @@ def open_frames(source: Path, sequence: Optional[str], params: Params) -> FrameS
 
 
 # ------------------------------------------------------------------------------------------- intrinsics
-def intrinsics_for(spec: Optional[str], frames: FrameSource) -> np.ndarray:
+def intrinsics_for(spec: Optional[str], frames: FrameSource, crop: Optional[Crop] = None) -> np.ndarray:
     """``3 x 3`` K in pixels of ``frames``' native size, from ``spec``: a file (SimCol ``cam.txt``: K at the
     frames' size; YAML or JSON with ``fx, fy, cx, cy, width, height``), ``"fx,fy,cx,cy"`` in pixels of the
-    frames, or None for the input's own K (a dataset sequence)."""
+    frames, or None for the input's own K (a dataset sequence). Checked (:func:`check_intrinsics`) against the
+    frames and the part of them the model sees (``crop``, see :mod:`endoflow.reconstruction.crop`)."""
     if spec is None:
         if frames.K is None:
             raise DataFormatError(frames.description, "no intrinsics: pass --intrinsics with a cam.txt, a YAML/JSON "
                                                       "file (fx, fy, cx, cy, width, height) or fx,fy,cx,cy in "
                                                       "pixels of the input frames")
-        return frames.K
-    path = Path(spec)
-    if path.is_file():
-        K = _intrinsics_file(path, frames.native_size)
-        source = str(path)
+        K, source = frames.K, f"the intrinsics of {frames.description}"
+    elif Path(spec).is_file():
+        K, source = _intrinsics_file(Path(spec), frames.native_size), spec
     else:
-        K = _intrinsics_numbers(spec)
-        source = f"--intrinsics {spec}"
-    _check_intrinsics(K, frames.native_size, source)
+        K, source = _intrinsics_numbers(spec), f"--intrinsics {spec}"
+    check_intrinsics(K, frames.native_size, source, crop)
     return K
 
 
@@ -231,9 +245,25 @@ def _intrinsics_file(path: Path, native_size: tuple[int, int]) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
-def _check_intrinsics(K: np.ndarray, native_size: tuple[int, int], source: str) -> None:
+def check_intrinsics(K: np.ndarray, native_size: tuple[int, int], source: str, crop: Optional[Crop] = None) -> None:
+    """Refuse, naming ``source``, a K that cannot be the frames' (non-finite, a focal length <= 0, the principal
+    point outside the image), whose field of view is implausible (:data:`FIELD_OF_VIEW_DEG`: focal lengths in
+    other units or of another image size), or whose principal point lies outside the square the model sees."""
     height, width = native_size
-    if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0 and 0 < K[0, 2] < width and 0 < K[1, 2] < height):
-        raise DataFormatError(source, f"intrinsics fx={K[0, 0]:g}, fy={K[1, 1]:g}, cx={K[0, 2]:g}, cy={K[1, 2]:g} "
-                                      f"do not fit {width}x{height} px frames (focal lengths > 0, principal point "
-                                      f"inside the image)")
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not (np.isfinite(K).all() and fx > 0 and fy > 0 and 0 < cx < width and 0 < cy < height):
+        raise DataFormatError(source, f"intrinsics fx={fx:g}, fy={fy:g}, cx={cx:g}, cy={cy:g} do not fit "
+                                      f"{width}x{height} px frames (focal lengths > 0, principal point inside the "
+                                      f"image)")
+    across = [math.degrees(2 * math.atan(extent / (2 * focal))) for extent, focal in ((width, fx), (height, fy))]
+    low, high = FIELD_OF_VIEW_DEG
+    if not all(low <= angle <= high for angle in across):
+        raise DataFormatError(source, f"intrinsics fx={fx:g}, fy={fy:g} give the {width}x{height} px frames a field "
+                                      f"of view of {across[0]:.3g} x {across[1]:.3g} degrees, outside the plausible "
+                                      f"{low:g} to {high:g}: give focal lengths in pixels of these frames")
+    view = model_view(frame_region(native_size, crop, source))
+    if not (view.x - 0.5 <= cx <= view.x + view.width - 0.5 and view.y - 0.5 <= cy <= view.y + view.height - 0.5):
+        raise DataFormatError(source, f"principal point cx={cx:g}, cy={cy:g} lies outside the square the model sees, "
+                                      f"{view} (the centre square of the {'--crop region' if crop else 'frames'}): "
+                                      f"these intrinsics are not of these frames, or --crop cuts the optical axis "
+                                      f"away")

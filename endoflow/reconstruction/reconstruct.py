@@ -4,8 +4,9 @@ Frames stream through the model one at a time: each frame's depth, and the pose 
 selected frame, chained into camera-to-world poses from the identity at the first frame:
 ``T_world_cur = T_world_prev @ inv(T_cur_prev)`` (``predict_pose(prev, cur)`` returns ``T_cur_prev``, mapping
 the previous frame's points into the current one). Depth and path share one scale, the model's (cm on the data it
-was trained on); ``scale`` multiplies both. Frames are centre-cropped to a square and resized as preprocessing
-does for training, and K follows (:func:`endoflow.data.frame_encoding.stored_intrinsics`).
+was trained on); ``scale`` multiplies both. Frames (or the region ``crop`` picks,
+:mod:`~endoflow.reconstruction.crop`) are centre-cropped to a square and resized as preprocessing does for
+training, and K follows (:func:`endoflow.data.frame_encoding.stored_intrinsics`).
 
 Everything is written into a staged folder that replaces ``out_dir`` only when the run completes, and only if
 ``out_dir`` is new, empty or an earlier reconstruction (``--force``: any folder), never the input or a folder
@@ -37,11 +38,13 @@ import torch
 from endoflow.config import ModelConfig, Params
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.devices import images_to_device, resolve_device
+from endoflow.errors import DataFormatError
 from endoflow.geometry.pose import chain_step
 from endoflow.io import marked_output, staged_directory, write_bytes, write_json
 from endoflow.models.endoflow_model import load_trained_model
 from endoflow.progress import format_duration
 from endoflow.reconstruction.alignment import ground_truth_in_path_world
+from endoflow.reconstruction.crop import Crop, crop_intrinsics, crop_warning, frame_region, model_view
 from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply
 from endoflow.reconstruction.pictures import FrameSampler, SideBySideVideo, depth_preview, write_contact_sheet
@@ -64,7 +67,8 @@ class ReconstructOptions:
     """``size``: square model input in px (None: the model's ``data.size``); ``scale``: factor on depth and path;
     ``voxel_cm``/``trunc_cm``: TSDF voxel and truncation (None: from the model's depth range and ``size``);
     ``npy``: also write float32 depth; ``fuse``: build the surface; ``device``: ``auto``, ``cpu`` or ``cuda``;
-    ``force``: replace an output folder that holds something other than an earlier reconstruction."""
+    ``force``: replace an output folder that holds something other than an earlier reconstruction; ``crop``: the
+    region of the frames to use (None: all of it; see :mod:`endoflow.reconstruction.crop`)."""
 
     frames: FrameRange = field(default_factory=FrameRange)
     size: Optional[int] = None
@@ -75,12 +79,14 @@ class ReconstructOptions:
     fuse: bool = True
     device: str = "auto"
     force: bool = False
+    crop: Optional[Crop] = None
 
     def __post_init__(self) -> None:
         if self.size is not None and (self.size < NETWORK_STRIDE or self.size % NETWORK_STRIDE):
             raise ValueError(f"--size must be a positive multiple of {NETWORK_STRIDE}, got {self.size}")
-        if not (self.scale > 0 and math.isfinite(self.scale)):
-            raise ValueError(f"--scale must be a positive number, got {self.scale}")
+        for option, value in (("--scale", self.scale), ("--voxel-cm", self.voxel_cm), ("--trunc-cm", self.trunc_cm)):
+            if value is not None and not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"{option} must be a positive number, got {value}")
 
 
 def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out_dir: Path,
@@ -90,7 +96,11 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     device = resolve_device(options.device, "--device")
     model, record = load_trained_model(model_path, device)
     size = options.size or record.params.data.size
-    K = stored_intrinsics(K_native, source.native_size, size)
+    region = frame_region(source.native_size, options.crop, source.description)
+    K = stored_intrinsics(crop_intrinsics(K_native, region), region.size, size)
+    warning = crop_warning(source.native_size, region, source.description)
+    if warning:
+        print(f"[reconstruct] warning: {warning}", file=sys.stderr)
     max_depth = record.params.model.max_depth * options.scale
     unit = DEPTH_UNIT_CM * max(1, math.ceil(max_depth / (DEPTH_UNIT_CM * np.iinfo(np.uint16).max)))
     voxel = options.voxel_cm or default_voxel_cm(K, record.params.model.max_depth * options.scale, size)
@@ -104,11 +114,11 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
             previous: Optional[torch.Tensor] = None
             shown: Optional[tuple[float, float]] = None
             for frame in source.frames(options.frames):
+                frame = frame.cropped(region)
                 rgb = resize_rgb(frame.rgb, size)
                 image = images_to_device(torch.from_numpy(rgb).permute(2, 0, 1)[None].contiguous(), device,
                                          "float32")
-                depth = model.predict_depth(image)[0, 0].float().cpu().numpy() * options.scale
-                T_cur_prev = None if previous is None else model.predict_pose(previous, image)[0].cpu().double().numpy()
+                depth, T_cur_prev = predict_frame(model, image, previous, options.scale, model_path, frame.index)
                 pose = path.add(frame, T_cur_prev, options.scale, depth, size)
                 shown = shown or preview_range(depth, record.params.model, options.scale)
                 preview = write_depth(stage, frame.index, depth, unit, options.npy, shown)
@@ -127,8 +137,9 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
         mesh = write_surface(stage, volume) if volume is not None else None
         seconds = time.perf_counter() - started
         summary = {
-            "format": RECONSTRUCTION_FORMAT, "input": source.description, "model": str(model_path), "frames": path.count,
-            "frame_range": asdict(options.frames), "native_size": list(source.native_size), "size": size,
+            "format": RECONSTRUCTION_FORMAT, "input": source.description, "model": str(model_path),
+            "frames": path.count, "frame_range": asdict(options.frames), "native_size": list(source.native_size),
+            "crop": asdict(region), "model_view": asdict(model_view(region)), "size": size,
             "K": K.tolist(), "scale": options.scale, "depth_unit_cm": unit,
             "seconds": seconds, "frames_per_second": path.count / seconds, "device": str(device),
             "tsdf": {"voxel_cm": voxel, "trunc_cm": volume.trunc_cm} if volume is not None else None,
@@ -144,6 +155,24 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     print(f"[reconstruct] {path.count} frames in {format_duration(seconds)} ({path.count / seconds:.1f} frames/s) "
           f"-> {out_dir}", file=sys.stderr)
     return summary
+
+
+def predict_frame(model: torch.nn.Module, image: torch.Tensor, previous: Optional[torch.Tensor], scale: float,
+                  model_path: Path, index: int) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """The frame's depth (cm, times ``scale``) and the step ``T_cur_prev`` from the previous frame (None for the
+    first).
+
+    Raises:
+        DataFormatError: naming the model file, for a NaN or infinity in either (damaged weights, a training that
+            diverged): written out, it would fill the depth maps with zeros and the path with NaN.
+    """
+    depth = model.predict_depth(image)[0, 0].float().cpu().numpy() * scale
+    T_cur_prev = None if previous is None else model.predict_pose(previous, image)[0].cpu().double().numpy()
+    for name, values in (("depth", depth), ("pose", T_cur_prev)):
+        if values is not None and not np.isfinite(values).all():
+            raise DataFormatError(model_path, f"the model predicts a {name} with NaN or infinity for frame {index}: "
+                                              f"its weights are damaged or its training diverged; use another model")
+    return depth, T_cur_prev
 
 
 def default_voxel_cm(K: np.ndarray, max_depth_cm: float, size: int) -> float:
