@@ -9,7 +9,7 @@ export DVC_NO_ANALYTICS := 1
 export RAY_USAGE_STATS_ENABLED := 0
 export MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR := false
 
-.PHONY: install repro test clean-venv
+.PHONY: install repro test dvc-deps clean-venv
 
 install: $(STAMP)
 
@@ -22,12 +22,17 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e ".[dev]"
 	touch $(STAMP)
 
-# Stage commands call `python`: the venv's must come first on PATH.
-repro: $(STAMP)
+# Stage commands call `python`: the venv's must come first on PATH. The code deps are brought up to date first, so
+# a new import reruns the stages that now run it.
+repro: $(STAMP) dvc-deps
 	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/dvc repro
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q --durations=15
+
+# dvc.yaml's code deps, written from what each stage imports (tools/dvc_deps.py).
+dvc-deps: $(STAMP)
+	$(BIN)/python -m tools.dvc_deps
 
 clean-venv:
 	rm -rf $(VENV)
