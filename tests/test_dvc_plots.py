@@ -1,10 +1,12 @@
 """dvc.yaml's plots: every chart names its x and its y columns, the model beside its baselines, for every test set
 and reconstructed sequence of every preset (DVC cannot loop over them in its top-level plots); stage plots are
 pictures only, so that `dvc plots show` never charts a default column; the HTML page DVC writes says why charts
-are missing offline."""
+are missing offline and shows the training's figures first, then the evaluation's, then the reconstruction's."""
 
 from __future__ import annotations
 
+import json
+import re
 from pathlib import Path
 
 import pytest
@@ -73,6 +75,21 @@ def test_stage_plots_are_pictures_only():
         for entry in (stage.get("do") or stage).get("plots", []):
             path = entry if isinstance(entry, str) else next(iter(entry))
             assert not path.endswith((".csv", ".json", ".tsv", ".yaml")), (name, path)
+
+
+def test_the_training_curves_come_first_then_evaluation_then_reconstruction():
+    """The charts in dvc.yaml's order; the page's figures (PNG) by its FIGURE_FOLDERS, which dvc-render would list
+    by path (the evaluation's before the training's)."""
+    names = list(top_level_plots())
+    stage_of = ["training" if name == "training curves" else "reconstruction" if "camera path" in name
+                else "evaluation" for name in names]
+    assert stage_of == sorted(stage_of, key=["training", "evaluation", "reconstruction"].index), names
+    page = (PROJECT / ".dvc" / "plots_page.html").read_text()
+    folders = json.loads(re.search(r"FIGURE_FOLDERS = (\[.*?\]);", page).group(1))
+    for params_file in PARAMS_FILES:
+        params = load_params(params_file)
+        pipeline = [params.train.plots, params.latent_bank.plots, params.eval.plots, params.reconstruct.plots]
+        assert folders == [f"{folder}/" for folder in pipeline], params_file.name
 
 
 def test_the_plots_page_says_why_charts_are_missing_offline():
