@@ -10,7 +10,8 @@ Every writer in endoflow goes through this module (``docs/architecture.md``, "At
   :func:`save_torch` are built on it; :func:`load_plain_torch_file` reads torch files back, tensors and
   plain data only.
 - :func:`staged_directory` fills a unique temporary sibling folder and swaps it in whole
-  (:func:`replace_directory`), so a reader never sees a half-filled folder. A folder is only replaced when it
+  (:func:`replace_directory`), so a reader never sees a half-filled folder; what a killed run left staged
+  for the same target is removed then (:func:`remove_abandoned`). A folder is only replaced when it
   is missing, empty or an earlier output of the same kind (:class:`OutputKind`), or when the user forces it;
   never when it is or holds a file the run reads (:func:`check_replaceable`, the one rule).
 - :func:`atomic_location` is :func:`atomic_path` for any fsspec URL too: on an object store (``s3://``) the
@@ -23,6 +24,7 @@ frames) pass ``durable=False``, as the folder swap is what makes them visible.
 
 from __future__ import annotations
 
+import glob
 import hashlib
 import io
 import json
@@ -31,6 +33,7 @@ import os
 import pickle
 import posixpath
 import shutil
+import socket
 import tempfile
 import zipfile
 from contextlib import contextmanager
@@ -45,6 +48,8 @@ from fsspec.implementations.local import LocalFileSystem
 from endoflow.errors import DataFormatError
 
 TEMPORARY_MARK = ".tmp-"
+# this machine's name as temporaries carry it (process_mark): what a file name may hold, and no "@"
+_HOST = "".join(c if c.isalnum() or c in ".-" else "_" for c in socket.gethostname())
 _ZIP_MAGIC = b"PK\x03\x04"  # how every torch.save file begins
 
 
@@ -301,7 +306,8 @@ def staged_directory(path: str | Path, kind: OutputKind, force: bool = False, in
     inputs = tuple(inputs)
     check_replaceable(path, kind, force, inputs, force_option)
     path.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-", dir=path.parent))
+    remove_abandoned(path.parent, f".{path.name}.partial-")
+    staging = Path(tempfile.mkdtemp(prefix=owned_prefix(f".{path.name}.partial-"), dir=path.parent))
     staging.chmod(0o777 & ~_UMASK)  # mkdtemp's folder is private; the output is not
     try:
         yield staging
@@ -317,7 +323,8 @@ def replace_directory(staging: str | Path, path: str | Path, kind: OutputKind, f
     :func:`check_replaceable` allows it."""
     staging, path = Path(staging), Path(path)
     check_replaceable(path, kind, force, inputs, force_option)
-    old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
+    remove_abandoned(path.parent, f".{path.name}.old-")
+    old = Path(tempfile.mkdtemp(prefix=owned_prefix(f".{path.name}.old-"), dir=path.parent))
     had_old = path.exists()
     if had_old:
         os.replace(path, old)  # renaming onto an empty folder replaces it
@@ -330,6 +337,52 @@ def replace_directory(staging: str | Path, path: str | Path, kind: OutputKind, f
     finally:
         shutil.rmtree(old, ignore_errors=True)
     _fsync_folder(path.parent)
+
+
+# ------------------------------------------------------------------------- what killed runs leave behind
+def process_mark() -> str:
+    """``<process id>@<machine>``: which process made a staging folder or opened a run, for
+    :func:`ended_here` to tell later whether it is still running."""
+    return f"{os.getpid()}@{_HOST}"
+
+
+def ended_here(mark: str) -> bool:
+    """Whether ``mark`` (a :func:`process_mark`) names a process of this machine that has ended; a process of
+    another machine cannot be checked and counts as running."""
+    pid, _, host = mark.partition("@")
+    return host == _HOST and pid.isdigit() and not _running(int(pid))
+
+
+def owned_prefix(prefix: str) -> str:
+    """``prefix`` followed by this process's :func:`process_mark`: a temporary name whose owner
+    :func:`remove_abandoned` can tell."""
+    return f"{prefix}{process_mark()}-"
+
+
+def remove_abandoned(folder: str | Path, prefix: str) -> list[Path]:
+    """Remove the entries of ``folder`` named :func:`owned_prefix` ``(prefix)`` by a process that has ended on
+    this machine: the staging folders and temporaries of runs that were killed or crashed before they could
+    clean up. Those of running processes and of other machines stay. Returns what was removed."""
+    removed = []
+    for entry in Path(folder).glob(f"{glob.escape(prefix)}*@*"):
+        mark = entry.name[len(prefix):].rsplit("-", 1)[0]  # mkdtemp's random tail has no "-"
+        if ended_here(mark):
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+            removed.append(entry)
+    return removed
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)  # signal 0: only asks whether the process exists
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # it exists, under another user
+        return True
+    return True
 
 
 def _entries_below(folder: Path) -> Iterator[Path]:

@@ -45,6 +45,11 @@ UNACTIONABLE_RAY_LINES = (re.compile(r"core_worker\.cc:\d+: Actor with class nam
 TOKEN_AUTH_ENABLED_NOTICE = "Token authentication is enabled for this Ray cluster"
 # the name under which Ray's driver prints the lines its workers and own processes stream to it
 RAY_PRINT_HANDLER = "ray_print_logs"
+# a terminal's colour and cursor codes (ESC [ ... letter): Ray colours the "(worker pid=...)" prefixes it prints
+# and some of the lines it streams; a file or a pipe gets them as litter
+ANSI_ESCAPE = re.compile(r"\x1b\[[0-?]*[ -/]*[@-~]")
+# Ray prints the prefixes uncoloured with this set to "0" (read at every line)
+RAY_COLOR_PREFIX_ENV = "RAY_COLOR_PREFIX"
 
 
 class ClusterMismatchError(ConfigError):
@@ -126,7 +131,8 @@ def without_token_auth_notice() -> Iterator[None]:
 @contextmanager
 def worker_logs_to(path: str | Path) -> Iterator[None]:
     """Within (Ray connected, printing what its processes stream to the driver): every such line is also
-    appended to ``path``, and the terminal gets all but :data:`UNACTIONABLE_RAY_LINES`."""
+    appended to ``path``, and the terminal gets all but :data:`UNACTIONABLE_RAY_LINES`. Colour codes reach only
+    a terminal: the file, and standard output or error when it is a file or a pipe, get the lines without them."""
     from ray._private.worker import global_worker_stdstream_dispatcher as dispatcher
 
     printer = dict(dispatcher.handlers).get(RAY_PRINT_HANDLER)
@@ -135,8 +141,13 @@ def worker_logs_to(path: str | Path) -> Iterator[None]:
             write_ray_lines(log, data)
             shown = [line for line in data["lines"]
                      if not any(pattern.search(line) for pattern in UNACTIONABLE_RAY_LINES)]
-            if printer is not None and shown:
+            if printer is None or not shown:
+                return
+            if is_terminal(sys.stderr if data.get("is_err") else sys.stdout):
                 printer({**data, "lines": shown})
+                return
+            with uncoloured_prefixes():
+                printer({**data, "lines": [without_colours(line) for line in shown]})
 
         dispatcher.remove_handler(RAY_PRINT_HANDLER)
         dispatcher.add_handler(RAY_PRINT_HANDLER, route)
@@ -149,11 +160,39 @@ def worker_logs_to(path: str | Path) -> Iterator[None]:
 
 
 def write_ray_lines(log: TextIO, data: dict[str, Any]) -> None:
-    """Append streamed lines to ``log``, each after the process it came from, as Ray prints them."""
+    """Append streamed lines to ``log``, each after the process it came from, as Ray prints them (without
+    colour codes)."""
     source = data.get("actor_name") or data.get("task_name") or ""
     prefix = f"({source} pid={data.get('pid')}{', stderr' if data.get('is_err') else ''}) "
-    log.writelines(prefix + line + "\n" for line in data["lines"])
+    log.writelines(prefix + without_colours(line) + "\n" for line in data["lines"])
     log.flush()
+
+
+def without_colours(line: str) -> str:
+    """``line`` without terminal colour codes (:data:`ANSI_ESCAPE`)."""
+    return ANSI_ESCAPE.sub("", line)
+
+
+def is_terminal(stream: TextIO) -> bool:
+    """Whether ``stream`` writes to a terminal (not a file, a pipe, or a closed or captured stream)."""
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):
+        return False
+
+
+@contextmanager
+def uncoloured_prefixes() -> Iterator[None]:
+    """Within: Ray prints its ``(worker pid=...)`` prefixes without colour, unless the user chose otherwise in
+    :data:`RAY_COLOR_PREFIX_ENV`. Ray's printer runs in the driver's one log thread, which alone reads it."""
+    if RAY_COLOR_PREFIX_ENV in os.environ:
+        yield
+        return
+    os.environ[RAY_COLOR_PREFIX_ENV] = "0"
+    try:
+        yield
+    finally:
+        os.environ.pop(RAY_COLOR_PREFIX_ENV, None)
 
 
 def quiet_worker_logs() -> None:

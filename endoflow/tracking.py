@@ -39,7 +39,7 @@ from mlflow.exceptions import MlflowException
 from mlflow.protos.databricks_pb2 import RESOURCE_DOES_NOT_EXIST, ErrorCode
 
 from endoflow.config import Params, flatten_params
-from endoflow.io import file_sha256
+from endoflow.io import ended_here, file_sha256, process_mark
 from endoflow.locations import home_project
 
 MLFLOW_PARAM_LIMIT = 6000  # characters MLflow accepts in one param value
@@ -60,6 +60,8 @@ LATENT_BANK_DIGEST_TAG = "endoflow.latent_bank_sha256"
 LATENT_BANK_RUN_TAG = "endoflow.latent_bank_run_id"
 # on a run opened for a model whose own training run is not in this store (a model file copied between machines)
 MODEL_RUN_TAG = "endoflow.model_run_id"
+# the process that opened (or reopened) a run, as io.process_mark writes it: <process id>@<machine>
+PROCESS_TAG = "endoflow.process"
 # what MLflow's UI shows beside a dataset input: what the run used it for
 DATASET_CONTEXT_TAG = "mlflow.data.context"
 MLFLOW_DIGEST_CHARS = 32  # the store's digest column holds 36 characters
@@ -237,7 +239,9 @@ def start_run(params: Params, project_root: str | Path, experiment: str, run_nam
 
     With ``fingerprint``, an unfinished run of the same experiment carrying the same fingerprint (an
     interrupted training being resumed) is reopened instead, so one training stays one run. What the store
-    does not take of the run is kept in the project (:func:`project_unlogged_file`).
+    does not take of the run is kept in the project (:func:`project_unlogged_file`). Runs of the experiment
+    left RUNNING by a process of this machine that was killed are marked KILLED first
+    (:func:`end_abandoned_runs`).
     """
     run_id = _open_run(params, project_root, experiment, run_name, fingerprint)
     keep_unlogged_in(run_id, project_unlogged_file(project_root, run_id))
@@ -250,6 +254,7 @@ def _open_run(params: Params, project_root: str | Path, experiment: str, run_nam
     uri = tracking_uri(params, project_root)
     mlflow_client = client(uri)
     experiment_id = ensure_experiment(params, project_root, experiment)
+    end_abandoned_runs(uri, experiment_id)
     if fingerprint is not None:
         unfinished = mlflow_client.search_runs(
             [experiment_id],
@@ -260,13 +265,26 @@ def _open_run(params: Params, project_root: str | Path, experiment: str, run_nam
         if unfinished:
             run_id = unfinished[0].info.run_id
             mlflow_client.update_run(run_id, status="RUNNING")
+            mlflow_client.set_tag(run_id, PROCESS_TAG, process_mark())
             return run_id
-    tags = {"mlflow.runName": run_name, **source_tags(project_root)}
+    tags = {"mlflow.runName": run_name, PROCESS_TAG: process_mark(), **source_tags(project_root)}
     if fingerprint is not None:
         tags[FINGERPRINT_TAG] = fingerprint
     if dvc_experiment_name():
         tags[DVC_EXPERIMENT_TAG] = dvc_experiment_name()
     return mlflow_client.create_run(experiment_id, tags=tags, run_name=run_name).info.run_id
+
+
+def end_abandoned_runs(uri: str, experiment_id: str) -> list[str]:
+    """Mark KILLED the runs of the experiment still RUNNING whose process (:data:`PROCESS_TAG`) has ended on this
+    machine: it was killed before it could end its run (a killed run cannot end it itself). Returns their ids."""
+    mlflow_client = client(uri)
+    running = mlflow_client.search_runs([experiment_id], filter_string="attributes.status = 'RUNNING'",
+                                        max_results=1000)
+    abandoned = [run.info.run_id for run in running if ended_here(run.data.tags.get(PROCESS_TAG, ""))]
+    for run_id in abandoned:
+        mlflow_client.set_terminated(run_id, status=RunStatus.to_string(RunStatus.KILLED))
+    return abandoned
 
 
 def project_unlogged_file(project_root: str | Path, run_id: str) -> Path:

@@ -1,20 +1,32 @@
-"""Atomic writes name the file they were writing when the disk says no.
+"""Atomic writes name the file they were writing when the disk says no, and leave no litter.
 
-The round-3 audit's case: a full disk (``ENOSPC``) during preprocessing or training ended in
+The round-3 audit's cases: a full disk (``ENOSPC``) during preprocessing or training ended in
 ``[Errno 28] No space left on device`` without a path. Every writer goes through :mod:`endoflow.io`, whose errors
-now name the target; the temporary is removed and an earlier file is left as it was.
+now name the target; the temporary is removed and an earlier file is left as it was. And the hidden staging
+folders of killed runs (``predictions/.<set>.partial-*``, ``.<out>.partial-*``) stayed forever: the next run that
+stages the same target now removes them.
 """
 
 from __future__ import annotations
 
 import errno
 import os
+import subprocess
 from pathlib import Path
 
 import pytest
 
 from endoflow import io
-from endoflow.io import TEMPORARY_MARK, atomic_path, save_torch, write_json
+from endoflow.io import (
+    FIGURE_FOLDER,
+    TEMPORARY_MARK,
+    atomic_path,
+    ended_here,
+    process_mark,
+    save_torch,
+    staged_directory,
+    write_json,
+)
 
 
 def full_disk(*_args, **_kwargs) -> None:
@@ -60,3 +72,38 @@ def test_an_error_about_another_file_is_raised_as_it_is(tmp_path: Path) -> None:
             temporary.write_bytes(source.read_bytes())
     assert caught.value.filename == str(source)
     assert leftovers(tmp_path) == []
+
+
+# ------------------------------------------------------------------------ what killed runs leave behind
+def ended_process_mark() -> str:
+    """The :func:`endoflow.io.process_mark` of a process of this machine that has ended."""
+    process = subprocess.Popen(["true"])
+    process.wait()
+    return process_mark().replace(str(os.getpid()), str(process.pid), 1)
+
+
+def test_staging_a_folder_removes_what_killed_runs_left_staged_for_it_and_nothing_else(tmp_path: Path) -> None:
+    out = tmp_path / "simcol_3"
+    killed = tmp_path / f".simcol_3.partial-{ended_process_mark()}-k1ll3d00"
+    killed_swap = tmp_path / f".simcol_3.old-{ended_process_mark()}-k1ll3d01"
+    running = tmp_path / f".simcol_3.partial-{process_mark()}-runn1ng0"
+    elsewhere = tmp_path / f".simcol_3.partial-{ended_process_mark().split('@')[0]}@another-host-3lsewh3r"
+    other_target = tmp_path / f".simcol_1.partial-{ended_process_mark()}-0th3r000"
+    for folder in (killed, killed_swap, running, elsewhere, other_target):
+        (folder / "partial").mkdir(parents=True)
+
+    with staged_directory(out, FIGURE_FOLDER) as staging:
+        (staging / "curves.png").write_bytes(b"\x89PNG")
+
+    assert (out / "curves.png").exists()
+    assert not killed.exists() and not killed_swap.exists()
+    assert running.exists() and elsewhere.exists() and other_target.exists()
+    assert sorted(p.name for p in tmp_path.iterdir() if ".partial-" in p.name or ".old-" in p.name) == sorted(
+        p.name for p in (running, elsewhere, other_target))
+
+
+def test_a_process_mark_tells_running_from_ended_processes_of_this_machine_only() -> None:
+    assert not ended_here(process_mark())
+    assert ended_here(ended_process_mark())
+    assert not ended_here(ended_process_mark().split("@")[0] + "@another-host")
+    assert not ended_here("") and not ended_here("run-id-without-a-mark")

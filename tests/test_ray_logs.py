@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import pytest
@@ -52,3 +53,27 @@ def test_the_token_auth_enabled_notice_is_dropped_and_the_disabled_warning_kept(
         auth._warn_token_auth_enabled()
         auth._warn_token_auth_disabled()
     assert [r.getMessage()[:45] for r in caplog.records] == ["Token authentication is disabled for this Ray"]
+
+
+def test_colour_codes_reach_only_a_terminal(monkeypatch, tmp_path: Path) -> None:
+    coloured = {"pid": 7, "actor_name": "RayTrainWorker", "is_err": True,
+                "lines": ["\x1b[33m(raylet)\x1b[0m \x1b[1mWARNING\x1b[0m: 1 worker restarted"]}
+    printed: list[tuple[list[str], str | None]] = []
+
+    def ray_printer(data: dict) -> None:  # Ray's printer colours the prefix unless RAY_COLOR_PREFIX is "0"
+        printed.append((data["lines"], os.environ.get("RAY_COLOR_PREFIX")))
+
+    monkeypatch.delenv("RAY_COLOR_PREFIX", raising=False)
+    dispatcher.add_handler(RAY_PRINT_HANDLER, ray_printer)
+    try:
+        with worker_logs_to(tmp_path / "ray.log"):
+            dispatcher.emit(coloured)  # stderr is pytest's capture: not a terminal
+            monkeypatch.setattr("endoflow.ray_runtime.is_terminal", lambda stream: True)
+            dispatcher.emit(coloured)
+    finally:
+        dispatcher.remove_handler(RAY_PRINT_HANDLER)
+
+    assert printed == [(["(raylet) WARNING: 1 worker restarted"], "0"), (coloured["lines"], None)]
+    assert "RAY_COLOR_PREFIX" not in os.environ
+    assert (tmp_path / "ray.log").read_text().splitlines() == [
+        "(RayTrainWorker pid=7, stderr) (raylet) WARNING: 1 worker restarted"] * 2

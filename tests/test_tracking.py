@@ -223,3 +223,22 @@ def test_requests_give_up_after_seconds_unless_the_environment_says_otherwise(mo
     tracking.client("http://127.0.0.1:1")  # no request is made
     assert os.environ["MLFLOW_HTTP_REQUEST_MAX_RETRIES"] == "2"  # MLflow's 7 retried for about 4 minutes
     assert os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] == "300"
+
+
+def test_runs_left_running_by_a_killed_process_of_this_machine_are_marked_killed_at_the_next_start(
+        tmp_path: Path) -> None:
+    from tests.test_atomic_writes import ended_process_mark
+
+    params = Params()
+    uri = tracking.tracking_uri(params, tmp_path)
+    mlflow_client = tracking.client(uri)
+    killed = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed0")
+    elsewhere = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed1")
+    mlflow_client.set_tag(killed, tracking.PROCESS_TAG, ended_process_mark())  # killed before end_run
+    mlflow_client.set_tag(elsewhere, tracking.PROCESS_TAG, ended_process_mark().split("@")[0] + "@another-host")
+    still_running = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed2")  # this process
+
+    again = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed0")
+
+    status = {run_id: mlflow_client.get_run(run_id).info.status for run_id in (killed, elsewhere, still_running, again)}
+    assert status == {killed: "KILLED", elsewhere: "RUNNING", still_running: "RUNNING", again: "RUNNING"}

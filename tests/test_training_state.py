@@ -276,3 +276,27 @@ def test_a_lost_tracking_server_neither_stalls_training_nor_hides_its_error(tmp_
     assert capsys.readouterr().err.count(f"warning: MLflow at {params.tracking.uri}") == 1
     kept = tracking.project_unlogged_file(tmp_path, "run0").read_text().splitlines()
     assert json.loads(kept[-1])["status"] == "FAILED"
+
+
+def test_the_ray_log_folder_of_a_killed_training_is_removed_by_the_next(tmp_path: Path, monkeypatch) -> None:
+    import tempfile
+
+    from endoflow.training.ray_trainer import RAY_LOG_TEMPORARY, TrainingError
+    from tests.test_atomic_writes import ended_process_mark
+    from tests.test_ray import project
+
+    params = project(tmp_path)
+    temporary = tmp_path / "tmp"
+    killed = temporary / f"{RAY_LOG_TEMPORARY}{ended_process_mark()}-k1ll3d00"
+    (killed / "ray-from-epoch-0001.log").parent.mkdir(parents=True)
+    (killed / "ray-from-epoch-0001.log").write_text("(RayTrainWorker pid=7) [train] epoch 1/2 step 1/1\n")
+    monkeypatch.setattr(tempfile, "tempdir", str(temporary))
+
+    def node_lost(*_args, **_kwargs):
+        raise RuntimeError("the worker's node was lost")
+
+    monkeypatch.setattr("endoflow.training.ray_trainer.fit_on_ray", node_lost)
+    with pytest.raises(TrainingError):
+        train(params, tmp_path)
+
+    assert list(temporary.iterdir()) == []  # the killed run's folder, and this run's own

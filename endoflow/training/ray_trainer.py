@@ -43,7 +43,16 @@ from endoflow.data.shard_format import (
 from endoflow.errors import DataFormatError
 from endoflow.evaluation import plots
 from endoflow.geometry.pose import mean_step, step_root
-from endoflow.io import FIGURE_FOLDER, file_sha256, save_figure, staged_directory, write_csv, write_json
+from endoflow.io import (
+    FIGURE_FOLDER,
+    file_sha256,
+    owned_prefix,
+    remove_abandoned,
+    save_figure,
+    staged_directory,
+    write_csv,
+    write_json,
+)
 from endoflow.locations import absolute_location, home_project, local_file
 from endoflow.models.mlflow_model import log_mlflow_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
@@ -66,6 +75,8 @@ TRAIN_DVC_METRICS = {"best_epoch": "best_epoch", "val_abs_rel": "val_abs_rel", "
 # every line Ray's processes printed while training (the terminal shows those that matter), in the MLflow run
 # as logs/ray-from-epoch-NNNN.log, one file per attempt (a resumed training adds one)
 RAY_LOG_FOLDER = "logs"
+# the temporary folder an attempt's Ray log is written to before it is uploaded
+RAY_LOG_TEMPORARY = "endoflow-ray-log-"
 
 
 def training_fingerprint(params: Params, train_shards: str, latent_bank: Optional[str]) -> str:
@@ -154,7 +165,8 @@ def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: 
     if saved is not None:
         print(f"[train] resuming after epoch {saved.state.epoch + 1} from {resume_from}", flush=True)
     if saved is None or saved.state.epoch + 1 < params.train.epochs:
-        with tempfile.TemporaryDirectory(prefix="endoflow-ray-log-") as folder:
+        remove_abandoned(tempfile.gettempdir(), RAY_LOG_TEMPORARY)  # the folders of killed trainings
+        with tempfile.TemporaryDirectory(prefix=owned_prefix(RAY_LOG_TEMPORARY)) as folder:
             ray_log = Path(folder) / f"ray-from-epoch-{(saved.state.epoch + 2 if saved else 1):04d}.log"
             try:
                 saved = fit_on_ray(params, replace(config, resume_from=resume_from), storage, run_name, ray_log)
