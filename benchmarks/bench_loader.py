@@ -89,8 +89,8 @@ def write_shards(root: Path, source: str, sequences: int, frames: int) -> list[s
         render_in_child(layout, sequences, frames)
     params = Params()
     params.data.size = SIZE
-    params.data.simcol = params.data.simcol.model_copy(update=dict(root=str(layout), val=[], test=[]))
-    params.preprocess = params.preprocess.model_copy(update=dict(samples_per_shard=16, shard_multiple=2))
+    params.data.simcol = params.data.simcol.replace(root=str(layout), val=[], test=[])
+    params.preprocess = params.preprocess.replace(samples_per_shard=16, shard_multiple=2)
     preprocess_dataset("simcol", params, root / "shards")
     return list_shards(root / "shards", "train")
 

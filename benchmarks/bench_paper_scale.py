@@ -172,8 +172,8 @@ def measure_training(params: Params, urls: list[str], device: torch.device, prec
 def pretraining_steps_per_second(params: Params, device: torch.device, steps: int) -> tuple[float, int, int]:
     """Generator steps/s of ``train_gan`` over every resolution, ``steps`` at each, on random depth maps; with the
     number of steps and of resolutions."""
-    cfg = params.latent_bank.model_copy(update=dict(steps_per_stage=steps, device=str(device)))
-    params = params.model_copy(update=dict(latent_bank=cfg))
+    cfg = params.latent_bank.replace(steps_per_stage=steps, device=str(device))
+    params = params.replace(latent_bank=cfg)
     maps = torch.rand(256, 1, cfg.resolution, cfg.resolution, generator=torch.Generator().manual_seed(0)) * 2 - 1
     started = time.perf_counter()
     _, history = train_gan(params, maps, device, lambda record, step: None)

@@ -35,13 +35,13 @@ def prepare_project(root: Path, size: int, frames: int, batch: int, steps: int, 
     params = Params()
     params.data.size = size
     params.data.simcol.root = str(root / "raw" / "SimCol3D")
-    params.preprocess = params.preprocess.model_copy(update=dict(out=str(root / "shards"), samples_per_shard=32))
-    params.train = params.train.model_copy(update=dict(
+    params.preprocess = params.preprocess.replace(out=str(root / "shards"), samples_per_shard=32)
+    params.train = params.train.replace(
         epochs=1, batch_size=batch, steps_per_epoch=steps, val_batches=1, log_every=1, image_examples=1,
-        latent_bank=str(root / "latent_bank.pt")))
+        latent_bank=str(root / "latent_bank.pt"))
     params.train.shards = str(root / "shards" / "simcol")
-    params.ray = params.ray.model_copy(update=dict(use_gpu=gpu))
-    params.eval = params.eval.model_copy(update=dict(shards=str(root / "shards")))
+    params.ray = params.ray.replace(use_gpu=gpu)
+    params.eval = params.eval.replace(shards=str(root / "shards"))
     synthesize_layout("simcol", Path(params.data.simcol.root), sequences=5, frames=frames, size=size, seed=0)
     preprocess_dataset("simcol", params, root / "shards" / "simcol")
     torch.save(generator_payload(LatentBankGenerator(generator_spec(params))), root / "latent_bank.pt")
@@ -50,8 +50,8 @@ def prepare_project(root: Path, size: int, frames: int, batch: int, steps: int, 
 
 def training_rate(params: Params, root: Path, workers: int) -> tuple[float, float]:
     """(samples/s over the epoch's steps, wall seconds of the whole run) with ``workers`` Ray workers."""
-    params.ray = params.ray.model_copy(update=dict(num_workers=workers, storage_path=str(root / f"ray-{workers}")))
-    params.train = params.train.model_copy(update=dict(out=str(root / "models" / "endoflow.pt")))
+    params.ray = params.ray.replace(num_workers=workers, storage_path=str(root / f"ray-{workers}"))
+    params.train = params.train.replace(out=str(root / "models" / "endoflow.pt"))
     started = time.perf_counter()
     summary = train(params, root)
     wall = time.perf_counter() - started

@@ -69,8 +69,8 @@ def main() -> None:
     params = load_params(args.params) if Path(args.params).is_file() else Params()
     size, batch_size = args.size or params.data.size, args.batch or params.train.batch_size
     device = torch.device(args.device)
-    plain_model = params.model.model_copy(update=dict(latent_bank=False, pose_vae=False))
-    plain_params = params.model_copy(update=dict(model=plain_model))
+    plain_model = params.model.replace(latent_bank=False, pose_vae=False)
+    plain_params = params.replace(model=plain_model)
     batch = make_batch(batch_size, size, device)
     models = {"full": build_model(params, None), "plain": build_model(plain_params, None)}
     steps = {}

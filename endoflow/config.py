@@ -14,6 +14,8 @@ import re
 from pathlib import Path
 from typing import Annotated, Any, Callable, ClassVar, Literal, Optional, Sequence, Union
 
+from typing_extensions import Self
+
 import yaml
 from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, PlainValidator, ValidationError,
                       model_validator)
@@ -114,6 +116,13 @@ class Section(BaseModel):
     # Whether the section's fields change what training computes, unless a field says otherwise; None: as the
     # section holding it.
     TRAINING: ClassVar[Optional[bool]] = None
+
+    def replace(self, **changes: Any) -> Self:
+        """A copy with ``changes`` applied, validated as a file's values are (``params.train.replace(lr=1e-3)``)."""
+        try:
+            return type(self).model_validate({**dict(self), **changes})
+        except ValidationError as exc:
+            raise ConfigError("; ".join(_describe(error, type(self)) for error in exc.errors())) from None
 
 
 # ------------------------------------------------------------------------------------------------ data
@@ -696,18 +705,18 @@ _WORDS = {
 _BOUNDS = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
 
 
-def _describe(error: dict[str, Any]) -> str:
-    """``<dotted key> must be <expected>, got <value>`` for one pydantic error."""
-    key = _dotted(error["loc"])
+def _describe(error: dict[str, Any], root: type[Section] = Params) -> str:
+    """``<dotted key> must be <expected>, got <value>`` for one pydantic error (keys from ``root`` down)."""
+    key = _dotted(error["loc"], root)
     kind, ctx, value = error["type"], error.get("ctx") or {}, error.get("input")
     if kind == "extra_forbidden":
-        return _unknown_key(error["loc"])
+        return _unknown_key(error["loc"], root)
     if kind == "missing":
         return f"missing key {key}"
     if kind in ("cross_field", "field"):
         return f"{key}.{error['msg']}" if kind == "field" and key else error["msg"]
     if kind == "literal_error":
-        return f"{key} must be one of {_literal_choices(error['loc'])}, got {value!r}"
+        return f"{key} must be one of {_literal_choices(error['loc'], root)}, got {value!r}"
     if kind in _BOUNDS:
         bound = next(iter(ctx.values()))
         return f"{key} must be {_BOUNDS[kind]} {bound:g}, got {value!r}"
@@ -721,17 +730,18 @@ def _describe(error: dict[str, Any]) -> str:
     return f"{key} must be {expected}, got {value!r}"
 
 
-def _dotted(loc: tuple) -> str:
+def _dotted(loc: tuple, root: type[Section]) -> str:
     """``("data", "simcol", "intrinsics", 0, 1)`` as ``data.simcol.intrinsics[0][1]``; union branch tags left out."""
     text = ""
-    for part in _plain_loc(loc):
+    for part in _plain_loc(loc, root):
         text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
     return text
 
 
-def _plain_loc(loc: tuple) -> list:
+def _plain_loc(loc: tuple, root: type[Section]) -> list:
     """``loc`` without pydantic's union branch names (``int``, ``list[constrained-int]``), which follow a leaf."""
-    parts, section = [], Params
+    parts: list = []
+    section: Any = root
     for part in loc:
         if section is None and not isinstance(part, int):
             continue
@@ -762,20 +772,20 @@ class _Entries:
         self.cls = cls
 
 
-def _unknown_key(loc: tuple) -> str:
-    parts = _plain_loc(loc)
-    section: Any = Params
+def _unknown_key(loc: tuple, root: type[Section]) -> str:
+    parts = _plain_loc(loc, root)
+    section: Any = root
     for part in parts[:-1]:
         section = _section_after(section, part)
     known = sorted(section.model_fields) if isinstance(section, type) else []
     close = difflib.get_close_matches(str(parts[-1]), known, n=1)
     hint = f"; did you mean {close[0]}?" if close else ""
-    return f"unknown key {_dotted(loc)} (known: {', '.join(known)}){hint}"
+    return f"unknown key {_dotted(loc, root)} (known: {', '.join(known)}){hint}"
 
 
-def _literal_choices(loc: tuple) -> list:
-    parts = _plain_loc(loc)
-    section: Any = Params
+def _literal_choices(loc: tuple, root: type[Section]) -> list:
+    parts = _plain_loc(loc, root)
+    section: Any = root
     for part in parts[:-1]:
         section = _section_after(section, part)
     annotation = section.model_fields[parts[-1]].annotation

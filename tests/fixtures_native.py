@@ -18,7 +18,7 @@ Expected values are computed here from first principles (explicit formulas), not
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -365,5 +365,5 @@ def preprocess_params(dataset: str, root: Path, size: int = 16, samples_per_shar
     params = Params()
     getattr(params.data, dataset).root = str(root)
     params.data.size = size
-    params.preprocess = replace(params.preprocess, workers=1, samples_per_shard=samples_per_shard, shard_multiple=1)
+    params.preprocess = params.preprocess.replace(workers=1, samples_per_shard=samples_per_shard, shard_multiple=1)
     return params

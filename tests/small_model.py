@@ -3,7 +3,6 @@ needs a pretrained bank file)."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 
 from endoflow.config import Params
 
@@ -11,5 +10,5 @@ from endoflow.config import Params
 def small_model_params(size: int) -> Params:
     params = Params()
     params.data.size = size
-    params.model = replace(params.model, latent_bank=False)
+    params.model = params.model.replace(latent_bank=False)
     return params

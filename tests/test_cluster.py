@@ -3,7 +3,6 @@ key, instead of waiting forever."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 
 import pytest
 import ray
@@ -41,7 +40,7 @@ def test_workers_too_large_for_the_cluster_name_cpus_per_worker(two_cpu_ray):
 def test_gpu_workers_without_gpus_name_use_gpu(two_cpu_ray):
     with pytest.raises(ConfigError, match=r"ray\.use_gpu is true: ray\.num_workers = 1 workers need 1 GPUs "
                                           r"\(one each\), the Ray cluster has 0"):
-        check_worker_resources(replace(RayConfig(), use_gpu=True))
+        check_worker_resources(RayConfig().replace(use_gpu=True))
 
 
 def test_a_worker_must_fit_on_one_node(monkeypatch):

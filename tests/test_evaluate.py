@@ -9,7 +9,7 @@ challenge files) must then give zero error.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -99,7 +99,7 @@ class OracleModel(torch.nn.Module):
 def shard_params(out_root: Path) -> Params:
     params = Params()
     params.data.size = SIZE
-    params.preprocess = replace(params.preprocess, workers=1, samples_per_shard=4, shard_multiple=2)
+    params.preprocess = params.preprocess.replace(workers=1, samples_per_shard=4, shard_multiple=2)
     params.eval.shards = str(out_root)
     params.eval.batch_size = 4
     return params
@@ -198,7 +198,7 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     from endoflow.evaluation.evaluate import log_evaluation
 
     params = shard_params(oracle_shards)
-    params.model = replace(params.model, latent_bank=False)
+    params.model = params.model.replace(latent_bank=False)
     uri = tracking.tracking_uri(params, tmp_path)
     run_id = tracking.start_run(params, tmp_path, "endoflow", "train")
     manifest = oracle_shards / "simcol" / "manifest.parquet"
@@ -247,7 +247,7 @@ def test_a_model_whose_training_run_is_not_in_the_store_logs_into_one_new_run_wi
     from endoflow.evaluation.evaluate import log_evaluation
 
     params = shard_params(oracle_shards)
-    params.model = replace(params.model, latent_bank=False)
+    params.model = params.model.replace(latent_bank=False)
     write_untrained_model(tmp_path / "endoflow.pt", params, "0123456789abcdef0123456789abcdef")
     samples = triplet_dataset(eval_set_shards(str(oracle_shards), params.eval.test_sets["simcol_3"]))
     result = evaluate_test_set(params, "simcol_3", samples, tmp_path / "endoflow.pt", tmp_path / "m.json",

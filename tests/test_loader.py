@@ -10,7 +10,6 @@ import collections
 import itertools
 import json
 import shutil
-from dataclasses import replace
 from pathlib import Path
 
 import fsspec
@@ -56,7 +55,7 @@ from tests.test_shards import SyntheticSource, native_pose, small_params
 def shard_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out_dir = tmp_path_factory.mktemp("loader") / "simcol"
     params = small_params()
-    params.preprocess = replace(params.preprocess, samples_per_shard=3, shard_multiple=5)
+    params.preprocess = params.preprocess.replace(samples_per_shard=3, shard_multiple=5)
     write_dataset_shards(SyntheticSource(frames=8), "simcol", params, out_dir)
     return out_dir
 

@@ -6,7 +6,6 @@ nothing pickled; endoflow reads a `models:/` URI's model file back without runni
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -145,7 +144,7 @@ def test_evaluate_takes_a_models_uri_and_logs_into_the_models_training_run(logge
     shards = project / "eval_shards"
     write_dataset_shards(OracleSource(), "simcol", shard_params(shards), shards / "simcol")
     eval_params = small_model_params(SIZE)
-    eval_params.eval = replace(eval_params.eval, shards=str(shards), model=f"models:/{NAME}/1", batch_size=4)
+    eval_params.eval = eval_params.eval.replace(shards=str(shards), model=f"models:/{NAME}/1", batch_size=4)
     result = run_evaluation(eval_params, "simcol_3", project)
     assert result["mlflow_run_id"] == run_id and result["frames"] > 0
     assert json.loads((project / eval_params.eval.metrics / "simcol_3.json").read_text())["eval_simcol_3"][

@@ -101,7 +101,7 @@ def test_losses_have_every_term_and_the_total_adds_up():
     cfg = params.loss
     expected = out["photometric"] + cfg.smoothness_weight * out["smoothness"] + cfg.kl_weight * out["kl"]
     torch.testing.assert_close(out["total"], expected)
-    single = training_step_losses(model.eval(), batch, cfg.model_copy(update={"multiscale": False}))
+    single = training_step_losses(model.eval(), batch, cfg.replace(multiscale=False))
     assert "photometric/1" not in single
 
 
@@ -116,7 +116,7 @@ def test_short_optimisation_learns_depth_and_motion():
     try:
         batch = {key: value[:TRIPLETS] for key, value in simcol_triplets().items()}
         params = Params()
-        cfg = params.loss.model_copy(update={"automask": False})
+        cfg = params.loss.replace(automask=False)
         model = build_model(params, None)
         optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=3e-4)
         identity = torch.eye(4).expand(TRIPLETS, 4, 4)

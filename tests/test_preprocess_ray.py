@@ -11,7 +11,6 @@ import re
 import subprocess
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
 
@@ -63,10 +62,10 @@ def small_params(root: Path, engine: str, address: str | None, out: str) -> Para
     params = Params()
     params.data.simcol.root = str(root)
     params.data.size = 32
-    params.preprocess = replace(params.preprocess, out=out, engine=engine, workers=1, samples_per_shard=2,
-                                shard_multiple=2)
-    params.train = replace(params.train, batch_size=2)  # data.size 32 needs two samples per batch
-    params.ray = replace(params.ray, address=address)
+    params.preprocess = params.preprocess.replace(out=out, engine=engine, workers=1, samples_per_shard=2,
+                                                  shard_multiple=2)
+    params.train = params.train.replace(batch_size=2)  # data.size 32 needs two samples per batch
+    params.ray = params.ray.replace(address=address)
     return params
 
 

@@ -150,13 +150,11 @@ def test_a_source_file_gone_since_listing_is_named(tmp_path: Path) -> None:
 
 
 def test_a_reader_setting_that_changes_decoded_frames_changes_every_shard_key() -> None:
-    from dataclasses import replace
-
     from endoflow.data.shard_plan import ShardSpec, encode_settings, shard_keys
 
     params = Params()
     rescaled = Params()
-    rescaled.data.endoslam = replace(rescaled.data.endoslam, depth_full_scale_cm=25.0)  # same files, other depth
+    rescaled.data.endoslam = rescaled.data.endoslam.replace(depth_full_scale_cm=25.0)  # same files, other depth
     shard = [ShardSpec("test-000000.tar", "test", ())]
     assert (shard_keys(shard, encode_settings("endoslam", params), [])
             != shard_keys(shard, encode_settings("endoslam", rescaled), []))

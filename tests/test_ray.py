@@ -20,7 +20,6 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -41,10 +40,10 @@ def project(tmp_path: Path, **train_overrides) -> Params:
     """A project folder with shards and params for a tiny training (no latent bank)."""
     params = shard_params(tmp_path / "data" / "shards")
     write_dataset_shards(OracleSource(), "simcol", params, tmp_path / "data" / "shards" / "simcol")
-    params.model = replace(params.model, latent_bank=False)
+    params.model = params.model.replace(latent_bank=False)
     tiny = {"batch_size": 2, "steps_per_epoch": 1, "val_batches": 1, "log_every": 1, "image_examples": 1}
-    params.train = replace(params.train, **{**tiny, **train_overrides})
-    params.ray = replace(params.ray, num_workers=1, num_cpus=2, max_failures=0)  # an error ends the run at once
+    params.train = params.train.replace(**tiny, **train_overrides)
+    params.ray = params.ray.replace(num_workers=1, num_cpus=2, max_failures=0)  # an error ends the run at once
     return params
 
 
@@ -81,7 +80,7 @@ def run_stage_until_first_checkpoint(root: Path, storage: Path, timeout: float =
 def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint_samples(tmp_path: Path):
     params = project(tmp_path, epochs=2)
     storage = tmp_path / "checkpoints"
-    params.ray = replace(params.ray, num_workers=2, storage_path=storage.as_uri())  # an fsspec URL
+    params.ray = params.ray.replace(num_workers=2, storage_path=storage.as_uri())  # an fsspec URL
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params_to_dict(params)))
 
     run_stage_until_first_checkpoint(tmp_path, storage)
@@ -132,7 +131,7 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
     # the same training, never interrupted, keeping one checkpoint: the same weights, bit for bit
     reference = tmp_path / "uninterrupted"
     reference_params = project(reference, epochs=2, keep_checkpoints=1)
-    reference_params.ray = replace(params.ray, storage_path=str(reference / "checkpoints"))
+    reference_params.ray = params.ray.replace(storage_path=str(reference / "checkpoints"))
     train(reference_params, reference)
     assert [f.name for f in checkpoint_folders(reference / "checkpoints")] == ["epoch-0001"]
     resumed = load_training_state(folders[-1])
@@ -145,7 +144,7 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
 def test_a_non_finite_loss_stops_training_naming_the_step_and_keeps_the_last_checkpoint(tmp_path: Path):
     # the learning rate becomes NaN after epoch 0, so the first update of epoch 1 breaks the weights
     params = project(tmp_path, epochs=3, steps_per_epoch=2, schedule="step", step_epochs=1, gamma=float("nan"))
-    params.ray = replace(params.ray, storage_path=str(tmp_path / "checkpoints"))
+    params.ray = params.ray.replace(storage_path=str(tmp_path / "checkpoints"))
     params.train.shards = (tmp_path / "data" / "shards" / "simcol").as_uri()  # shards through fsspec
 
     with pytest.raises(TrainingError, match=r"NonFiniteLossError: non-finite training loss .* at epoch 1, step 1"):
@@ -188,10 +187,10 @@ def test_fingerprint_ignores_the_epoch_count_but_not_what_training_computes(tmp_
     (tmp_path / "manifest.parquet").write_bytes(b"manifest")
     params = Params()
     base = training_fingerprint(params, str(tmp_path), None)
-    params.train = replace(params.train, epochs=params.train.epochs + 5, log_every=1)
+    params.train = params.train.replace(epochs=params.train.epochs + 5, log_every=1)
     assert training_fingerprint(params, str(tmp_path), None) == base  # more epochs continue the run
-    params.train = replace(params.train, lr=params.train.lr * 2)
+    params.train = params.train.replace(lr=params.train.lr * 2)
     assert training_fingerprint(params, str(tmp_path), None) != base
     (tmp_path / "manifest.parquet").write_bytes(b"other data")
-    params.train = replace(params.train, lr=params.train.lr / 2)
+    params.train = params.train.replace(lr=params.train.lr / 2)
     assert training_fingerprint(params, str(tmp_path), None) != base

@@ -19,7 +19,6 @@ import os
 import signal
 import threading
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -93,9 +92,9 @@ def cluster_params(root: Path, cluster: Cluster) -> Params:
     """Two epochs of two one-CPU workers on ``cluster``, shards and checkpoints at ``file://`` URLs."""
     params = project(root, epochs=2, steps_per_epoch=None)
     params.train.shards = (root / "data" / "shards" / "simcol").as_uri()
-    params.ray = replace(params.ray, address=cluster.address, num_workers=2, cpus_per_worker=1.0,
-                         placement_strategy="STRICT_SPREAD",
-                         storage_path=(root / "checkpoints").as_uri())
+    params.ray = params.ray.replace(address=cluster.address, num_workers=2, cpus_per_worker=1.0,
+                                    placement_strategy="STRICT_SPREAD",
+                                    storage_path=(root / "checkpoints").as_uri())
     return params
 
 
@@ -135,7 +134,7 @@ def test_a_driver_with_another_endoflow_is_refused_naming_every_node(cluster, mo
 def test_a_worker_killed_during_an_epoch_is_replaced_and_training_finishes_by_itself(cluster, uninterrupted,
                                                                                       tmp_path):
     params = cluster_params(tmp_path, cluster)
-    params.ray = replace(params.ray, max_failures=1)
+    params.ray = params.ray.replace(max_failures=1)
     storage = tmp_path / "checkpoints"
     kill: dict[str, Any] = {}
     killer = threading.Thread(target=kill_rank_1_during_epoch_1, args=(storage, kill), daemon=True)

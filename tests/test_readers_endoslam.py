@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import warnings
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -66,7 +65,7 @@ def test_unitycam_mismatched_rows_are_aligned_by_time_with_a_warning(tmp_path):
 
 def test_unitycam_units_and_depth_scale_come_from_params(tmp_path):
     truth = write_endoslam_unitycam(tmp_path, frames=3, depth_full_scale_cm=8.0)
-    cfg = replace(EndoSLAMConfig(), unitycam_translation_to_cm=10.0, depth_full_scale_cm=8.0)
+    cfg = EndoSLAMConfig().replace(unitycam_translation_to_cm=10.0, depth_full_scale_cm=8.0)
     sequence = _only(tmp_path, cfg)
     np.testing.assert_allclose(sequence.poses[:, :3, 3], 10 * truth.T_world_cam[:, :3, 3], atol=1e-12)
     np.testing.assert_allclose(sequence.poses[:, :3, :3], truth.T_world_cam[:, :3, :3], atol=1e-12)
@@ -75,7 +74,7 @@ def test_unitycam_units_and_depth_scale_come_from_params(tmp_path):
 
 def test_unitycam_ray_length_depth_becomes_z_depth(tmp_path):
     truth = write_endoslam_unitycam(tmp_path, frames=1, size=32)
-    cfg = replace(EndoSLAMConfig(), depth_is_ray_length=True, intrinsics=[[20.0, 0, 15.5], [0, 20.0, 15.5], [0, 0, 1]])
+    cfg = EndoSLAMConfig().replace(depth_is_ray_length=True, intrinsics=[[20.0, 0, 15.5], [0, 20.0, 15.5], [0, 0, 1]])
     depth = _only(tmp_path, cfg).load_depth(0)
     v, u = np.mgrid[0:32, 0:32]
     ray_norm = np.sqrt(((u - 15.5) / 20.0) ** 2 + ((v - 15.5) / 20.0) ** 2 + 1)
@@ -153,7 +152,7 @@ def test_calibration_folder_is_not_a_sequence(tmp_path):
 # --------------------------------------------------------------------------------- real cameras
 def test_camera_layout_joins_poses_on_image_frame(tmp_path):
     truth = write_endoslam_camera(tmp_path, frames=4)
-    cfg = replace(EndoSLAMConfig(), intrinsics=CAMERA_K, split="val")
+    cfg = EndoSLAMConfig().replace(intrinsics=CAMERA_K, split="val")
     with pytest.warns(UserWarning, match="1 of 4 frames have no pose row"):
         sequence = _only(tmp_path, cfg)
     assert (sequence.name, sequence.group, sequence.split) == ("HighCam/Colon-IV/TumorfreeTrajectory_1", "Colon", "val")
@@ -167,7 +166,7 @@ def test_camera_layout_joins_poses_on_image_frame(tmp_path):
 
 def test_camera_poses_left_handed_are_converted(tmp_path):
     truth = write_endoslam_camera(tmp_path, frames=3)
-    cfg = replace(EndoSLAMConfig(), intrinsics=CAMERA_K, camera_poses_left_handed=True)
+    cfg = EndoSLAMConfig().replace(intrinsics=CAMERA_K, camera_poses_left_handed=True)
     with pytest.warns(UserWarning):
         sequence = _only(tmp_path, cfg)
     np.testing.assert_allclose(sequence.poses[:2], FLIP_Y @ truth.T_world_cam[:2] @ FLIP_Y, atol=1e-12)
@@ -185,7 +184,7 @@ def test_camera_sheet_with_missing_columns(tmp_path):
     columns = ["ImageFrame", "Pose_Index", "x", "y", "z", "quot_x", "quot_y", "quot_z", "quot_w"]
     write_endoslam_camera(tmp_path, frames=2, columns=columns)
     sheet = tmp_path / "Cameras" / "HighCam" / "Colon-IV" / "TumorfreeTrajectory_1" / "Poses" / "poses.xlsx"
-    cfg = replace(EndoSLAMConfig(), intrinsics=CAMERA_K)
+    cfg = EndoSLAMConfig().replace(intrinsics=CAMERA_K)
     expected = "expected columns ImageFrame, Pose_Index, trans_x.*; missing trans_x, trans_y, trans_z"
     with pytest.raises(DataFormatError, match=expected) as info:
         EndoSLAMReader(tmp_path, cfg).sequences()
@@ -195,9 +194,9 @@ def test_camera_sheet_with_missing_columns(tmp_path):
 def test_layout_param_selects_one_layout(tmp_path):
     write_endoslam_unitycam(tmp_path, frames=2)
     write_endoslam_camera(tmp_path, frames=2)
-    unity_only = EndoSLAMReader(tmp_path, replace(EndoSLAMConfig(), layout="unitycam")).sequences()
+    unity_only = EndoSLAMReader(tmp_path, EndoSLAMConfig().replace(layout="unitycam")).sequences()
     assert [s.name for s in unity_only] == ["UnityCam/Colon"]
-    cfg = replace(EndoSLAMConfig(), layout="auto", intrinsics=CAMERA_K)
+    cfg = EndoSLAMConfig().replace(layout="auto", intrinsics=CAMERA_K)
     with pytest.warns(UserWarning):
         both = EndoSLAMReader(tmp_path, cfg).sequences()
     assert [s.name for s in both] == ["HighCam/Colon-IV/TumorfreeTrajectory_1", "UnityCam/Colon"]
@@ -206,5 +205,5 @@ def test_layout_param_selects_one_layout(tmp_path):
 def test_requested_layout_missing(tmp_path):
     write_endoslam_unitycam(tmp_path, frames=2)
     with pytest.raises(DataFormatError, match="folder not found") as info:
-        EndoSLAMReader(tmp_path, replace(EndoSLAMConfig(), layout="camera")).sequences()
+        EndoSLAMReader(tmp_path, EndoSLAMConfig().replace(layout="camera")).sequences()
     assert info.value.path == tmp_path / "Cameras"

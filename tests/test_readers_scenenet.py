@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -49,7 +48,7 @@ def test_trajectories_sorted_and_capped_by_params(tmp_path):
     write_scenenet(tmp_path, trajectory="10")
     write_scenenet(tmp_path, trajectory="9", photos=False)
     write_scenenet(tmp_path, split="val", part="0", trajectory="1")
-    sequences = SceneNetReader(tmp_path, replace(SceneNetConfig(), max_frames_per_trajectory=2)).sequences()
+    sequences = SceneNetReader(tmp_path, SceneNetConfig().replace(max_frames_per_trajectory=2)).sequences()
     assert [s.name for s in sequences] == ["train/0/9", "train/0/10", "val/0/1"]
     assert [s.frame_ids for s in sequences] == [[0, 25]] * 3
     assert sequences[0].load_rgb is None and sequences[1].load_rgb is not None

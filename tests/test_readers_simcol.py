@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -98,7 +97,7 @@ def test_fixture_round_trip_poses_rgb_depth_and_K(simcol):
 
 def test_splits_follow_the_config_lists(simcol):
     root, _ = simcol
-    cfg = replace(SimColConfig(), val=["S1"], test=["S4"])
+    cfg = SimColConfig().replace(val=["S1"], test=["S4"])
     splits = {s.name: s.split for s in SimColReader(root, cfg).sequences()}
     assert splits == {"S1": "val", "S4": "test", "O1": "train"}
 
@@ -110,7 +109,7 @@ def test_sequences_sorted_by_number_not_text(tmp_path):
 
 def test_K_scaled_by_stored_width_over_reference_size(simcol):
     root, _ = simcol
-    cfg = replace(SimColConfig(), reference_size=64)
+    cfg = SimColConfig().replace(reference_size=64)
     K = SimColReader(root, cfg).sequences()[0].K
     np.testing.assert_allclose(K, scaled_K(SIMCOL_K_475, 0.5, 0.5))
     assert K[0, 0] == pytest.approx(227.60416 / 2) and K[0, 2] == pytest.approx(227.60416 / 2 - 0.25)
@@ -120,7 +119,7 @@ def test_intrinsics_param_overrides_cam_txt(simcol):
     root, _ = simcol
     (root / "SyntheticColon_I" / "cam.txt").unlink()
     override = [[200.0, 0.0, 237.0], [0.0, 210.0, 237.0], [0.0, 0.0, 1.0]]
-    cfg = replace(SimColConfig(), intrinsics=override, reference_size=32)
+    cfg = SimColConfig().replace(intrinsics=override, reference_size=32)
     for sequence in SimColReader(root, cfg).sequences():
         np.testing.assert_array_equal(sequence.K, override)
 

@@ -11,7 +11,7 @@ import os
 import tarfile
 import threading
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -105,7 +105,7 @@ class SyntheticSource:
 def small_params(workers: int = 1, size: int = 32) -> Params:
     params = Params()
     params.data.size = size
-    params.preprocess = replace(params.preprocess, workers=workers, samples_per_shard=3, shard_multiple=2)
+    params.preprocess = params.preprocess.replace(workers=workers, samples_per_shard=3, shard_multiple=2)
     return params
 
 

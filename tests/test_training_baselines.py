@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +18,7 @@ def baseline_step(root: Path, out: Path, neighbour_offset: int) -> np.ndarray:
     params = Params()
     params.data.simcol.root = str(root)
     params.data.size = 32
-    params.preprocess = replace(params.preprocess, out=str(out), engine="local", workers=1,
+    params.preprocess = params.preprocess.replace(out=str(out), engine="local", workers=1,
                                 neighbour_offset=neighbour_offset)
     preprocess_dataset("simcol", params, out / "simcol")
     urls = sorted(str(path) for path in (out / "simcol").glob("train-*.tar"))
