@@ -33,6 +33,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Optional
 
+import requests
 from mlflow import MlflowClient
 from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param, RunStatus
 from mlflow.exceptions import MlflowException
@@ -115,7 +116,7 @@ def best_effort(uri: str, what: str, write: Callable[[], Any], run_id: Optional[
         return False
     try:
         write()
-    except (MlflowException, OSError) as exc:  # requests' errors are OSErrors
+    except (MlflowException, requests.RequestException) as exc:  # the store's errors; not those of local files
         _lost_stores[uri] = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
         kept = f"; metrics are kept in {unlogged_file(run_id)}" if run_id else ""
         print(f"warning: MLflow at {uri} did not take {what} ({_lost_stores[uri]}); this process logs nothing "

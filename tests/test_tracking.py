@@ -214,6 +214,8 @@ def test_metrics_kept_while_the_server_was_lost_are_replayed_into_the_run(lost_s
     assert sorted((m.step, m.value) for m in history) == [(0, 3.0), (1, 2.0), (2, 1.0)]
     assert tracking.client(uri).get_run(run_id).info.status == "FINISHED"
     assert not kept.exists()
+    with pytest.raises(FileNotFoundError):  # a local file's error is no lost store: it is raised as it is
+        tracking.log_artifact(uri, run_id, tmp_path / "missing.png")
 
 
 def test_requests_give_up_after_seconds_unless_the_environment_says_otherwise(monkeypatch) -> None:
