@@ -64,7 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     summary.add_argument("--json", action="store_true")
     summary.set_defaults(handler=_model_summary)
     export = model.add_parser("export", help="DepthNet and PoseNet as ONNX graphs, checked with onnxruntime")
-    export.add_argument("--model", type=Path, default=None, help="model file (default: params' train.out)")
+    export.add_argument("--model", default=None,
+                        help="model file, or an MLflow model: models:/<name>/<version> (the store of params.yaml's "
+                             "tracking.uri) (default: params' train.out)")
     export.add_argument("--format", choices=["onnx"], default="onnx")
     export.add_argument("--out", type=Path, required=True, help="folder for the graphs and export.json")
     export.set_defaults(handler=_model_export)
@@ -227,12 +229,13 @@ def _model_file(location: str, params_path: str) -> Iterator[Path]:
 def _model_export(args: argparse.Namespace) -> int:
     from endoflow.models.export import ExportVerificationError, export_onnx, format_export
 
-    model_path = args.model or Path(_params_if_present(args.params).train.out)
-    try:
-        report = export_onnx(model_path, args.out)
-    except ExportVerificationError as exc:  # the graphs are not trustworthy: nothing was replaced
-        print(f"endoflow: error: {exc}", file=sys.stderr)
-        return 1
+    location = args.model or _params_if_present(args.params).train.out
+    with _model_file(location, args.params) as model_path:
+        try:
+            report = export_onnx(model_path, args.out, model_label=location)
+        except ExportVerificationError as exc:  # the graphs are not trustworthy: nothing was replaced
+            print(f"endoflow: error: {exc}", file=sys.stderr)
+            return 1
     print(format_export(report))
     return 0
 

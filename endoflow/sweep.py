@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 from typing import Iterable
 
+from endoflow.config import ConfigError, load_params
 from endoflow.report import ABLATIONS, DEFAULT_KL_WEIGHT, DEFAULT_POSE_SAMPLE
 
 SWEEP_TARGET = "evaluate"
@@ -33,7 +34,8 @@ STUDIES = ("ablation", "vae")
 
 
 class SweepError(RuntimeError):
-    """A ``dvc`` command of the sweep failed; DVC has printed why."""
+    """The sweep's params do not validate (nothing is queued then), or a ``dvc`` command of the sweep failed (DVC
+    has printed why)."""
 
 
 def sweep_commands(seeds: Iterable[int], study: str = "ablation") -> list[list[str]]:
@@ -59,6 +61,20 @@ def _flag(value: bool) -> str:
     return str(value).lower()
 
 
+def check_sweep_params(project_root: str | Path, commands: list[list[str]]) -> None:
+    """Validate the project's ``params.yaml`` with each experiment's ``-S`` changes before anything is queued: a
+    typo would otherwise fail every queued experiment, one after another, hours later."""
+    path = Path(project_root) / "params.yaml"
+    for arguments in commands:
+        changes = [value for flag, value in zip(arguments, arguments[1:]) if flag == "-S"]
+        try:
+            load_params(path, changes)
+        except ConfigError as exc:
+            name = arguments[arguments.index("-n") + 1]
+            raise SweepError(f"{exc} (with experiment {name}'s changes {' '.join(changes)}); nothing was "
+                             f"queued") from None
+
+
 def stage_environment() -> dict[str, str]:
     """The environment of the ``dvc`` commands: stage commands call ``python``, and the queue worker started here
     runs them, so this interpreter's folder comes first on PATH (as in ``make repro``), activated or not."""
@@ -71,6 +87,7 @@ def run_sweep(project_root: str | Path, seeds: Iterable[int], start: bool = True
     """Queue ``study``'s sweep in the DVC project at ``project_root`` and, with ``start``, start one queue
     worker."""
     dvc = [sys.executable, "-m", "dvc"]
+    check_sweep_params(project_root, sweep_commands(seeds, study))
     commands = sweep_commands(seeds, study) + ([["queue", "start", "-j", "1"]] if start else [])
     for arguments in commands:
         print(f"[sweep] dvc {' '.join(arguments)}", flush=True)

@@ -214,6 +214,7 @@ def test_the_sweep_queues_every_configuration_with_every_seed_naming_each_switch
 
 def test_the_sweep_outside_a_dvc_project_fails_naming_the_command_and_the_folder(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
+    (tmp_path / "params.yaml").write_text("")  # valid params (the defaults), so the sweep gets as far as DVC
     assert main(["sweep", "--seeds", "0", "--no-start"]) == 1
     error = capsys.readouterr().err
     assert "endoflow sweep: error: `dvc exp run --queue -n full-seed0" in error and str(tmp_path) in error
@@ -300,6 +301,7 @@ def test_the_sweep_runs_dvc_with_this_interpreters_folder_first_on_path(tmp_path
     monkeypatch.setenv("PATH", "/usr/bin")
     monkeypatch.setattr(subprocess, "run", lambda command, cwd, env: calls.append((command, env))
                         or subprocess.CompletedProcess(command, 0))
+    (tmp_path / "params.yaml").write_text("")
     sweep.run_sweep(tmp_path, [0], start=True)
     assert calls[-1][0][-4:] == ["queue", "start", "-j", "1"] and len(calls) == 5
     assert all(env["PATH"].split(os.pathsep)[:2] == [str(Path(sys.executable).parent), "/usr/bin"]

@@ -151,3 +151,37 @@ def test_evaluate_takes_a_models_uri_and_logs_into_the_models_training_run(logge
         "abs_rel"] == result["depth_paper"]["model"]["abs_rel"]
     logged_metrics = tracking.client(tracking.tracking_uri(eval_params, project)).get_run(run_id).data.metrics
     assert logged_metrics["simcol_3/abs_rel"] == pytest.approx(result["depth_paper"]["model"]["abs_rel"])
+
+
+def test_model_export_takes_a_models_uri(logged, params, project, monkeypatch, capsys):
+    from endoflow.models import export
+
+    model_path, _, _ = logged
+    seen = {}
+
+    def export_onnx(path, out, model_label=None):  # the export itself is tested in test_export.py
+        seen.update(sha256=file_sha256(path), label=model_label)
+        return "the report"
+
+    monkeypatch.setattr(export, "export_onnx", export_onnx)
+    monkeypatch.setattr(export, "format_export", lambda report: f"printed {report}")
+    monkeypatch.chdir(project)
+    assert cli(["model", "export", "--model", f"models:/{NAME}/1", "--out", str(project / "onnx")]) == 0
+    assert seen == {"sha256": file_sha256(model_path), "label": f"models:/{NAME}/1"}
+    assert "printed the report" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("artifact", ["../outside.pt", "/tmp/outside.pt", "linked/outside.pt"])
+def test_an_mlmodel_naming_a_file_outside_the_downloaded_model_is_refused(tmp_path, artifact):
+    from endoflow.errors import DataFormatError
+    from endoflow.models.mlflow_model import MODEL_FILE_ARTIFACT, model_file_of
+
+    model_dir = tmp_path / "download"
+    model_dir.mkdir()
+    (tmp_path / "outside.pt").write_bytes(b"not yours")
+    (model_dir / "linked").symlink_to(tmp_path)
+    (model_dir / "MLmodel").write_text(yaml.safe_dump(
+        {"flavors": {"python_function": {"artifacts": {MODEL_FILE_ARTIFACT: {"path": artifact}}}}}))
+    with pytest.raises(DataFormatError, match=rf"models:/m/1: its MLmodel names the model file '{artifact}', outside "
+                                              r"the downloaded model: refused"):
+        model_file_of(model_dir, "models:/m/1")

@@ -230,6 +230,9 @@ def test_bad_inputs_fail_saying_what_to_provide(scene: Path, params: Params, tmp
         open_frames(tmp_path / "notes.txt", None, params)
     with pytest.raises(DataFormatError, match="no sequence 'S9'; it has 3: B1, O1, S1"):
         open_frames(scene, "S9", params)
+    with pytest.raises(DataFormatError, match=r"SimCol3D: is a simcol dataset root: pick a sequence with --sequence "
+                                              r"\(it has 3: B1, O1, S1\)"):
+        open_frames(scene, None, params)
     with pytest.raises(ValueError, match="multiple of 32"):
         ReconstructOptions(size=50)
     with pytest.raises(ValueError, match="start < stop"):

@@ -116,3 +116,15 @@ def test_a_crop_beyond_the_frames_or_malformed_is_refused(model_file: Path, tmp_
     assert "--crop 64,0,128,64 reaches beyond the 128x64 px frames" in capsys.readouterr().err
     assert cli([*base, "--crop", "0,0,64"]) == 2
     assert "--crop: expected x,y,width,height in whole pixels" in capsys.readouterr().err
+
+
+def test_a_start_beyond_the_input_and_a_negative_voxel_fail_without_a_traceback(
+        model_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    frames = noise_folder(tmp_path / "frames", 64, 64)
+    base = ["reconstruct", str(frames), "--model", str(model_file), "--out", str(tmp_path / "out"),
+            "--intrinsics", "50,50,32,32"]
+    assert cli([*base, "--start", "5"]) == 2
+    assert f"2 images in {frames}: --start 5 is beyond its 2 frames (positions 0 to 1)" in capsys.readouterr().err
+    assert cli([*base, "--voxel-cm", "-0.1"]) == 2
+    assert "--voxel-cm must be a positive number, got -0.1" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

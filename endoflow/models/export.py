@@ -26,7 +26,7 @@ import warnings
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Optional
 
 import numpy as np
 import onnxruntime
@@ -75,10 +75,11 @@ class GraphReport:
 
 @dataclass
 class ExportReport:
-    """What :func:`export_onnx` wrote to ``out_dir`` and measured; ``record`` is the content of ``export.json``."""
+    """What :func:`export_onnx` wrote to ``out_dir`` and measured; ``model`` names the model file (or MLflow URI);
+    ``record`` is the content of ``export.json``."""
 
     out_dir: Path
-    model_path: Path
+    model: str
     model_sha256: str
     image_size: tuple[int, int]
     graphs: list[GraphReport]
@@ -107,8 +108,10 @@ class PoseGraph(nn.Module):
         return self.model.predict_pose(target, source, source_is_next=True)
 
 
-def export_onnx(model_path: str | Path, out_dir: str | Path) -> ExportReport:
-    """Export the model file's DepthNet and PoseNet (mean head) to ONNX in ``out_dir`` and verify them.
+def export_onnx(model_path: str | Path, out_dir: str | Path, model_label: Optional[str] = None) -> ExportReport:
+    """Export the model file's DepthNet and PoseNet (mean head) to ONNX in ``out_dir`` and verify them;
+    ``model_label`` names the model in ``export.json`` (default: ``model_path``; an MLflow URI for a model
+    downloaded to a temporary file).
 
     Each graph is written to a temporary beside its target, checked with onnxruntime (CPU) against torch on
     a seeded batch of :data:`VERIFY_BATCH` random images, and renamed into place only when both graphs pass;
@@ -144,7 +147,7 @@ def export_onnx(model_path: str | Path, out_dir: str | Path) -> ExportReport:
                                       sha256=file_sha256(temporary), max_abs_diff=diff,
                                       tolerance=rtol * output_scale(expected), inputs=interfaces[name][0],
                                       outputs=interfaces[name][1]))
-    report = _report(model_path, out_dir, record, graphs)
+    report = _report(model_path, model_label or str(model_path), out_dir, record, graphs)
     write_json(out_dir / REPORT_FILE, report.record)
     return report
 
@@ -227,7 +230,8 @@ def graph_interfaces(record: ModelRecord) -> dict[str, tuple[list[dict[str, Any]
     }
 
 
-def _report(model_path: Path, out_dir: Path, record: ModelRecord, graphs: list[GraphReport]) -> ExportReport:
+def _report(model_path: Path, model_label: str, out_dir: Path, record: ModelRecord,
+            graphs: list[GraphReport]) -> ExportReport:
     """The export's record (``export.json``): the graphs' interfaces, conventions, and what was measured."""
     size = record.params.data.size
     model_sha256 = file_sha256(model_path)
@@ -235,7 +239,7 @@ def _report(model_path: Path, out_dir: Path, record: ModelRecord, graphs: list[G
         "format": "onnx",
         "opset": OPSET,
         "exporter": f"torch.onnx.export(dynamo=True), torch {torch.__version__}",
-        "model": {"path": str(model_path), "sha256": model_sha256, "epoch": record.epoch,
+        "model": {"path": model_label, "sha256": model_sha256, "epoch": record.epoch,
                   "mlflow_run_id": record.mlflow_run_id},
         "image_size": [size, size],
         "conventions": {
@@ -252,13 +256,13 @@ def _report(model_path: Path, out_dir: Path, record: ModelRecord, graphs: list[G
                             "outputs": g.outputs, "max_abs_diff": g.max_abs_diff, "tolerance": g.tolerance}
                    for g in graphs},
     }
-    return ExportReport(out_dir=out_dir, model_path=model_path, model_sha256=model_sha256,
+    return ExportReport(out_dir=out_dir, model=model_label, model_sha256=model_sha256,
                         image_size=(size, size), graphs=graphs, record=data)
 
 
 def format_export(report: ExportReport) -> str:
     """A short summary for the command line: files, sizes, max abs differences."""
-    lines = [f"exported {report.model_path} (sha256 {report.model_sha256[:12]}, images "
+    lines = [f"exported {report.model} (sha256 {report.model_sha256[:12]}, images "
              f"{report.image_size[0]}x{report.image_size[1]}) to {report.out_dir}, opset {OPSET}:"]
     for g in report.graphs:
         unit = "cm" if g.name == "depth_net" else "(4x4 entries; translation in cm)"

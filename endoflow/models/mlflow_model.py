@@ -21,6 +21,7 @@ from typing import Any, Iterator, Optional
 import numpy as np
 import yaml
 
+from endoflow.errors import DataFormatError
 from endoflow.models.model_file import load_model_file
 
 MODEL_URI_SCHEMES = ("models:/", "runs:/")
@@ -149,7 +150,8 @@ def local_model_file(location: str | Path, tracking_uri: str) -> Iterator[Path]:
 
 
 def model_file_of(model_dir: Path, location: str) -> Path:
-    """The model file of a downloaded MLflow model, named by its ``MLmodel`` (plain YAML)."""
+    """The model file of a downloaded MLflow model, named by its ``MLmodel`` (plain YAML); a path leading out of
+    ``model_dir`` (``../``, absolute, a link) is refused before anything is read there."""
     description = model_dir / "MLmodel"
     if not description.is_file():
         raise FileNotFoundError(f"{location}: not an MLflow model (no MLmodel file)")
@@ -158,4 +160,8 @@ def model_file_of(model_dir: Path, location: str) -> Path:
     if "path" not in entry:
         raise FileNotFoundError(f"{location}: not an endoflow model (its MLmodel names no {MODEL_FILE_ARTIFACT} "
                                 f"artifact)")
-    return model_dir / entry["path"]
+    artifact = model_dir / str(entry["path"])
+    if model_dir.resolve() not in artifact.resolve().parents:
+        raise DataFormatError(location, f"its MLmodel names the model file {entry['path']!r}, outside the downloaded "
+                                        f"model: refused (the logged model has been tampered with)")
+    return artifact

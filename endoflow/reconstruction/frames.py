@@ -166,9 +166,7 @@ class DatasetFrames(FrameSource):
         sequences = open_reader(root, None, params).sequences()
         found = [s for s in sequences if s.name == sequence]
         if not found:
-            names = ", ".join(s.name for s in sequences[:12])
-            raise DataFormatError(root, f"no sequence {sequence!r}; it has {len(sequences)}: {names}"
-                                        f"{' ...' if len(sequences) > 12 else ''}")
+            raise DataFormatError(root, f"no sequence {sequence!r}; it has {sequence_names(sequences)}")
         self.sequence: Sequence = found[0]
         if self.sequence.load_rgb is None:
             raise DataFormatError(root, f"sequence {sequence!r} has depth maps only, no images")
@@ -186,6 +184,12 @@ class DatasetFrames(FrameSource):
                 yield InputFrame(index, index / DEFAULT_FOLDER_FPS, frame.rgb, frame.depth_cm, frame.T_world_cam)
 
 
+def sequence_names(sequences: list[Sequence], shown: int = 12) -> str:
+    """``"3: B1, O1, S1"``: how many sequences, and the first ``shown`` names."""
+    names = ", ".join(s.name for s in sequences[:shown])
+    return f"{len(sequences)}: {names}{' ...' if len(sequences) > shown else ''}"
+
+
 def open_frames(source: Path, sequence: Optional[str], params: Params) -> FrameSource:
     """The frame source for ``source``: a dataset root when ``sequence`` is given, else a video file or a folder
     of images. Errors say what to provide."""
@@ -194,11 +198,25 @@ def open_frames(source: Path, sequence: Optional[str], params: Params) -> FrameS
     if sequence is not None:
         return DatasetFrames(source, sequence, params)
     if source.is_dir():
+        if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in source.iterdir()):
+            refuse_dataset_root(source, params)
         return FolderFrames(source)
     if source.suffix.lower() in VIDEO_SUFFIXES:
         return VideoFrames(source)
     raise DataFormatError(source, f"is neither a folder of images nor a video ({', '.join(VIDEO_SUFFIXES)}); "
                                   f"for a dataset root, also give --sequence")
+
+
+def refuse_dataset_root(folder: Path, params: Params) -> None:
+    """Raise, listing its sequences, if ``folder`` (which holds no images) is a dataset root our readers know:
+    it needs ``--sequence``."""
+    try:
+        reader = open_reader(folder, None, params)
+        sequences = reader.sequences()
+    except DataFormatError:  # not a dataset root either: the folder's own error says what was expected
+        return
+    raise DataFormatError(folder, f"is a {reader.name} dataset root: pick a sequence with --sequence (it has "
+                                  f"{sequence_names(sequences)})")
 
 
 # ------------------------------------------------------------------------------------------- intrinsics

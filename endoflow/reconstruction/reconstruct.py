@@ -93,6 +93,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
                 options: ReconstructOptions) -> dict:
     """Run the model over ``source`` and write the outputs listed in the module docstring; returns the summary
     written to ``reconstruction.json``."""
+    check_frame_range(source, options.frames)
     device = resolve_device(options.device, "--device")
     model, record = load_trained_model(model_path, device)
     size = options.size or record.params.data.size
@@ -128,8 +129,8 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
                     volume.integrate(depth, rgb, K, pose)
                 previous = image
                 report_progress(path.count, started, source, options.frames)
-            if path.count == 0:
-                raise ValueError(f"{source.description}: no frames in the range {asdict(options.frames)}")
+            if path.count == 0:  # a source that did not know its length
+                raise DataFormatError(source.description, f"no frames from --start {options.frames.start} on")
         write_json(stage / "depth" / "depth.json", {
             "unit_cm": unit, "meaning": "z-depth along the optical axis (OpenCV camera), in counts of unit_cm",
             "unknown": 0, "scale_applied": options.scale, "preview_range_cm": shown})
@@ -155,6 +156,13 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     print(f"[reconstruct] {path.count} frames in {format_duration(seconds)} ({path.count / seconds:.1f} frames/s) "
           f"-> {out_dir}", file=sys.stderr)
     return summary
+
+
+def check_frame_range(source: FrameSource, frames: FrameRange) -> None:
+    """Refuse a range that starts beyond the frames of a source that knows how many it has."""
+    if source.length is not None and frames.start >= source.length:
+        raise DataFormatError(source.description, f"--start {frames.start} is beyond its {source.length} frames "
+                                                  f"(positions 0 to {source.length - 1})")
 
 
 def predict_frame(model: torch.nn.Module, image: torch.Tensor, previous: Optional[torch.Tensor], scale: float,
