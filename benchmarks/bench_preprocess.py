@@ -28,7 +28,7 @@ import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -116,7 +116,7 @@ def bare_loop(params: Params) -> int:
 
 
 def with_workers(params: Params, workers: int) -> Params:
-    return replace(params, preprocess=replace(params.preprocess, workers=workers))
+    return params.replace(preprocess=params.preprocess.replace(workers=workers))
 
 
 def main() -> None:
@@ -132,7 +132,7 @@ def main() -> None:
         params.data.size = args.size
         params.data.simcol.root = str(root)
         # one split holds every sequence here: smaller shards than the default keep both workers busy
-        params.preprocess = replace(params.preprocess, samples_per_shard=32, shard_multiple=2)
+        params.preprocess = params.preprocess.replace(samples_per_shard=32, shard_multiple=2)
         out = Path(tmp) / "shards"
         # interleaved and best-of-N: on a shared machine the minimum is the least disturbed run
         for _ in range(args.repeats):

@@ -9,7 +9,6 @@ from __future__ import annotations
 import errno
 import os
 import random
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -124,7 +123,7 @@ def test_train_refuses_a_planted_checkpoint_before_ray_starts_and_marks_the_run_
 
     params = project(tmp_path)
     storage = tmp_path / "checkpoints"
-    params.ray = replace(params.ray, storage_path=str(storage))
+    params.ray = params.ray.replace(storage_path=str(storage))
     shards = str(tmp_path / params.train.shards)
     run = storage / f"{params.ray.run_name}-{training_fingerprint(params, shards, None)}"
     plant(run / "epoch-0000" / "state.pt", tmp_path / "payload-ran")
@@ -151,8 +150,8 @@ def test_a_corrupted_latent_bank_fails_before_ray_starts_naming_the_file(tmp_pat
     bank = tmp_path / "models" / "latent_bank.pt"
     bank.parent.mkdir(parents=True)
     bank.write_bytes(b"PK\x03\x04" + bytes(200))  # a zip header, then damage
-    params.model = replace(params.model, latent_bank=True)
-    params.train = replace(params.train, latent_bank=str(bank))
+    params.model = params.model.replace(latent_bank=True)
+    params.train = params.train.replace(latent_bank=str(bank))
 
     def ray_must_not_start(*_args, **_kwargs):
         raise AssertionError("Ray was started with an unreadable latent bank")
@@ -171,7 +170,7 @@ def test_workers_the_cluster_cannot_hold_fail_naming_the_key_and_the_run_is_fail
     from tests.test_ray import project
 
     params = project(tmp_path)
-    params.ray = replace(params.ray, num_cpus=None, cpus_per_worker=64.0, storage_path=str(tmp_path / "ray"))
+    params.ray = params.ray.replace(num_cpus=None, cpus_per_worker=64.0, storage_path=str(tmp_path / "ray"))
 
     with pytest.raises(ConfigError, match="ray.cpus_per_worker") as caught:
         train(params, tmp_path)
@@ -232,7 +231,7 @@ def test_a_full_disk_during_training_names_the_storage_path_and_fails_the_run(tm
     from tests.test_ray import project
 
     params = project(tmp_path)
-    params.ray = params.ray.model_copy(update={"storage_path": str(tmp_path / "checkpoints")})
+    params.ray = params.ray.replace(storage_path=str(tmp_path / "checkpoints"))
 
     def disk_full_on_the_workers(*_args, **_kwargs):
         raise WorkerGroupFailure({0: OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))})
