@@ -34,7 +34,7 @@ def test_default_store_is_an_absolute_sqlite_file_with_artifacts_beside_it(tmp_p
 def test_flat_params_reach_into_nested_sections_and_test_sets():
     flat = tracking.flat_params(Params())
     assert flat["model.latent_bank"] == "True"
-    assert flat["train.lr"] == "0.0001"
+    assert flat["train.lr"] == "0.0002"  # the default (params.yaml)
     assert flat["eval.test_sets.simcol_3.groups"] == "['SyntheticColon_III']"
     assert all(isinstance(v, str) for v in flat.values())
 
