@@ -82,6 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--force", action="store_true",
                      help="replace --out even if it holds other files (never when it is or holds the input or model)")
     rec.add_argument("--sequence", default=None, help="a sequence of the dataset at INPUT (ground truth comes along)")
+    rec.add_argument("--pattern", default=None, metavar="GLOB",
+                     help="the frames of a folder INPUT, e.g. '*_color.png' (default: every image; a folder mixing "
+                          "frames with other images, such as depth maps, is refused)")
     rec.add_argument("--intrinsics", default=None,
                      help="cam.txt, YAML/JSON with fx, fy, cx, cy, width, height, or fx,fy,cx,cy in pixels of "
                           "the input frames (a dataset sequence brings its own)")
@@ -99,6 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--npy", action="store_true", help="also write float32 depth in cm as .npy")
     rec.add_argument("--no-fusion", dest="fuse", action="store_false", help="skip the TSDF surface")
     rec.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    rec.add_argument("--threads", type=_positive_int, default=None,
+                     help="torch's CPU threads (default: the model's params' threads; a fixed count gives the "
+                          "same depth on any machine, another count sums in another order)")
     rec.add_argument("--mlflow", action="store_true",
                      help="log the pictures, path, surface and summary into the model's MLflow run (the store of "
                           "params.yaml's tracking.uri; a new run, with a warning, if the store lacks it)")
@@ -197,8 +203,8 @@ def _reconstruct(args: argparse.Namespace) -> int:
         return 2
     with _model_file(args.model, args.params) as model_path:
         record = load_model_file(model_path)
-        use_cpu_threads(record.params.threads)  # the model's training count: the same depth on any machine
-        frames = open_frames(args.input, args.sequence, record.params)
+        use_cpu_threads(args.threads or record.params.threads)
+        frames = open_frames(args.input, args.sequence, record.params, args.pattern)
         K = intrinsics_for(args.intrinsics, frames, options.crop)
         summary = reconstruct(frames, K, model_path, args.out, options)
     if args.mlflow:
@@ -260,6 +266,13 @@ def _sweep(args: argparse.Namespace) -> int:
         print(f"endoflow sweep: error: {exc}", file=sys.stderr)
         return 1
     return 0
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text}")
+    return value
 
 
 def _params_if_present(path: str):

@@ -2,7 +2,8 @@
 
 A plain ``torch.save`` dict, loaded with ``weights_only=True`` (tensors and plain data only, so loading
 cannot execute code): ``format`` (:data:`MODEL_FORMAT`), ``model`` (state dict of the best validation epoch),
-``params`` (nested dict: the architecture is rebuilt from it), ``epoch``, ``val`` (its validation metrics),
+``params`` (nested dict: the architecture is rebuilt from it), ``epoch`` (that epoch, counted from 1 as the
+training history and metrics count), ``val`` (its validation metrics),
 ``mlflow_run_id`` (the training run, where ``evaluate`` logs too) and ``baselines`` (training-set statistics
 for the trivial baselines of the evaluation).
 """
@@ -21,7 +22,9 @@ from endoflow.errors import DataFormatError
 from endoflow.io import load_plain_torch_file, save_torch
 
 # 2: the latent bank's init-scaled convolutions carry an init_scale buffer in the state dict.
-MODEL_FORMAT = 2
+MODEL_FORMAT = 3
+# 3: the epoch counted from 1. 2: the same file with the epoch counted from 0, read as format 3.
+READ_FORMATS = (2, 3)
 
 
 @dataclass
@@ -84,7 +87,7 @@ def load_model_file(path: str | Path) -> ModelRecord:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: model file not found (run the train stage first)")
     raw = load_plain_torch_file(path, "an endoflow model file")
-    if not isinstance(raw, dict) or raw.get("format") != MODEL_FORMAT:
+    if not isinstance(raw, dict) or raw.get("format") not in READ_FORMATS:
         found = raw.get("format") if isinstance(raw, dict) else type(raw).__name__
         raise DataFormatError(path, f"model file format {found!r}, expected {MODEL_FORMAT} (an endoflow model file "
                                     f"written by the train stage)")
@@ -92,5 +95,6 @@ def load_model_file(path: str | Path) -> ModelRecord:
         params = params_from_dict(raw["params"])
     except ConfigError as exc:
         raise DataFormatError(path, f"the params stored in the model file are not valid: {exc}") from None
-    return ModelRecord(params=params, state=raw["model"], epoch=int(raw["epoch"]), val=raw["val"],
+    epoch = int(raw["epoch"]) + (1 if raw["format"] == 2 else 0)
+    return ModelRecord(params=params, state=raw["model"], epoch=epoch, val=raw["val"],
                        mlflow_run_id=raw["mlflow_run_id"], baselines=TrainingBaselines.from_record(raw["baselines"]))

@@ -12,9 +12,11 @@ import json
 import math
 import re
 from dataclasses import dataclass, replace
+from fnmatch import fnmatch
 from pathlib import Path
 from typing import Iterator, Optional
 
+import cv2
 import numpy as np
 import yaml
 
@@ -133,14 +135,21 @@ class VideoFrames(FrameSource):
 
 
 class FolderFrames(FrameSource):
-    """Images in a folder, in natural name order (``frame_2`` before ``frame_10``), one every 1/``fps`` s."""
+    """Images in a folder, in natural name order (``frame_2`` before ``frame_10``), one every 1/``fps`` s: those
+    whose names match ``pattern`` (a glob such as ``*_color.png``), or every image when it is None, refusing
+    images of different kinds (:func:`refuse_mixed_images`)."""
 
-    def __init__(self, folder: Path, fps: float = DEFAULT_FOLDER_FPS) -> None:
+    def __init__(self, folder: Path, fps: float = DEFAULT_FOLDER_FPS, pattern: Optional[str] = None) -> None:
         self.location = folder
-        self.files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
-                            key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+        images = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=natural_order)
+        self.files = [p for p in images if pattern is None or fnmatch(p.name, pattern)]
+        if not self.files and pattern is not None and images:
+            raise DataFormatError(folder, f"no image matches --pattern {pattern!r}; it holds {len(images)} images, "
+                                          f"such as {', '.join(p.name for p in images[:3])}")
         if not self.files:
             raise DataFormatError(folder, f"no images found (expected files ending in {', '.join(IMAGE_SUFFIXES)})")
+        if pattern is None:
+            refuse_mixed_images(folder, self.files)
         self.fps = fps
         self.length = len(self.files)
         self.native_size = read_rgb(self.files[0]).shape[:2]
@@ -156,6 +165,44 @@ class FolderFrames(FrameSource):
                     raise DataFormatError(path, f"image of {rgb.shape[1]}x{rgb.shape[0]} px, expected "
                                                 f"{self.native_size[1]}x{self.native_size[0]} as the first image")
                 yield InputFrame(index, index / self.fps, rgb)
+
+
+def natural_order(path: Path) -> list:
+    """Sort key: digit runs compare as numbers (``frame_2`` before ``frame_10``)."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
+
+
+def refuse_mixed_images(folder: Path, files: list[Path]) -> None:
+    """Raise when ``files`` are images of more than one kind (size, channels, bit depth): frames mixed with depth
+    maps or masks, as in C3VD's sequence folders. Each naming scheme (the name with its digits left out, so
+    ``0_color.png`` and ``30_color.png`` share one) is judged on its first file; the error lists each kind with an
+    example and suggests a ``--pattern`` for the colour ones."""
+    schemes: dict[str, list[Path]] = {}
+    for path in files:
+        schemes.setdefault(re.sub(r"\d+", "*", path.name), []).append(path)
+    kinds = {scheme: image_kind(members[0]) for scheme, members in schemes.items()}
+    if len(set(kinds.values())) < 2:
+        return
+    listing = "; ".join(f"{len(schemes[s])} like {schemes[s][0].name} ({describe_kind(kinds[s])})" for s in schemes)
+    colour = " or ".join(f"--pattern '{s}'" for s in schemes if kinds[s] is not None and kinds[s][2] in (3, 4))
+    raise DataFormatError(folder, f"holds images of different kinds, frames mixed with other files: {listing}; "
+                                  f"pick the frames with --pattern GLOB{f' ({colour})' if colour else ''}")
+
+
+def image_kind(path: Path) -> Optional[tuple[int, int, int, int]]:
+    """``(width, height, channels, bits per sample)`` of an image file; None if it does not decode."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        return None
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    return image.shape[1], image.shape[0], channels, image.dtype.itemsize * 8
+
+
+def describe_kind(kind: Optional[tuple[int, int, int, int]]) -> str:
+    if kind is None:
+        return "not a decodable image"
+    width, height, channels, bits = kind
+    return f"{width}x{height} px, {channels} channel{'s' if channels > 1 else ''}, {bits}-bit"
 
 
 class DatasetFrames(FrameSource):
@@ -190,17 +237,19 @@ def sequence_names(sequences: list[Sequence], shown: int = 12) -> str:
     return f"{len(sequences)}: {names}{' ...' if len(sequences) > shown else ''}"
 
 
-def open_frames(source: Path, sequence: Optional[str], params: Params) -> FrameSource:
+def open_frames(source: Path, sequence: Optional[str], params: Params, pattern: Optional[str] = None) -> FrameSource:
     """The frame source for ``source``: a dataset root when ``sequence`` is given, else a video file or a folder
-    of images. Errors say what to provide."""
+    of images (those matching the glob ``pattern``, see :class:`FolderFrames`). Errors say what to provide."""
     if not source.exists():
         raise FileNotFoundError(f"{source}: no such video, image folder or dataset root")
+    if pattern is not None and (sequence is not None or not source.is_dir()):
+        raise DataFormatError(source, f"--pattern {pattern!r} picks images of a folder; this input is not one")
     if sequence is not None:
         return DatasetFrames(source, sequence, params)
     if source.is_dir():
         if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in source.iterdir()):
             refuse_dataset_root(source, params)
-        return FolderFrames(source)
+        return FolderFrames(source, pattern=pattern)
     if source.suffix.lower() in VIDEO_SUFFIXES:
         return VideoFrames(source)
     raise DataFormatError(source, f"is neither a folder of images nor a video ({', '.join(VIDEO_SUFFIXES)}); "

@@ -143,6 +143,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
             "crop": asdict(region), "model_view": asdict(model_view(region)), "size": size,
             "K": K.tolist(), "scale": options.scale, "depth_unit_cm": unit,
             "seconds": seconds, "frames_per_second": path.count / seconds, "device": str(device),
+            "threads": torch.get_num_threads(),
             "tsdf": {"voxel_cm": voxel, "trunc_cm": volume.trunc_cm} if volume is not None else None,
             "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
                      "blocks": len(volume.blocks)} if mesh is not None else None,

@@ -280,7 +280,8 @@ def write_training_outputs(params: Params, root: Path, state: TrainState, run_id
                            baselines: TrainingBaselines, fingerprint: str) -> dict[str, Any]:
     """``train.out`` (best epoch's weights), ``train.metrics`` and ``train.plots`` from the final state."""
     best = state.best
-    save_model_file(root / params.train.out, ModelRecord(params=params, state=best.model, epoch=best.epoch,
+    best_epoch = int(best.epoch) + 1  # counted from 1, as the history and progress lines count
+    save_model_file(root / params.train.out, ModelRecord(params=params, state=best.model, epoch=best_epoch,
                                                          val=best.val, mlflow_run_id=run_id, baselines=baselines))
     history = pd.DataFrame(state.history)
     with staged_directory(root / params.train.plots, FIGURE_FOLDER) as folder:
@@ -290,7 +291,7 @@ def write_training_outputs(params: Params, root: Path, state: TrainState, run_id
     summary = {
         "epochs": int(state.epoch) + 1,
         "global_steps": int(state.global_step),
-        "best_epoch": int(best.epoch) + 1,  # counted from 1, as the history and progress lines count
+        "best_epoch": best_epoch,
         **{k: float(v) for k, v in best.val.items()},
         "final_train_loss": float(state.history[-1]["train_loss"]),
         "mlflow_run_id": run_id,
