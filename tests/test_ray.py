@@ -36,14 +36,16 @@ from endoflow.training.checkpoint import latest_checkpoint, load_training_state,
 from endoflow.training.ray_trainer import TrainingError, train, training_fingerprint
 from tests.test_evaluate import OracleSource, shard_params
 
+
 def project(tmp_path: Path, **train_overrides) -> Params:
     """A project folder with shards and params for a tiny training (no latent bank)."""
     params = shard_params(tmp_path / "data" / "shards")
     write_dataset_shards(OracleSource(), "simcol", params, tmp_path / "data" / "shards" / "simcol")
     params.model = params.model.replace(latent_bank=False)
     tiny = {"batch_size": 2, "steps_per_epoch": 1, "val_batches": 1, "log_every": 1, "image_examples": 1}
-    params.train = params.train.replace(**tiny, **train_overrides)
-    params.ray = params.ray.replace(num_workers=1, num_cpus=2, max_failures=0)  # an error ends the run at once
+    params.train = params.train.replace(**{**tiny, **train_overrides})
+    # one CPU a worker, so that two fit this machine's two; an error ends the run at once
+    params.ray = params.ray.replace(num_workers=1, num_cpus=2, cpus_per_worker=1.0, max_failures=0)
     return params
 
 
