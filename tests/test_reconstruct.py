@@ -107,6 +107,16 @@ def run(source_path: Path, model_file: Path, out: Path, params: Params, sequence
                        ReconstructOptions(**options))
 
 
+def recorded_rows(recording: Path) -> dict[str, int]:
+    """Rows logged per entity of a Rerun recording (a Transform3D and a Pinhole of one frame are two rows)."""
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, int] = {}
+    for chunk in RrdReader(recording).stream():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    return rows
+
+
 def depth_of(out: Path, index: int) -> np.ndarray:
     unit = json.loads((out / "depth" / "depth.json").read_text())["unit_cm"]
     return read_png16(out / "depth" / f"{index:06d}.png").astype(np.float64) * unit
@@ -130,6 +140,10 @@ def test_a_dataset_sequence_gives_depth_path_surface_and_the_scale_that_fits_its
     assert len(read_ply_vertices(out / "points.ply")) == summary["mesh"]["vertices"] > 0
     assert summary["ground_truth_scale"]["frames"] == FRAMES and summary["ground_truth_scale"]["median"] > 0
     assert json.loads((out / "reconstruction.json").read_text())["frames"] == FRAMES
+    rows = recorded_rows(out / "recording.rrd")
+    assert {rows[f"/world/camera/{part}"] for part in ("image", "depth")} == {FRAMES}
+    assert rows["/world/camera"] == 2 * FRAMES  # the pose and the intrinsics of each frame
+    assert rows["/world/path"] == rows["/world/ground_truth_path"] == rows["/world/surface"] == 1
 
 
 def test_a_folder_and_a_lossless_video_of_the_same_frames_give_the_dataset_sequences_depth(
@@ -269,8 +283,8 @@ def test_the_command_line_logs_a_reconstruction_into_mlflow_even_without_the_mod
     client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
     run = client.search_runs([client.get_experiment_by_name("endoflow").experiment_id])[0]
     logged = {item.path for item in client.list_artifacts(run.info.run_id, "reconstruct/clip")}
-    assert {"reconstruct/clip/sheet.png", "reconstruct/clip/video.mp4", "reconstruct/clip/mesh.ply",
-            "reconstruct/clip/trajectory.tum"} <= logged
+    assert {"reconstruct/clip/sheet.png", "reconstruct/clip/video.mp4", "reconstruct/clip/recording.rrd",
+            "reconstruct/clip/mesh.ply", "reconstruct/clip/trajectory.tum"} <= logged
 
 
 def test_the_pictures_show_frames_depth_path_and_surface(scene: Path, model_file: Path, params: Params,

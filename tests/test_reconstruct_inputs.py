@@ -16,7 +16,7 @@ from endoflow.errors import DataFormatError
 from endoflow.models.model_file import load_model_file, save_model_file
 from endoflow.reconstruction.crop import Crop
 from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
-from tests.test_reconstruct import model_file, params  # noqa: F401 (fixtures)
+from tests.test_reconstruct import model_file, params, recorded_rows  # noqa: F401 (fixtures)
 
 QUICK = ["--stop", "1", "--no-fusion"]
 
@@ -102,6 +102,8 @@ def test_a_side_by_side_frame_is_reconstructed_with_a_warning_and_crop_picks_a_h
     assert cli(["reconstruct", str(frames), "--model", str(model_file), "--out", str(out),
                 "--intrinsics", "60,60,32,32", "--crop", "0,0,64,64", *QUICK]) == 0
     assert "warning" not in capsys.readouterr().err
+    rows = recorded_rows(out / "recording.rrd")  # a folder has no ground truth, and fusion was off
+    assert rows["/world/camera/image"] == 1 and "/world/ground_truth_path" not in rows and "/world/surface" not in rows
     summary = json.loads((out / "reconstruction.json").read_text())
     assert summary["model_view"] == {"x": 0, "y": 0, "width": 64, "height": 64}
     assert summary["K"][0][2] == pytest.approx(32)

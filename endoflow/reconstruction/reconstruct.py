@@ -48,10 +48,11 @@ from endoflow.reconstruction.crop import Crop, crop_intrinsics, crop_warning, fr
 from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply
 from endoflow.reconstruction.pictures import FrameSampler, SideBySideVideo, depth_preview, write_contact_sheet
+from endoflow.reconstruction.recording import RECORDING_FILE, Recording
 
 # What MLflow gets of a reconstruction: what a person opens first, the path and the surface (not the depth maps).
-LOGGED_OUTPUTS = ("sheet.png", "video.mp4", "reconstruction.json", "trajectory.tum", "trajectory.kitti",
-                  "trajectory.kitti.json", "mesh.ply")
+LOGGED_OUTPUTS = ("sheet.png", "video.mp4", RECORDING_FILE, "reconstruction.json", "trajectory.tum",
+                  "trajectory.kitti", "trajectory.kitti.json", "mesh.ply")
 DEPTH_UNIT_CM = 0.001  # 16-bit counts of 10 micrometres: up to 65.5 cm
 NETWORK_STRIDE = 32  # the encoders halve the image five times
 # reconstruction.json's "format": what tells an earlier reconstruction, which a run may replace, from any other
@@ -111,6 +112,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     sampler = FrameSampler()
     with staged_directory(out_dir, EARLIER_RECONSTRUCTION, options.force, (source.location, model_path),
                           "--force") as stage, torch.no_grad():
+        recording = Recording(stage / RECORDING_FILE, source.description)
         with SideBySideVideo(stage / "video.mp4", source.fps / options.frames.stride, size, size) as video:
             previous: Optional[torch.Tensor] = None
             shown: Optional[tuple[float, float]] = None
@@ -124,6 +126,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
                 shown = shown or preview_range(depth, record.params.model, options.scale)
                 preview = write_depth(stage, frame.index, depth, unit, options.npy, shown)
                 video.add(rgb, preview)
+                recording.add_frame(frame.index, rgb, depth, unit, K, pose)
                 sampler.add(frame.index, rgb, preview)
                 if volume is not None:
                     volume.integrate(depth, rgb, K, pose)
@@ -136,6 +139,8 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
             "unknown": 0, "scale_applied": options.scale, "preview_range_cm": shown})
         path.write(stage)
         mesh = write_surface(stage, volume) if volume is not None else None
+        ground_truth = ground_truth_in_path_world(path.gt_poses, path.poses)
+        recording.finish(np.stack(path.poses), ground_truth, mesh)
         seconds = time.perf_counter() - started
         summary = {
             "format": RECONSTRUCTION_FORMAT, "input": source.description, "model": str(model_path),
@@ -153,7 +158,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
         write_contact_sheet(stage / "sheet.png", sampler.samples, shown, np.stack(path.poses),
                             mesh.vertices if mesh is not None else np.zeros((0, 3)),
                             mesh.colours if mesh is not None else np.zeros((0, 3), np.uint8),
-                            sheet_title(source, summary), ground_truth_in_path_world(path.gt_poses, path.poses))
+                            sheet_title(source, summary), ground_truth)
     print(f"[reconstruct] {path.count} frames in {format_duration(seconds)} ({path.count / seconds:.1f} frames/s) "
           f"-> {out_dir}", file=sys.stderr)
     return summary
