@@ -144,8 +144,10 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
 
 @pytest.mark.slow
 def test_a_non_finite_loss_stops_training_naming_the_step_and_keeps_the_last_checkpoint(tmp_path: Path):
-    # the learning rate becomes NaN after epoch 0, so the first update of epoch 1 breaks the weights
-    params = project(tmp_path, epochs=3, steps_per_epoch=2, schedule="step", step_epochs=1, gamma=float("nan"))
+    # the learning rate becomes NaN after epoch 0, so the first update of epoch 1 breaks the weights (a copy
+    # without validation: a params file with a NaN gamma is refused at load)
+    params = project(tmp_path, epochs=3, steps_per_epoch=2, schedule="step", step_epochs=1)
+    params.train = params.train.model_copy(update={"gamma": float("nan")})
     params.ray = params.ray.replace(storage_path=str(tmp_path / "checkpoints"))
     params.train.shards = (tmp_path / "data" / "shards" / "simcol").as_uri()  # shards through fsspec
 
