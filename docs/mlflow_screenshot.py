@@ -1,11 +1,12 @@
-"""Retake the MLflow UI pictures in docs/img: the runs table of a project's training experiment (run names and
-headline metric columns) and its registered model.
+"""Retake the MLflow UI pictures in docs/img: a first visit to the link endoflow prints for a project's training
+experiment (its runs table, with the run names and the headline metrics as columns) and its registered model.
 
 Usage, from the root of a project that has run (for example the smoke ablations of README's DVC section):
-``python docs/mlflow_screenshot.py [--project .] [--out docs/img]``. It starts ``mlflow server`` on the
-project's store (loopback, a free port), drives Debian's headless Chromium (``apt-get install chromium``) over
-the DevTools protocol on a pipe (no other package needed), picks the runs table's columns as a user would (the
-UI keeps them in the browser's local storage), and writes ``mlflow_runs.png`` and ``mlflow_model.png``.
+``python docs/mlflow_screenshot.py [--project .] [--out docs/img]``. It starts ``mlflow ui`` on the project's
+store (bound to 127.0.0.1, a free port), drives Debian's headless Chromium (``apt-get install chromium``) over
+the DevTools protocol on a pipe (no other package needed) with a fresh profile, as a first visit, opens
+:func:`endoflow.tracking.runs_table_path` and writes ``mlflow_runs.png`` and ``mlflow_model.png``; it fails if
+the page is not the runs table with the headline columns.
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ import base64
 import fcntl
 import json
 import os
-import re
 import shutil
 import socket
 import subprocess
@@ -32,10 +32,9 @@ from endoflow.io import write_bytes
 
 WINDOW = (1920, 960)
 PAGE_TIMEOUT_S = 60.0
-# the headline metrics (tracking's `<test set>/<metric>`) shown as columns by default (README's ablation table)
-HEADLINE = r"simcol_(12|3)/(abs_rel|rte|rot)"
 # the UI's own switch between its GenAI and model-training sidebars, as a link carries it
-MODEL_TRAINING_VIEW = "workflowType=machine_learning"
+MODEL_TRAINING_VIEW = f"workflowType={tracking.MODEL_TRAINING_WORKFLOW}"
+# MLflow's assistant panel opens itself on a first visit, over a third of the page
 CLOSE_ASSISTANT = ("document.querySelector('[data-component-id=\"mlflow.assistant.chat_panel.close\"]')"
                    "?.click()")
 
@@ -96,7 +95,9 @@ class DevTools:
                   mobile=False)
 
     def evaluate(self, expression: str) -> Any:
-        return self.call("Runtime.evaluate", expression=expression, returnByValue=True)["result"].get("value")
+        """The value of a JavaScript expression in the page (a promise's, once it settles)."""
+        return self.call("Runtime.evaluate", expression=expression, returnByValue=True,
+                         awaitPromise=True)["result"].get("value")
 
     def show(self, url: str, ready: Callable[[], bool]) -> None:
         self.call("Page.navigate", url=url)
@@ -129,7 +130,7 @@ def free_port() -> int:
 
 def start_server(store: str, artifacts: str, port: int) -> subprocess.Popen:
     server = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", store, "--default-artifact-root",
+        [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", store, "--default-artifact-root",
          artifacts, "--host", "127.0.0.1", "--port", str(port), "--workers", "1"],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + PAGE_TIMEOUT_S
@@ -144,16 +145,30 @@ def start_server(store: str, artifacts: str, port: int) -> subprocess.Popen:
             time.sleep(0.5)
 
 
-def runs_table_state(headline: list[str]) -> str:
-    """The runs table's saved view (what the "Columns" menu stores), with the headline metrics as columns."""
-    return json.dumps({"selectedColumns": [f"metrics.`{key}`" for key in headline]})
+# the runs table's columns: the table draws only those in sight, so scroll across it and note each one's id
+SHOWN_COLUMNS = """(async () => {
+    const seen = new Set(), table = document.querySelector('.ag-body-horizontal-scroll-viewport');
+    for (let left = 0; table && left <= table.scrollWidth; left += table.clientWidth / 2) {
+        table.scrollLeft = left;
+        await new Promise(settled => setTimeout(settled, 300));
+        document.querySelectorAll('.ag-header-cell[col-id]').forEach(cell => seen.add(cell.getAttribute('col-id')));
+    }
+    if (table) { table.scrollLeft = 0; }
+    await new Promise(settled => setTimeout(settled, 300));
+    return Array.from(seen);
+})()"""
+
+
+def shown_metrics(browser: "DevTools") -> list[str]:
+    """The metrics the runs table shows as columns."""
+    return [column[len("metrics.`"):-1] for column in browser.evaluate(SHOWN_COLUMNS)
+            if column.startswith("metrics.`")]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--project", type=Path, default=Path("."), help="project root (default: .)")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "img", help="folder for the PNGs")
-    parser.add_argument("--columns", default=HEADLINE, help=f"metrics shown as columns (default: {HEADLINE})")
     args = parser.parse_args()
     chromium = shutil.which("chromium")
     if chromium is None:
@@ -170,7 +185,10 @@ def main() -> None:
     runs = client.search_runs([experiment.experiment_id])
     if not runs:
         sys.exit(f"experiment {params.tracking.experiment!r} has no runs: run the pipeline first")
-    headline = sorted({key for run in runs for key in run.data.metrics if re.fullmatch(args.columns, key)})
+    view = json.loads(experiment.tags.get(tracking.RUNS_VIEW_TAG, "{}")).get("selectedColumns", [])
+    headline = [column[len("metrics.`"):-1] for column in view if column.startswith("metrics.")]
+    if not headline:
+        sys.exit(f"experiment {params.tracking.experiment!r} has no headline columns: evaluate a model first")
     models = client.search_registered_models()
 
     port = free_port()
@@ -181,14 +199,13 @@ def main() -> None:
             browser = DevTools(chromium, user_data)
             try:
                 browser.open_page()
-                browser.show(base, lambda: browser.evaluate("document.readyState") == "complete")
-                key = f"MLflowLocalStorage-1.1-ExperimentPage-{json.dumps([experiment.experiment_id])}-" \
-                      "ReactComponentState"
-                browser.evaluate(f"localStorage.setItem({json.dumps(key)}, {json.dumps(runs_table_state(headline))})")
                 names = [run.info.run_name for run in runs]
-                browser.show(f"{base}#/experiments/{experiment.experiment_id}/runs?{MODEL_TRAINING_VIEW}",
+                browser.show(base + tracking.runs_table_path(experiment.experiment_id),
                              lambda: all(browser.evaluate(f"document.body.innerText.includes({json.dumps(n)})")
                                          for n in names))
+                missing = sorted(set(headline) - set(shown_metrics(browser)))
+                if missing:
+                    sys.exit(f"the runs table a first visit opens lacks the headline columns {missing}")
                 browser.evaluate(CLOSE_ASSISTANT)
                 time.sleep(1.0)
                 browser.screenshot(args.out / "mlflow_runs.png")

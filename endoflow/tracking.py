@@ -24,6 +24,8 @@ Browse with ``mlflow ui --backend-store-uri sqlite:///$PWD/mlflow.db`` from the 
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import logging
 import os
@@ -31,7 +33,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Optional
+from typing import Any, Callable, Iterable, Mapping, Optional, Sequence
 
 import requests
 from mlflow import MlflowClient
@@ -52,8 +54,24 @@ SOURCE_NAME_TAG = "mlflow.source.name"
 SOURCE_TYPE_TAG = "mlflow.source.type"
 EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
 DESCRIPTION_TAG = "mlflow.note.content"
-# without a kind, MLflow 3's UI opens an experiment in its GenAI view (traces, prompts)
+# an experiment's kind, which MLflow's UI read before 3.17 (and Databricks' still reads)
 MODEL_TRAINING_KIND = "custom_model_development"
+# MLflow 3.17's UI ignores the kind: it opens every experiment in the view of its GenAI/model-training switch,
+# GenAI until the browser has chosen otherwise, unless the link says which (workflowType). Its runs table shows
+# the columns of a view that a link names (viewStateShareKey), kept in an experiment tag: endoflow keeps one per
+# experiment, with the headline metrics as columns, and links there (runs_table_link).
+MODEL_TRAINING_WORKFLOW = "machine_learning"
+SHARED_VIEW_TAG_PREFIX = "mlflow.sharedViewState."
+RUNS_VIEW_KEY = "endoflow-runs"
+RUNS_VIEW_TAG = SHARED_VIEW_TAG_PREFIX + RUNS_VIEW_KEY
+SOURCE_COLUMN = "attributes.`Source`"
+# the runs table's first columns, as MLflow 3.17's UI names them: a view that orders columns lists them first
+LEADING_COLUMNS = ("attributes.`Run Name`", "runDateAndNestInfo", "duration", SOURCE_COLUMN)
+COLUMN_PX_PER_CHARACTER, COLUMN_PADDING_PX = 6.5, 28  # a metric column as wide as its name
+# MLflow refuses a longer experiment tag value: the view keeps the newest metric columns that fit
+MAX_EXPERIMENT_TAG_CHARACTERS = 20_000
+# a sqlite store is browsed through `mlflow ui`, which serves here by default
+MLFLOW_UI_ADDRESS = "http://127.0.0.1:5000"
 # DVC sets this in the environment of every stage that `dvc exp run` (or `dvc queue start`) runs
 DVC_EXPERIMENT_ENV = "DVC_EXP_NAME"
 # a latent-bank run carries its bank file's digest; a training run, the run of the bank it used
@@ -187,7 +205,8 @@ def ensure_experiment(params: Params, project_root: str | Path, name: str) -> st
 
 
 def experiment_tags(params: Params, name: str) -> dict[str, str]:
-    """The kind (model training) and the description MLflow shows for one of endoflow's experiments."""
+    """The kind (model training), the description and the runs table's view (:func:`runs_view`, no metric
+    columns yet) of one of endoflow's experiments."""
     if name == params.tracking.latent_bank_experiment:
         description = ("Pretraining of endoflow's generative latent bank (StyleGAN-like, WGAN-GP) on depth maps: "
                        "one run per `pretrain_latent_bank` stage run, with its losses, sliced Wasserstein "
@@ -195,9 +214,54 @@ def experiment_tags(params: Params, name: str) -> dict[str, str]:
                        "(tag endoflow.latent_bank_run_id).")
     else:
         description = ("endoflow's joint depth and pose training: one run per `train` stage run, named after its "
-                       "DVC experiment (or its ablation switches and seed), with the evaluation (abs_rel, rte, "
-                       "rot per test set) and reconstruction results of its model.")
-    return {EXPERIMENT_KIND_TAG: MODEL_TRAINING_KIND, DESCRIPTION_TAG: description}
+                       "DVC experiment (or its ablation switches and seed), with the evaluation (abs_rel, rte_cm, "
+                       "rot_deg per test set) and reconstruction results of its model (ate_cm, accuracy_cm, "
+                       "completeness_2vox_pct per sequence); every figure is in each one's figures.csv.")
+    return {EXPERIMENT_KIND_TAG: MODEL_TRAINING_KIND, DESCRIPTION_TAG: description,
+            RUNS_VIEW_TAG: runs_view([])}
+
+
+def runs_view(metric_keys: Iterable[str]) -> str:
+    """The runs table's view (MLflow's UI state, JSON): the Source column and ``metric_keys`` as columns, in
+    that order, each as wide as its name (the UI would cut ``eval/endoslam_colon/abs_rel`` to ``eval/endoslam_``)."""
+    keys = list(metric_keys)
+    columns = [f"metrics.`{key}`" for key in keys]
+    return json.dumps({"selectedColumns": [SOURCE_COLUMN, *columns], "columnOrder": [*LEADING_COLUMNS, *columns],
+                       "columnWidths": {column: round(COLUMN_PX_PER_CHARACTER * len(key)) + COLUMN_PADDING_PX
+                                        for column, key in zip(columns, keys)}})
+
+
+def runs_table_link(uri: str, experiment_id: str) -> str:
+    """The address of the experiment's runs table in MLflow's UI (the store's server, else ``mlflow ui``'s
+    :data:`MLFLOW_UI_ADDRESS`): :func:`runs_table_path`."""
+    base = uri.rstrip("/") if uri.startswith(("http://", "https://")) else MLFLOW_UI_ADDRESS
+    return f"{base}/{runs_table_path(experiment_id)}"
+
+
+def runs_table_path(experiment_id: str) -> str:
+    """The experiment's runs table after the UI's address, in the model-training view with endoflow's columns: a
+    first visit lands there (a plain link to the experiment opens MLflow 3.17's GenAI overview)."""
+    return (f"#/experiments/{experiment_id}/runs?workflowType={MODEL_TRAINING_WORKFLOW}"
+            f"&viewStateShareKey={RUNS_VIEW_KEY}")
+
+
+def show_in_runs_table(uri: str, run_id: str, metric_keys: Iterable[str]) -> None:
+    """Add ``metric_keys`` (after those it has) to the columns of the runs table's view of the run's experiment
+    (:func:`best_effort`)."""
+    def write() -> None:
+        mlflow_client = client(uri)
+        experiment = mlflow_client.get_experiment(mlflow_client.get_run(run_id).info.experiment_id)
+        view = json.loads(experiment.tags.get(RUNS_VIEW_TAG, runs_view([])))
+        shown = [column for column in view.get("selectedColumns", []) if column.startswith("metrics.")]
+        wanted = list(dict.fromkeys([*(column[len("metrics.`"):-1] for column in shown), *metric_keys]))
+        updated = runs_view(wanted)
+        while len(updated) > MAX_EXPERIMENT_TAG_CHARACTERS:
+            wanted = wanted[1:]
+            updated = runs_view(wanted)
+        if updated != experiment.tags.get(RUNS_VIEW_TAG):
+            mlflow_client.set_experiment_tag(experiment.experiment_id, RUNS_VIEW_TAG, updated)
+
+    best_effort(uri, f"the runs table's columns of run {run_id}'s experiment", write, run_id)
 
 
 def dvc_experiment_name() -> Optional[str]:
@@ -246,8 +310,17 @@ def start_run(params: Params, project_root: str | Path, experiment: str, run_nam
     """
     run_id = _open_run(params, project_root, experiment, run_name, fingerprint)
     keep_unlogged_in(run_id, project_unlogged_file(project_root, run_id))
-    log_params(tracking_uri(params, project_root), run_id, flat_params(params))
+    uri = tracking_uri(params, project_root)
+    log_params(uri, run_id, flat_params(params))
+    print(f"[mlflow] run {run_name!r}: {browse_hint(uri, ensure_experiment(params, project_root, experiment))}",
+          file=sys.stderr)
     return run_id
+
+
+def browse_hint(uri: str, experiment_id: str) -> str:
+    """Where a person sees the experiment's runs: its runs table's link, after ``mlflow ui`` for a local store."""
+    link = runs_table_link(uri, experiment_id)
+    return link if uri.startswith(("http://", "https://")) else f"`mlflow ui --backend-store-uri {uri}`, then {link}"
 
 
 def _open_run(params: Params, project_root: str | Path, experiment: str, run_name: str,
@@ -424,6 +497,17 @@ def log_dict(uri: str, run_id: str, values: Mapping[str, Any], artifact_file: st
     """Save ``values`` as a JSON artifact (:func:`best_effort`)."""
     best_effort(uri, f"{artifact_file} of run {run_id}",
                 lambda: client(uri).log_dict(run_id, dict(values), artifact_file), run_id)
+
+
+def log_table(uri: str, run_id: str, rows: Sequence[Mapping[str, Any]], artifact_file: str) -> None:
+    """Save ``rows`` (one dict per row, the first one's keys as columns) as a CSV artifact, which MLflow's UI shows
+    as a table: where one-off figures go, so that the run's charts are its curves (:func:`best_effort`)."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]) if rows else [], lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    best_effort(uri, f"{artifact_file} of run {run_id}",
+                lambda: client(uri).log_text(run_id, buffer.getvalue(), artifact_file), run_id)
 
 
 def log_figure(uri: str, run_id: str, figure: Any, artifact_file: str) -> None:

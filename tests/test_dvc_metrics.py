@@ -75,7 +75,7 @@ def test_every_figure_names_its_unit_or_is_a_known_unitless_figure(path: str):
 
 def test_the_headlines_carry_each_figure_in_its_unit():
     evaluation = results.dvc_metrics("simcol_3", evaluation_result())
-    assert evaluation == {"eval_simcol_3": {"abs_rel": 0.2, "rte_cm": 0.05, "rot_deg": 0.7}}
+    assert evaluation == {"test_simcol_3": {"abs_rel": 0.2, "rte_cm": 0.05, "rot_deg": 0.7}}
     reconstruction = measure.dvc_metrics("simcol_S5", measurement_result())
     assert reconstruction == {"reconstruct_simcol_S5": {"ate_cm": 0.8, "accuracy_cm": 0.2,
                                                         "completeness_2vox_pct": pytest.approx(75.0)}}

@@ -24,6 +24,7 @@ from endoflow.data.loader import triplet_dataset
 from endoflow.data.shards import write_dataset_shards
 from endoflow.io import file_sha256
 from endoflow.evaluation import metrics
+from endoflow.evaluation.results import PROTOCOLS
 from endoflow.evaluation.evaluate import (
     SequenceEvaluator,
     batches_within_sequences,
@@ -217,7 +218,7 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     assert set(written["pose_simcol"]) == {"model", "constant_velocity"}
     assert set(written["depth_simcol"]["model"]) == {"l1", "rel", "rmse"}
     # what DVC reads: the headline, under a key of the test set's own, each name with its unit
-    assert json.loads((tmp_path / "m.json").read_text()) == {"eval_simcol_3": {
+    assert json.loads((tmp_path / "m.json").read_text()) == {"test_simcol_3": {
         "abs_rel": written["depth_paper"]["model"]["abs_rel"], "rte_cm": written["pose_simcol"]["model"]["rte"],
         "rot_deg": written["pose_simcol"]["model"]["rot"]}}
     # pictures in the plots folder; the tables DVC charts beside the predictions
@@ -230,10 +231,19 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     assert not list(tmp_path.glob(".*partial*"))
 
     run = tracking.client(uri).get_run(run_id)
-    assert "eval/simcol_3/depth_paper/model/abs_rel" in run.data.metrics
-    assert {"simcol_3/abs_rel", "simcol_3/rte_cm", "simcol_3/rot_deg"} <= set(run.data.metrics)
+    # the headline as metrics, the runs table's columns; every figure in one table, not as one-point charts
+    headline = {"test/simcol_3/abs_rel": written["depth_paper"]["model"]["abs_rel"],
+                "test/simcol_3/rte_cm": written["pose_simcol"]["model"]["rte"],
+                "test/simcol_3/rot_deg": written["pose_simcol"]["model"]["rot"]}
+    assert run.data.metrics == pytest.approx(headline)
+    view = json.loads(tracking.client(uri).get_experiment(run.info.experiment_id).tags[tracking.RUNS_VIEW_TAG])
+    assert [f"metrics.`{key}`" for key in headline] == view["selectedColumns"][1:]
     artifacts = [a.path for a in tracking.client(uri).list_artifacts(run_id, "eval/simcol_3")]
-    assert "eval/simcol_3/trajectory_O1.png" in artifacts
+    assert {"eval/simcol_3/trajectory_O1.png", "eval/simcol_3/figures.csv"} <= set(artifacts)
+    table = pd.read_csv(tracking.client(uri).download_artifacts(run_id, "eval/simcol_3/figures.csv", str(tmp_path)))
+    assert len(table) == sum(len(figures) for protocol in PROTOCOLS for figures in written[protocol].values())
+    model_abs_rel = table.query("protocol == 'depth_paper' and method == 'model' and metric == 'abs_rel'")
+    assert model_abs_rel["value"].tolist() == pytest.approx([written["depth_paper"]["model"]["abs_rel"]])
     # the test set beside the training shards, though both are the same folder (one manifest, one digest)
     inputs = {i.dataset.name: (i.dataset.digest, [(t.key, t.value) for t in i.tags]) for i in run.inputs.dataset_inputs}
     assert inputs == {"simcol": (file_sha256(manifest)[:32], [("mlflow.data.context", "training")]),
@@ -262,8 +272,7 @@ def test_a_model_whose_training_run_is_not_in_the_store_logs_into_one_new_run_wi
     runs = tracking.client(uri).search_runs([experiment.experiment_id])
     assert len(runs) == 1
     assert runs[0].data.tags[tracking.MODEL_RUN_TAG] == "0123456789abcdef0123456789abcdef"
-    assert {"eval/simcol_3/depth_paper/model/abs_rel", "eval/simcol_12/depth_paper/model/abs_rel"} <= set(
-        runs[0].data.metrics)
+    assert {"test/simcol_3/abs_rel", "test/simcol_12/abs_rel"} <= set(runs[0].data.metrics)
 
 
 def target_sample(frame: int, sequence: str = "S1") -> dict:

@@ -147,10 +147,10 @@ def test_evaluate_takes_a_models_uri_and_logs_into_the_models_training_run(logge
     eval_params.eval = eval_params.eval.replace(shards=str(shards), model=f"models:/{NAME}/1", batch_size=4)
     result = run_evaluation(eval_params, "simcol_3", project)
     assert result["mlflow_run_id"] == run_id and result["frames"] > 0
-    assert json.loads((project / eval_params.eval.metrics / "simcol_3.json").read_text())["eval_simcol_3"][
+    assert json.loads((project / eval_params.eval.metrics / "simcol_3.json").read_text())["test_simcol_3"][
         "abs_rel"] == result["depth_paper"]["model"]["abs_rel"]
     logged_metrics = tracking.client(tracking.tracking_uri(eval_params, project)).get_run(run_id).data.metrics
-    assert logged_metrics["simcol_3/abs_rel"] == pytest.approx(result["depth_paper"]["model"]["abs_rel"])
+    assert logged_metrics["test/simcol_3/abs_rel"] == pytest.approx(result["depth_paper"]["model"]["abs_rel"])
 
 
 def test_model_export_takes_a_models_uri(logged, params, project, monkeypatch, capsys):

@@ -252,7 +252,7 @@ def test_every_stage_of_the_paper_pipeline_writes_its_outputs(paper_repro):
     for test_set in params.eval.test_sets:
         evaluation = json.loads(evaluation_path(clone / params.eval.predictions, test_set).read_text())
         assert evaluation["frames"] > 0, test_set
-        headline = json.loads((clone / params.eval.metrics / f"{test_set}.json").read_text())[f"eval_{test_set}"]
+        headline = json.loads((clone / params.eval.metrics / f"{test_set}.json").read_text())[f"test_{test_set}"]
         assert set(headline) == {"abs_rel", "rte_cm", "rot_deg"}, test_set
         assert any((clone / params.eval.predictions / test_set).rglob("*.npy")), test_set
 

@@ -43,7 +43,7 @@ import torch
 from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig, Precision
 from endoflow.evaluation import metrics, plots
-from endoflow.evaluation.results import EVALUATION_FILE, dvc_metrics, headline_metrics
+from endoflow.evaluation.results import EVALUATION_FILE, PROTOCOLS, dvc_metrics, figure_rows, mlflow_metrics
 from endoflow.io import FIGURE_FOLDER, marked_output, save_figure, staged_directory, write_csv, write_json
 from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
@@ -56,7 +56,6 @@ from endoflow.models.model_file import TrainingBaselines
 
 DEPTH_METHODS = ("model", "constant_depth", "mean_depth_map")
 POSE_METHODS = ("model", "constant_velocity")
-PROTOCOLS = ("depth_paper", "depth_simcol", "pose_simcol", "pose_endoslam")
 
 
 @dataclass
@@ -457,18 +456,16 @@ def write_plots(name: str, out_plots: Path, evaluator: SequenceEvaluator, frames
 
 
 def log_evaluation(params: Params, project_root: str | Path, result: dict, plots_dir: Path) -> None:
-    """Log the metrics (``eval/<test set>/<protocol>/<method>/<metric>``, and the headline as
-    ``<test set>/<metric>``) and plots into the training run, or
-    into a run opened for the model when the store lacks its training run (:func:`tracking.run_for_model`)."""
+    """Log the headline as metrics (``test/<test set>/<name>``, columns of the runs table), every figure as the
+    table ``eval/<test set>/figures.csv`` and the plots into the training run, or into a run opened for the
+    model when the store lacks its training run (:func:`tracking.run_for_model`)."""
     run_id = tracking.run_for_model(params, project_root, result.get("mlflow_run_id"), "evaluate")
     uri = tracking.tracking_uri(params, project_root)
     prefix = f"eval/{result['test_set']}"
-    values = {f"{prefix}/{protocol}/{method}/{key}": value
-              for protocol in PROTOCOLS if protocol in result
-              for method, figures in result[protocol].items() for key, value in figures.items()}
-    values[f"{prefix}/frames_per_second"] = result["frames_per_second"]
-    values.update({f"{result['test_set']}/{key}": value for key, value in headline_metrics(result).items()})
-    tracking.log_metrics(uri, run_id, values)
+    headline = mlflow_metrics(result["test_set"], result)
+    tracking.log_metrics(uri, run_id, headline)
+    tracking.show_in_runs_table(uri, run_id, headline)
+    tracking.log_table(uri, run_id, figure_rows(result), f"{prefix}/figures.csv")
     tracking.log_artifact(uri, run_id, plots_dir, prefix)
     test_set = eval_set(params, result["test_set"])
     shards = eval_set_folder(absolute_location(params.eval.shards, project_root), test_set)

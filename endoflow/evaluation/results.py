@@ -2,9 +2,12 @@
 
 The ``evaluate`` stage writes every figure (each protocol, method and metric) to
 ``<eval.predictions>/<test set>/evaluation.json`` (what ``endoflow report`` reads), and only the headline to
-``<eval.metrics>/<test set>.json``, the file DVC reads as metrics: ``{"eval_simcol_12": {"abs_rel": ...,
+``<eval.metrics>/<test set>.json``, the file DVC reads as metrics: ``{"test_simcol_12": {"abs_rel": ...,
 "rte_cm": ..., "rot_deg": ...}}``, three columns per test set in ``dvc exp show``, named apart from every other
-stage's (see docs/outputs.md). A light module: the report imports it without torch.
+stage's (see docs/outputs.md). MLflow gets the headline as metrics (``test/simcol_12/abs_rel``, columns of its
+runs table; on a run's page their one-point charts sort after the training's curves) and every figure as one
+table (:func:`figure_rows`), not as hundreds of one-point charts. A light module: the report imports it without
+torch.
 """
 
 from __future__ import annotations
@@ -12,6 +15,8 @@ from __future__ import annotations
 from pathlib import Path
 
 EVALUATION_FILE = "evaluation.json"
+# the blocks of an evaluation result that hold {method: {metric: value}}
+PROTOCOLS = ("depth_paper", "depth_simcol", "pose_simcol", "pose_endoslam")
 # (name with its unit, protocol, method, metric) of each headline figure: the paper's depth metric (a ratio) and
 # the SimCol3D challenge's pose metrics (medians, cm and degrees), of the model
 HEADLINE = (("abs_rel", "depth_paper", "model", "abs_rel"),
@@ -34,7 +39,19 @@ def headline_metrics(result: dict) -> dict[str, float]:
     return found
 
 
+def mlflow_metrics(test_set: str, result: dict) -> dict[str, float]:
+    """The headline as MLflow metrics: ``test/<test set>/<name>``."""
+    return {f"test/{test_set}/{name}": value for name, value in headline_metrics(result).items()}
+
+
+def figure_rows(result: dict) -> list[dict]:
+    """Every figure of an evaluation result, one row each: ``protocol``, ``method``, ``metric``, ``value``."""
+    return [{"protocol": protocol, "method": method, "metric": metric, "value": value}
+            for protocol in PROTOCOLS if protocol in result
+            for method, figures in result[protocol].items() for metric, value in figures.items()]
+
+
 def dvc_metrics(test_set: str, result: dict) -> dict[str, dict[str, float]]:
-    """The content of ``<eval.metrics>/<test set>.json``: the headline under ``eval_<test set>``, a key no other
+    """The content of ``<eval.metrics>/<test set>.json``: the headline under ``test_<test set>``, a key no other
     metrics file has (a reconstructed sequence may share the test set's name)."""
-    return {f"eval_{test_set}": headline_metrics(result)}
+    return {f"test_{test_set}": headline_metrics(result)}

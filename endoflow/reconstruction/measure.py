@@ -229,7 +229,7 @@ def metrics_summary(result: dict) -> dict:
 def run_reconstruction(params: Params, name: str, project_root: str | Path = ".") -> dict:
     """The ``reconstruct`` stage for ``reconstruct.sequences.<name>``: reconstruct the sequence with the trained
     model into ``<reconstruct.out>/<name>/``, measure it (:func:`measure_reconstruction`) and log the figures and
-    pictures into the model's MLflow run. Every figure goes beside the reconstruction (:data:`MEASUREMENT_FILE`,
+    pictures into the model's MLflow run (:func:`log_measurement`). Every figure goes beside the reconstruction (:data:`MEASUREMENT_FILE`,
     and per-frame path errors in :data:`PATH_ERRORS_FILE`); ``<reconstruct.metrics>/<name>.json``, the file DVC
     reads, holds the headline (:func:`dvc_metrics`, shown by ``dvc exp show`` as ``reconstruct_simcol_S5.ate_cm``);
     ``<reconstruct.plots>/<name>/sheet.png`` is the picture sheet."""
@@ -249,7 +249,7 @@ def run_reconstruction(params: Params, name: str, project_root: str | Path = "."
     write_json(root / cfg.metrics / f"{name}.json", dvc_metrics(name, result))
     write_csv(out_dir / PATH_ERRORS_FILE, pd.DataFrame(per_frame_path_errors(result)))
     write_bytes(root / cfg.plots / name / "sheet.png", (out_dir / "sheet.png").read_bytes())
-    log_reconstruction(params, root, record.mlflow_run_id, name, out_dir, flat_metrics(result))
+    log_measurement(params, root, record.mlflow_run_id, name, out_dir, result)
     return result
 
 
@@ -268,12 +268,27 @@ def dvc_metrics(name: str, result: dict) -> dict[str, dict[str, float]]:
     return {f"reconstruct_{name}": headline_measurement(result)}
 
 
-def flat_metrics(result: dict) -> dict[str, float]:
-    """The measured errors as ``<path|surface>/<row>/<metric>`` (finite values only: MLflow refuses NaN)."""
+def log_measurement(params: Params, project_root: Path, model_run_id: str, name: str, out_dir: Path,
+                    result: dict) -> None:
+    """Into the model's MLflow run (:func:`log_reconstruction`, with the reconstruction's files): the headline
+    as metrics ``reconstruct/<name>/<figure>`` (columns of the runs table; finite values only, MLflow refuses
+    NaN) and every figure as the table ``reconstruct/<name>/figures.csv``."""
+    from endoflow import tracking  # MLflow takes seconds to import: only runs that log pay for it
+
+    run_id = log_reconstruction(params, project_root, model_run_id, name, out_dir)
+    uri = tracking.tracking_uri(params, project_root)
+    headline = {f"reconstruct/{name}/{key}": value for key, value in headline_measurement(result).items()
+                if np.isfinite(value)}
+    tracking.log_metrics(uri, run_id, headline)
+    tracking.show_in_runs_table(uri, run_id, headline)
+    tracking.log_table(uri, run_id, measurement_rows(result), f"reconstruct/{name}/figures.csv")
+
+
+def measurement_rows(result: dict) -> list[dict]:
+    """Every measured figure, one row each: ``table`` (path or surface), ``row``, ``metric``, ``value``."""
     summary = metrics_summary(result)
-    values = {f"{table}/{row}/{key}": value for table in ("path", "surface")
-              for row, figures in summary[table].items() for key, value in figures.items()}
-    return {key: float(value) for key, value in values.items() if np.isfinite(value)}
+    return [{"table": table, "row": row, "metric": metric, "value": value} for table in ("path", "surface")
+            for row, figures in summary[table].items() for metric, value in figures.items()]
 
 
 def format_measurement(name: str, result: dict) -> str:

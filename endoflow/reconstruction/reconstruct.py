@@ -304,11 +304,11 @@ def source_frame_count(source: FrameSource, frames: FrameRange) -> Optional[int]
     return max(0, math.ceil((stop - frames.start) / frames.stride))
 
 
-def log_reconstruction(params: Params, project_root: Path, model_run_id: Optional[str], name: str, out_dir: Path,
-                       metrics: Optional[dict[str, float]] = None) -> str:
+def log_reconstruction(params: Params, project_root: Path, model_run_id: Optional[str], name: str,
+                       out_dir: Path) -> str:
     """Log a reconstruction's :data:`LOGGED_OUTPUTS` as artifacts under ``reconstruct/<name>/`` of the model's
     MLflow run (or of the run :func:`endoflow.tracking.run_for_model` opens for a model whose run the store
-    lacks, with a warning), and ``metrics`` as ``reconstruct/<name>/<key>``; returns the run id."""
+    lacks, with a warning); returns the run id."""
     from endoflow import tracking  # MLflow takes seconds to import: only runs that log pay for it
     run_id = tracking.run_for_model(params, project_root, model_run_id, "reconstruct")
     uri = tracking.tracking_uri(params, project_root)
@@ -316,6 +316,4 @@ def log_reconstruction(params: Params, project_root: Path, model_run_id: Optiona
     for file in LOGGED_OUTPUTS:
         if (out_dir / file).is_file():
             tracking.log_artifact(uri, run_id, out_dir / file, prefix)
-    if metrics:
-        tracking.log_metrics(uri, run_id, {f"{prefix}/{key}": value for key, value in metrics.items()})
     return run_id

@@ -465,8 +465,10 @@ def pretrain_latent_bank(
         }
         write_json(metrics_path, dvc_metrics(metrics))
         report_line(summary_line(metrics, out_path))
-        scalars = {k: v for k, v in metrics.items() if isinstance(v, (int, float))}
-        tracking.log_metrics(uri, run_id, scalars, step=len(history))
+        # the headline as metrics (columns of the runs table); the one-off figures in metrics.json, not charts
+        headline = dvc_metrics(metrics)["latent_bank"]
+        tracking.log_metrics(uri, run_id, headline, step=len(history))
+        tracking.show_in_runs_table(uri, run_id, headline)
         tracking.log_dict(uri, run_id, metrics, "metrics.json")
         tracking.log_artifact(uri, run_id, plots_dir, "plots")
         tracking.log_artifact(uri, run_id, out_path)

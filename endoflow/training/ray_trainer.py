@@ -72,6 +72,8 @@ REPEATING_OS_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.
 # what ``train.metrics`` holds for DVC, under ``train``: {name with its unit: key of the training summary} (the
 # other figures, the run id and fingerprint are in the model file and the MLflow run)
 TRAIN_DVC_METRICS = {"best_epoch": "best_epoch", "val_abs_rel": "val_abs_rel", "val_rmse_cm": "val_rmse"}
+# the training summary (the best epoch's figures, steps, run id, fingerprint) in the MLflow run
+TRAINING_SUMMARY_ARTIFACT = "train/summary.json"
 # every line Ray's processes printed while training (the terminal shows those that matter), in the MLflow run
 # as logs/ray-from-epoch-NNNN.log, one file per attempt (a resumed training adds one)
 RAY_LOG_FOLDER = "logs"
@@ -178,8 +180,8 @@ def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: 
                 log_ray_lines(config, ray_log)
     summary = write_training_outputs(params, root, saved.state, config.run_id, baselines, fingerprint)
     uri, run_id = config.tracking_uri, config.run_id
-    tracking.log_metrics(uri, run_id, {f"best/{k}": v for k, v in summary.items()
-                                       if isinstance(v, (int, float)) and not isinstance(v, bool)})
+    # one-off figures: an artifact, not single-point charts above the run's curves
+    tracking.log_dict(uri, run_id, summary, TRAINING_SUMMARY_ARTIFACT)
     model_file, registered = root / params.train.out, params.tracking.registered_model
     tracking.best_effort(uri, "the MLflow model", lambda: log_mlflow_model(uri, run_id, model_file, registered), run_id)
     tracking.log_artifact(uri, run_id, root / params.train.plots, "plots/train")
