@@ -345,7 +345,7 @@ def contact_sheet(samples: list[Sample], depth_range_cm: tuple[float, float], po
     samples_height = SHEET_WIDTH_IN / columns * 2 + 0.6  # two rows of squares and the colour bar under them
     figure = Figure(figsize=(SHEET_WIDTH_IN, samples_height + 5.6), dpi=SHEET_DPI)
     FigureCanvasAgg(figure)
-    figure.subplots_adjust(left=0.04, right=0.98, top=0.92, bottom=0.07)  # room for a title of two lines
+    figure.subplots_adjust(left=0.055, right=0.98, top=0.92, bottom=0.07)  # room for a title of two lines and long ticks
     rows = figure.add_gridspec(2, 1, height_ratios=[samples_height, 4.6], hspace=0.16)
     grid = rows[0].subgridspec(3, 2 * columns, hspace=0.15, wspace=0.1,
                                height_ratios=[SHEET_WIDTH_IN / columns] * 2 + [0.12])
