@@ -20,6 +20,7 @@ from endoflow.models.model_file import TrainingBaselines
 from endoflow.reconstruction.frames import DatasetFrames, FrameRange, FolderFrames
 from endoflow.reconstruction.fusion import TSDFVolume, write_ply
 from endoflow.reconstruction.measure import (
+    DISTANCE_CAP_CM,
     back_project,
     format_measurement,
     measure_reconstruction,
@@ -180,6 +181,18 @@ def test_a_reconstruction_without_a_surface_cannot_be_measured(source: DatasetFr
     write_json(tmp_path / "reconstruction.json", {**summary, "tsdf": None})
     with pytest.raises(ValueError, match="run without fusion; measuring needs its surface"):
         measure_reconstruction(source, tmp_path, baselines())
+
+
+def test_an_empty_mesh_has_no_accuracy_and_every_ground_truth_point_missed(tmp_path: Path) -> None:
+    # no NaN: the figures go to JSON, which has none (writing one is refused)
+    gt = np.random.default_rng(0).uniform(0, 1, (50, 3))
+    errors = surface_errors(np.zeros((0, 3)), gt, voxel_cm=0.1)
+    assert errors["accuracy_mean"] is None and errors["accuracy_median"] is None
+    assert errors["completeness_median"] == DISTANCE_CAP_CM and errors["completeness_ratio"] == 0.0
+    write_json(tmp_path / "m.json", errors)
+    table = format_measurement("empty", {"frames": 1, "voxel_cm": 0.1, "frames_per_second": 1.0, "path": {},
+                                         "surface": {"model": errors}})
+    assert "none (empty mesh) / none (empty mesh)" in table
 
 
 def test_input_without_ground_truth_says_which_frame_lacks_it(source: DatasetFrames, tmp_path: Path) -> None:

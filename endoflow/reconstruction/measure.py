@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Optional
 
 import numpy as np
 import pandas as pd
@@ -144,12 +144,13 @@ def path_errors(gt_poses: np.ndarray, poses: np.ndarray, with_scale: bool) -> di
 
 def surface_errors(vertices: np.ndarray, gt_points: np.ndarray, voxel_cm: float) -> dict[str, float]:
     """Accuracy (vertices to the ground truth) and completeness (ground truth to the vertices), cm, each distance
-    capped at :data:`DISTANCE_CAP_CM`; an empty mesh has no accuracy (NaN) and completeness 0."""
+    capped at :data:`DISTANCE_CAP_CM`; an empty mesh has no accuracy (None: JSON has no NaN) and every ground-truth
+    point at the cap."""
     if len(gt_points) == 0:
         raise ValueError("the ground truth has no surface points: no frame has valid depth")
     if len(vertices) == 0:
-        return {"accuracy_mean": float("nan"), "accuracy_median": float("nan"),
-                "completeness_mean": float("nan"), "completeness_median": float("nan"), "completeness_ratio": 0.0}
+        return {"accuracy_mean": None, "accuracy_median": None, "completeness_mean": DISTANCE_CAP_CM,
+                "completeness_median": DISTANCE_CAP_CM, "completeness_ratio": 0.0}
     accuracy = capped_distances(gt_points, evenly_strided(vertices))
     completeness = capped_distances(vertices, evenly_strided(gt_points))
     return {"accuracy_mean": float(accuracy.mean()), "accuracy_median": float(np.median(accuracy)),
@@ -303,7 +304,11 @@ def format_measurement(name: str, result: dict) -> str:
     lines += ["", "| surface | accuracy mean / median cm | completeness mean / median cm | complete within "
                   f"{COMPLETE_WITHIN_VOXELS:g} voxels |", "| --- | --- | --- | --- |"]
     for row, figures in result["surface"].items():
-        lines.append(f"| {row} | {figures['accuracy_mean']:.3f} / {figures['accuracy_median']:.3f} | "
+        lines.append(f"| {row} | {_cm(figures['accuracy_mean'])} / {_cm(figures['accuracy_median'])} | "
                      f"{figures['completeness_mean']:.3f} / {figures['completeness_median']:.3f} | "
                      f"{figures['completeness_ratio']:.1%} |")
     return "\n".join(lines) + "\n"
+
+
+def _cm(value: Optional[float]) -> str:
+    return "none (empty mesh)" if value is None else f"{value:.3f}"
