@@ -38,6 +38,9 @@ FORBIDDEN = {
                                    "endoflow.data.simcol", "endoflow.data.endoslam", "endoflow.data.scenenet"],
     "endoflow.data.loader": [*SHARD_WRITING, "endoflow.data.registry", "endoflow.data.simcol",
                              "endoflow.data.endoslam", "endoflow.data.scenenet"],
+    # the sequence reader reads as the triplet reader does, through it
+    "endoflow.data.sequences": [*SHARD_WRITING, "endoflow.data.registry", "endoflow.data.simcol",
+                                "endoflow.data.endoslam", "endoflow.data.scenenet"],
     "endoflow.models": ["endoflow.training", "endoflow.evaluation", "endoflow.reconstruction"],
     "endoflow.evaluation": ["endoflow.training", "endoflow.reconstruction"],
     # reconstruction encodes frames as preprocessing does through data.frame_encoding, never the shard writer:

@@ -27,7 +27,8 @@ from endoflow.devices import (
     unit_float_images,
     wants_channels_last,
 )
-from endoflow.evaluation.evaluate import FrameRecord, SequenceEvaluator, evaluate_test_set
+from endoflow.data.sequences import FrameRecord
+from endoflow.evaluation.evaluate import SequenceEvaluator, evaluate_test_set
 from endoflow.models.endoflow_model import build_model
 from endoflow.models.model_file import TrainingBaselines
 from endoflow.synth.writers import synthesize_layout

@@ -20,7 +20,7 @@ import torch
 from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig
 from endoflow.data.base import Sequence
-from endoflow.data.loader import triplet_dataset
+from endoflow.data.sequences import frames_in_order, sequence_frames
 from endoflow.data.shards import write_dataset_shards
 from endoflow.io import file_sha256
 from endoflow.evaluation import metrics
@@ -29,7 +29,6 @@ from endoflow.evaluation.evaluate import (
     SequenceEvaluator,
     batches_within_sequences,
     evaluate_test_set,
-    frames_in_order,
     longest_posed_run,
     score_sequences,
     eval_set_shards,
@@ -124,9 +123,8 @@ def oracle_baselines() -> TrainingBaselines:
 def run_oracle(root: Path, test_set: EvalSetConfig, out: Path) -> SequenceEvaluator:
     evaluator = SequenceEvaluator(OracleModel(), oracle_baselines(), out, torch.device("cpu"), "float32",
                                   max_examples=2)
-    samples = triplet_dataset(eval_set_shards(str(root), test_set))
-    selected = (s for s in samples if s["meta"]["group"] in test_set.groups)
-    for batch in batches_within_sequences(frames_in_order(selected), size=3):
+    frames = sequence_frames(eval_set_shards(str(root), test_set), lambda meta: meta["group"] in test_set.groups)
+    for batch in batches_within_sequences(frames, size=3):
         evaluator.process(batch)
     return evaluator
 
@@ -206,8 +204,8 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     tracking.log_shards_input(uri, run_id, str(manifest), "simcol", "training")  # trained on the same folder
     tracking.end_run(uri, run_id)
     write_untrained_model(tmp_path / "endoflow.pt", params, run_id)
-    samples = triplet_dataset(eval_set_shards(str(oracle_shards), params.eval.test_sets["simcol_3"]))
-    result = evaluate_test_set(params, "simcol_3", samples, tmp_path / "endoflow.pt", tmp_path / "m.json",
+    urls = eval_set_shards(str(oracle_shards), params.eval.test_sets["simcol_3"])
+    result = evaluate_test_set(params, "simcol_3", urls, tmp_path / "endoflow.pt", tmp_path / "m.json",
                                tmp_path / "plots", tmp_path / "predictions")
     log_evaluation(params, tmp_path, result, tmp_path / "plots")
 
@@ -259,8 +257,8 @@ def test_a_model_whose_training_run_is_not_in_the_store_logs_into_one_new_run_wi
     params = shard_params(oracle_shards)
     params.model = params.model.replace(latent_bank=False)
     write_untrained_model(tmp_path / "endoflow.pt", params, "0123456789abcdef0123456789abcdef")
-    samples = triplet_dataset(eval_set_shards(str(oracle_shards), params.eval.test_sets["simcol_3"]))
-    result = evaluate_test_set(params, "simcol_3", samples, tmp_path / "endoflow.pt", tmp_path / "m.json",
+    urls = eval_set_shards(str(oracle_shards), params.eval.test_sets["simcol_3"])
+    result = evaluate_test_set(params, "simcol_3", urls, tmp_path / "endoflow.pt", tmp_path / "m.json",
                                tmp_path / "plots", tmp_path / "predictions")
     log_evaluation(params, tmp_path, result, tmp_path / "plots")
     assert "0123456789abcdef0123456789abcdef is not in sqlite:///" in capsys.readouterr().err
@@ -293,3 +291,17 @@ def test_frames_on_both_sides_of_missing_frames_are_evaluated_and_never_paired_a
     poses = [np.eye(4)] * 7
     assert longest_posed_run(poses, gaps={3}) == (3, 7)  # frames 5..8, not 1..8 across the gap
     assert longest_posed_run(poses) == (0, 7)
+
+
+def test_the_sequence_reader_refuses_frames_out_of_temporal_order() -> None:
+    with pytest.raises(ValueError, match="sequence S1: frame 2 follows frame 3; test shards must hold frames in "
+                                         "temporal order"):
+        list(frames_in_order([target_sample(3), target_sample(2)]))
+
+
+def test_the_sequence_reader_gives_each_kept_sequence_whole_and_in_order(oracle_shards: Path) -> None:
+    urls = eval_set_shards(str(oracle_shards), EvalSetConfig(dataset="simcol"))
+    frames = list(sequence_frames(urls, lambda meta: meta["sequence"] in ("S5", "O1"), max_frames=3))
+    # three targets (frames 1..3) and the first one's prev; the last one's next is frame 4
+    assert [(f.sequence, f.frame) for f in frames] == [(s, i) for s in ("S5", "O1") for i in range(5)]
+    assert [f.depth_cm is not None for f in frames[:5]] == [False, True, True, True, False]

@@ -1,9 +1,9 @@
 """Evaluate a trained model on one test set, with trivial baselines on the same frames in the same run.
 
 For test set ``name`` (``params.eval.test_sets[name]``) the test shards are read in order, sequence by
-sequence. Every frame of a sequence is evaluated: the shards' target frames (``cur``, with GT depth) plus the
-first sample's ``prev`` and the last sample's ``next`` when they are the adjacent frames, so the predictions
-cover the whole sequence as the SimCol3D challenge expects. Per sequence:
+sequence, by :mod:`endoflow.data.sequences`. Every frame of a sequence is evaluated: the shards' target frames
+(``cur``, with GT depth) plus the first sample's ``prev`` and the last sample's ``next`` when they are the
+adjacent frames, so the predictions cover the whole sequence as the SimCol3D challenge expects. Per sequence:
 
 - depth (frames with GT depth): the ``paper`` and ``simcol`` protocols of :mod:`endoflow.evaluation.metrics`
   for the model and two baselines: ``constant_depth`` (the training set's mean GT depth everywhere) and
@@ -31,7 +31,7 @@ with PNG figures (``trajectory_<seq>.png``, ``depth_examples.png``, ``errors_per
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Collection, Iterable, Iterator, Optional
 
@@ -47,6 +47,7 @@ from endoflow.evaluation.results import EVALUATION_FILE, PROTOCOLS, dvc_metrics,
 from endoflow.io import FIGURE_FOLDER, marked_output, save_figure, staged_directory, write_csv, write_json
 from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
+from endoflow.data.sequences import FrameRecord, sequence_frames
 from endoflow.data.shard_format import manifest_location, read_manifest
 from endoflow.devices import autocast, images_to_device, resolve_device, to_compute_layout, use_cpu_threads
 from endoflow.locations import absolute_location
@@ -56,27 +57,6 @@ from endoflow.models.model_file import TrainingBaselines
 
 DEPTH_METHODS = ("model", "constant_depth", "mean_depth_map")
 POSE_METHODS = ("model", "constant_velocity")
-
-
-@dataclass
-class FrameRecord:
-    """One frame of a test sequence, in temporal order.
-
-    Attributes:
-        rgb: ``[3, H, W]`` float in [0, 1] at the stored size.
-        depth_cm: ``H x W`` GT z-depth in cm, or ``None`` (edge frames from ``prev``/``next``, or no GT).
-        pose: ``4 x 4`` GT ``T_world_cam`` or ``None``.
-        after_gap: frames are missing between the previous frame of the sequence and this one.
-    """
-
-    sequence: str
-    group: str
-    frame: int
-    rgb: torch.Tensor
-    depth_cm: Optional[np.ndarray]
-    pose: Optional[np.ndarray]
-    native_size: tuple[int, int]
-    after_gap: bool = False
 
 
 @dataclass
@@ -134,66 +114,6 @@ def belongs_to(meta: dict, test_set: EvalSetConfig) -> bool:
 
 
 # ------------------------------------------------------------------------------------------- frames
-def frames_in_order(samples: Iterable[dict], max_frames: Optional[int] = None) -> Iterator[FrameRecord]:
-    """Every frame of every sequence in temporal order (see module docstring), from ordered samples."""
-    last: Optional[dict] = None
-    count = 0
-    for sample in samples:
-        meta = sample["meta"]
-        new_sequence = last is None or meta["sequence"] != last["meta"]["sequence"]
-        if new_sequence:
-            if last is not None:
-                yield from _edge_frame(last, "next")
-            count = 0
-            yield from _edge_frame(sample, "prev")
-        elif meta["frame"] <= last["meta"]["frame"]:
-            raise ValueError(f"sequence {meta['sequence']}: frame {meta['frame']} follows frame "
-                             f"{last['meta']['frame']}; test shards must hold frames in temporal order")
-        if max_frames is not None and count >= max_frames:
-            continue
-        count += 1
-        if not new_sequence and follows_gap(last, sample):
-            # no triplet spans missing frames: the frames on both sides come from the edge members
-            yield from _edge_frame(last, "next")
-            edge = list(_edge_frame(sample, "prev"))
-            yield from (replace(frame, after_gap=True) for frame in edge)
-            yield replace(_record(sample, "cur"), after_gap=not edge)
-        else:
-            yield _record(sample, "cur")
-        last = sample
-    if last is not None:
-        yield from _edge_frame(last, "next")
-
-
-def follows_gap(last: dict, sample: dict) -> bool:
-    """Consecutive targets of a sequence further apart than a target is from its neighbours: frames between
-    them are missing from the dataset."""
-    ids = sample["meta"]["frame_ids"]
-    return sample["meta"]["frame"] - last["meta"]["frame"] > ids["next"] - ids["cur"]
-
-
-def _edge_frame(sample: dict, which: str) -> Iterator[FrameRecord]:
-    ids = sample["meta"]["frame_ids"]
-    if ids.get(which) is not None and abs(ids[which] - ids["cur"]) == 1:
-        yield _record(sample, which)
-
-
-def _record(sample: dict, which: str) -> FrameRecord:
-    meta = sample["meta"]
-    # the float64 pose from meta.json, not the float32 tensor: small rotation errors come from arccos
-    listed = meta["T_world_cam"][which]
-    pose = np.array(listed, dtype=np.float64) if listed is not None else None
-    depth = None
-    if which == "cur":
-        depth = sample["depth"][0].numpy().astype(np.float32)
-        depth = depth if (depth > 0).any() else None
-    return FrameRecord(
-        sequence=meta["sequence"], group=meta.get("group", ""), frame=int(meta["frame_ids"][which]),
-        rgb=sample[which], depth_cm=depth, pose=pose if pose is not None and np.isfinite(pose).all() else None,
-        native_size=(int(meta["native_size"][0]), int(meta["native_size"][1])),
-    )
-
-
 def batches_within_sequences(frames: Iterable[FrameRecord], size: int) -> Iterator[list[FrameRecord]]:
     """Consecutive frames in lists of at most ``size``, never mixing two sequences."""
     batch: list[FrameRecord] = []
@@ -380,9 +300,10 @@ def longest_posed_run(poses: list[Optional[np.ndarray]], gaps: Collection[int] =
 
 
 # --------------------------------------------------------------------------------------- driver
-def evaluate_test_set(params: Params, name: str, samples: Iterable[dict], model_path: str | Path,
+def evaluate_test_set(params: Params, name: str, urls: list[str], model_path: str | Path,
                       out_metrics: Path, out_plots: Path, out_predictions: Path) -> dict:
-    """Evaluate the model in ``model_path`` on ordered ``samples`` of test set ``name``; write all outputs.
+    """Evaluate the model in ``model_path`` on test set ``name``, read from its shards ``urls`` (in order, as
+    :func:`eval_set_shards` lists them); write all outputs.
 
     Returns the full result (with ``mlflow_run_id`` of the training run), written to
     ``<out_predictions>/evaluation.json``; ``out_metrics`` gets its headline (:mod:`endoflow.evaluation.results`).
@@ -391,13 +312,13 @@ def evaluate_test_set(params: Params, name: str, samples: Iterable[dict], model_
     device = resolve_device(params.eval.device, "eval.device")
     model, record = load_trained_model(model_path, device)
     model = to_compute_layout(model, device, params.eval.precision)
-    selected = (s for s in samples if belongs_to(s["meta"], test_set))
     started = time.perf_counter()
     earlier = marked_output(f"the predictions of test set {name}", EVALUATION_FILE, test_set=name)
     with staged_directory(out_predictions, earlier) as predictions_dir:
         evaluator = SequenceEvaluator(model, record.baselines, predictions_dir, device, params.eval.precision,
                                       params.eval.depth_examples)
-        frames = frames_in_order(selected, params.eval.max_frames_per_sequence)
+        frames = sequence_frames(urls, lambda meta: belongs_to(meta, test_set),
+                                 params.eval.max_frames_per_sequence)
         for batch in batches_within_sequences(frames, params.eval.batch_size):
             evaluator.process(batch)
         if not evaluator.sequences:
@@ -476,15 +397,13 @@ def log_evaluation(params: Params, project_root: str | Path, result: dict, plots
 
 def run_evaluation(params: Params, name: str, project_root: str | Path = ".") -> dict:
     """The ``evaluate`` stage for test set ``name``: read its shards, evaluate, write outputs, log to MLflow."""
-    from endoflow.data.loader import triplet_dataset
-
     root = Path(project_root).resolve()
     use_cpu_threads(params.threads)
     urls = eval_set_shards(absolute_location(params.eval.shards, root), eval_set(params, name))
     plots_dir = root / params.eval.plots / name
     model = params.eval.model if is_model_uri(params.eval.model) else root / params.eval.model
     with local_model_file(model, tracking.tracking_uri(params, root)) as model_path:
-        result = evaluate_test_set(params, name, triplet_dataset(urls), model_path,
+        result = evaluate_test_set(params, name, urls, model_path,
                                    root / params.eval.metrics / f"{name}.json", plots_dir,
                                    root / params.eval.predictions / name)
     log_evaluation(params, root, result, plots_dir)

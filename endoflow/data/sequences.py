@@ -1,0 +1,109 @@
+"""Reading shards sequence by sequence: every frame of each sequence in temporal order, beside the triplet
+reader of :mod:`endoflow.data.loader`.
+
+Shards hold triplets (``prev``, ``cur``, ``next``) around target frames. A sequence's frames are its targets
+(``cur``, with GT depth) plus the first target's ``prev`` and the last target's ``next`` when they are the
+adjacent frames, so a reader sees the whole sequence as the SimCol3D challenge scores it. Where frames are
+missing from the dataset (no triplet spans them), the frames on both sides come from the edge members and the
+first frame after the gap is marked (:attr:`FrameRecord.after_gap`). Shards must hold each sequence's targets
+in temporal order, as preprocessing writes a test split; anything else is refused.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Callable, Iterable, Iterator, Optional
+
+import numpy as np
+import torch
+
+from endoflow.data.loader import triplet_dataset
+
+
+@dataclass
+class FrameRecord:
+    """One frame of a sequence, in temporal order.
+
+    Attributes:
+        rgb: ``[3, H, W]`` float in [0, 1] at the stored size.
+        depth_cm: ``H x W`` GT z-depth in cm, or ``None`` (edge frames from ``prev``/``next``, or no GT).
+        pose: ``4 x 4`` GT ``T_world_cam`` or ``None``.
+        after_gap: frames are missing between the previous frame of the sequence and this one.
+    """
+
+    sequence: str
+    group: str
+    frame: int
+    rgb: torch.Tensor
+    depth_cm: Optional[np.ndarray]
+    pose: Optional[np.ndarray]
+    native_size: tuple[int, int]
+    after_gap: bool = False
+
+
+def sequence_frames(urls: list[str], keep: Callable[[dict], bool] = lambda meta: True,
+                    max_frames: Optional[int] = None) -> Iterator[FrameRecord]:
+    """Every frame of every sequence in the shards ``urls`` (in their order), of the samples whose ``meta``
+    ``keep`` accepts; at most ``max_frames`` targets per sequence (and their edge frames)."""
+    samples = (sample for sample in triplet_dataset(urls) if keep(sample["meta"]))
+    return frames_in_order(samples, max_frames)
+
+
+def frames_in_order(samples: Iterable[dict], max_frames: Optional[int] = None) -> Iterator[FrameRecord]:
+    """Every frame of every sequence in temporal order (see the module docstring), from ordered decoded samples."""
+    last: Optional[dict] = None
+    count = 0
+    for sample in samples:
+        meta = sample["meta"]
+        new_sequence = last is None or meta["sequence"] != last["meta"]["sequence"]
+        if new_sequence:
+            if last is not None:
+                yield from _edge_frame(last, "next")
+            count = 0
+            yield from _edge_frame(sample, "prev")
+        elif meta["frame"] <= last["meta"]["frame"]:
+            raise ValueError(f"sequence {meta['sequence']}: frame {meta['frame']} follows frame "
+                             f"{last['meta']['frame']}; test shards must hold frames in temporal order")
+        if max_frames is not None and count >= max_frames:
+            continue
+        count += 1
+        if not new_sequence and follows_gap(last, sample):
+            # no triplet spans missing frames: the frames on both sides come from the edge members
+            yield from _edge_frame(last, "next")
+            edge = list(_edge_frame(sample, "prev"))
+            yield from (replace(frame, after_gap=True) for frame in edge)
+            yield replace(_record(sample, "cur"), after_gap=not edge)
+        else:
+            yield _record(sample, "cur")
+        last = sample
+    if last is not None:
+        yield from _edge_frame(last, "next")
+
+
+def follows_gap(last: dict, sample: dict) -> bool:
+    """Consecutive targets of a sequence further apart than a target is from its neighbours: frames between
+    them are missing from the dataset."""
+    ids = sample["meta"]["frame_ids"]
+    return sample["meta"]["frame"] - last["meta"]["frame"] > ids["next"] - ids["cur"]
+
+
+def _edge_frame(sample: dict, which: str) -> Iterator[FrameRecord]:
+    ids = sample["meta"]["frame_ids"]
+    if ids.get(which) is not None and abs(ids[which] - ids["cur"]) == 1:
+        yield _record(sample, which)
+
+
+def _record(sample: dict, which: str) -> FrameRecord:
+    meta = sample["meta"]
+    # the float64 pose from meta.json, not the float32 tensor: small rotation errors come from arccos
+    listed = meta["T_world_cam"][which]
+    pose = np.array(listed, dtype=np.float64) if listed is not None else None
+    depth = None
+    if which == "cur":
+        depth = sample["depth"][0].numpy().astype(np.float32)
+        depth = depth if (depth > 0).any() else None
+    return FrameRecord(
+        sequence=meta["sequence"], group=meta.get("group", ""), frame=int(meta["frame_ids"][which]),
+        rgb=sample[which], depth_cm=depth, pose=pose if pose is not None and np.isfinite(pose).all() else None,
+        native_size=(int(meta["native_size"][0]), int(meta["native_size"][1])),
+    )
