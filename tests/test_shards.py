@@ -321,10 +321,10 @@ def test_progress_lines_give_the_pace_and_the_time_left_at_most_every_interval()
     for now[0] in (5.0, 12.0, 15.0, 40.0):
         progress.shard_done(shard)
     assert lines == [
-        "[preprocess] simcol: 2/4 shards written (2 kept from an interrupted run) | 60 frames, 5.0 frames/s | "
-        "~0m12s left",
-        "[preprocess] simcol: 4/4 shards written (2 kept from an interrupted run) | 120 frames, 3.0 frames/s | "
-        "done in 0m40s",
+        "[preprocess] simcol: 2/4 shards | 0.2 shards/s | ~0m12s left | 60 frames, 5.0 frames/s "
+        "(2 shards kept from an interrupted run)",
+        "[preprocess] simcol: 4/4 shards | 0.1 shards/s | done in 0m40s | 120 frames, 3.0 frames/s "
+        "(2 shards kept from an interrupted run)",
     ]
 
 

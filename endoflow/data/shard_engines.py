@@ -27,7 +27,7 @@ from endoflow.data.shard_plan import EncodeSettings, ShardSpec
 from endoflow.data.shard_staging import folder_entries
 from endoflow.data.shard_writer import ShardResult, write_shard
 from endoflow.errors import DataFormatError
-from endoflow.progress import format_duration
+from endoflow.progress import Progress
 from endoflow.ray_runtime import connect_ray
 
 # Seconds between progress lines while shards are written (the last shard always gets one).
@@ -55,24 +55,19 @@ class ShardProgress:
         clock: Callable[[], float] = time.perf_counter,
         write: Callable[[str], Any] = lambda line: print(line, flush=True),
     ) -> None:
-        self.dataset, self.total, self.kept, self.interval = dataset, total, kept, interval
-        self.clock, self.write = clock, write
-        self.started = self.last_line = clock()
+        self.dataset, self.kept, self.write = dataset, kept, write
+        self.progress = Progress(total, "shards", interval, clock)
         self.done = self.frames = 0
 
     def shard_done(self, result: ShardResult) -> None:
         self.done += 1
         self.frames += result.frames_decoded
-        now = self.clock()
-        if self.done < self.total and now - self.last_line < self.interval:
+        if not self.progress.due(self.done):
             return
-        self.last_line = now
-        elapsed = max(now - self.started, 1e-9)
-        left = self.total - self.done
-        when = (f"~{format_duration(elapsed / self.done * left)} left" if left
-                else f"done in {format_duration(elapsed)}")
-        self.write(f"[preprocess] {self.dataset}: {self.done}/{self.total} shards written ({self.kept} kept from "
-                   f"an interrupted run) | {self.frames} frames, {self.frames / elapsed:.1f} frames/s | {when}")
+        frame_rate = self.progress.rate(self.frames)
+        frames = f"{self.frames} frames" + (f", {frame_rate:.1f} frames/s" if frame_rate is not None else "")
+        self.write(f"[preprocess] {self.dataset}: {self.progress.update(self.done)} | {frames} "
+                   f"({self.kept} shards kept from an interrupted run)")
 
 
 def run_shard_writers(

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -42,7 +41,7 @@ from endoflow.errors import DataFormatError
 from endoflow.geometry.pose import chain_step
 from endoflow.io import marked_output, staged_directory, write_bytes, write_json
 from endoflow.models.endoflow_model import load_trained_model
-from endoflow.progress import format_duration
+from endoflow.progress import Progress, format_duration
 from endoflow.reconstruction.alignment import ground_truth_in_path_world
 from endoflow.reconstruction.crop import Crop, crop_intrinsics, crop_warning, frame_region, model_view
 from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
@@ -108,7 +107,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     voxel = options.voxel_cm or default_voxel_cm(K, record.params.model.max_depth * options.scale, size)
     volume = TSDFVolume(voxel, options.trunc_cm or 4 * voxel) if options.fuse else None
     path = CameraPath()
-    started = time.perf_counter()
+    progress = Progress(source_frame_count(source, options.frames), "frames")
     sampler = FrameSampler()
     with staged_directory(out_dir, EARLIER_RECONSTRUCTION, options.force, (source.location, model_path),
                           "--force") as stage, torch.no_grad():
@@ -131,7 +130,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
                 if volume is not None:
                     volume.integrate(depth, rgb, K, pose)
                 previous = image
-                report_progress(path.count, started, source, options.frames)
+                report_progress(path.count, progress)
             if path.count == 0:  # a source that did not know its length
                 raise DataFormatError(source.description, f"no frames from --start {options.frames.start} on")
         write_json(stage / "depth" / "depth.json", {
@@ -141,7 +140,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
         mesh = write_surface(stage, volume) if volume is not None else None
         ground_truth = ground_truth_in_path_world(path.gt_poses, path.poses)
         recording.finish(np.stack(path.poses), ground_truth, mesh)
-        seconds = time.perf_counter() - started
+        seconds = progress.elapsed()
         summary = {
             "format": RECONSTRUCTION_FORMAT, "input": source.description, "model": str(model_path),
             "frames": path.count, "frame_range": asdict(options.frames), "native_size": list(source.native_size),
@@ -284,15 +283,11 @@ def sheet_title(source: FrameSource, summary: dict) -> str:
             f"{summary['frames_per_second']:.1f} frames/s{scale}")
 
 
-def report_progress(done: int, started: float, source: FrameSource, frames: FrameRange) -> None:
-    total = source_frame_count(source, frames)
-    elapsed = time.perf_counter() - started
-    if done % 25 and done != total:
+def report_progress(done: int, progress: Progress) -> None:
+    """A line every 25 frames and at the last one."""
+    if done % 25 and not progress.finished(done):
         return
-    rate = done / max(elapsed, 1e-9)
-    left = f" | ~{format_duration((total - done) / rate)} left" if total else ""
-    of = f"/{total}" if total else ""
-    print(f"[reconstruct] frame {done}{of} | {rate:.1f} frames/s{left}", file=sys.stderr)
+    print(f"[reconstruct] {progress.update(done)}", file=sys.stderr)
 
 
 def source_frame_count(source: FrameSource, frames: FrameRange) -> Optional[int]:

@@ -56,7 +56,7 @@ from endoflow.devices import (  # noqa: E402
 from endoflow.evaluation import metrics, plots  # noqa: E402
 from endoflow.locations import local_file  # noqa: E402
 from endoflow.models.endoflow_model import EndoflowModel, build_model  # noqa: E402
-from endoflow.progress import format_duration  # noqa: E402
+from endoflow.progress import Progress  # noqa: E402
 from endoflow.training.checkpoint import (  # noqa: E402
     BestEpoch,
     TrainingCheckpoint,
@@ -197,7 +197,9 @@ def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[st
     ctx.module.train()
     keys: list[str] = []
     losses: list[float] = []
-    started = time.perf_counter()
+    samples_per_step = cfg.batch_size * ctx.world
+    # the time left counts this epoch's steps and the later epochs' at this epoch's pace (validation aside)
+    epoch_progress = Progress((cfg.epochs - epoch) * total_steps * samples_per_step, "samples", clock=time.perf_counter)
     for step, batch in enumerate(batches):
         if step >= total_steps:
             break
@@ -219,7 +221,7 @@ def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[st
         state.global_step += 1
         losses.append(float(reduced[0]))
         ctx.logger.step(state.global_step, epoch, step, total_steps, dict(zip(LOGGED_LOSSES, reduced.tolist())),
-                        samples=(step + 1) * cfg.batch_size * ctx.world, elapsed=time.perf_counter() - started)
+                        samples=(step + 1) * samples_per_step, epoch_progress=epoch_progress)
     return {"keys": keys, "mean_loss": float(np.mean(losses)) if losses else math.nan}
 
 
@@ -368,17 +370,14 @@ class RankZeroLogger:
                              "kl": config.params.loss.kl_weight}
 
     def step(self, global_step: int, epoch: int, step: int, total_steps: int, losses: dict[str, float],
-             samples: int, elapsed: float) -> None:
+             samples: int, epoch_progress: Progress) -> None:
         if not self.active or (step + 1) % self.log_every and step + 1 != total_steps:
             return
-        rate = samples / max(elapsed, 1e-9)
-        steps_left = (total_steps - step - 1) + (self.epochs - epoch - 1) * total_steps
-        seconds_left = steps_left * elapsed / (step + 1)
         progress(f"[train] epoch {epoch + 1}/{self.epochs} step {step + 1}/{total_steps} "
-                 f"loss {losses['total']:.4f} | {rate:.1f} samples/s | ~{format_duration(seconds_left)} left "
-                 f"(training only)")
+                 f"loss {losses['total']:.4f} | {epoch_progress.pace(samples)} (training only)")
         tracking.log_metrics(self.uri, self.run_id, {**logged_losses(losses, self.loss_weights),
-                                                     "samples_per_second": rate}, step=global_step)
+                                                     "samples_per_second": epoch_progress.rate(samples) or 0.0},
+                             step=global_step)
 
     def epoch_end(self, record: dict[str, Any], global_step: int, model: EndoflowModel, examples: list[dict],
                   device: torch.device) -> None:

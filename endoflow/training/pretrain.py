@@ -60,7 +60,7 @@ from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
 from endoflow.models.critic import Critic
 from endoflow.models.endoflow_model import generator_spec
 from endoflow.models.latent_bank import LatentBankGenerator, generator_payload
-from endoflow.progress import format_duration
+from endoflow.progress import Progress, format_duration
 
 
 
@@ -290,34 +290,33 @@ class PretrainProgress:
     ) -> None:
         self.schedule, self.interval, self.clock, self.write = schedule, interval, clock, write
         self.total = sum(stage.steps for stage in schedule)
-        self.started = self.last_line = self.stage_started = clock()
-        self.done = self.done_at_last_line = self.stage_done = 0
+        self.overall = Progress(self.total, "steps", clock=clock)
+        self.done = self.stage_done = 0
         self.stage = 0
+        # the pace is the current stage's (a higher resolution is slower)
+        self.stage_progress = Progress(schedule[0].steps, "steps", interval, clock)
         self.unit_seconds: list[float] = []  # measured seconds per work unit of each finished stage
 
     def start_stage(self, stage: int) -> None:
-        now = self.clock()
         if stage > 0:
-            self.unit_seconds.append(self._unit_seconds(now))
-        self.stage, self.stage_started, self.stage_done = stage, now, 0
+            self.unit_seconds.append(self._unit_seconds(self.clock()))
+        self.stage, self.stage_done = stage, 0
+        self.stage_progress = Progress(self.schedule[stage].steps, "steps", self.interval, self.clock)
 
     def step(self, record: dict[str, float]) -> None:
-        """After each generator step: a line when ``interval`` has passed since the last one."""
+        """After each generator step: a line when ``interval`` has passed since the last one (or a stage ends)."""
         self.done += 1
         self.stage_done += 1
-        now = self.clock()
-        if now - self.last_line < self.interval:
+        if not self.stage_progress.due(self.stage_done):
             return
-        rate = (self.done - self.done_at_last_line) / (now - self.last_line)
-        self.last_line, self.done_at_last_line = now, self.done
         stage = self.schedule[self.stage]
         fade = f", fade-in {record['alpha']:.2f}" if record["alpha"] < 1 else ""
         self.write(
             f"[pretrain] {stage.resolution} px (stage {self.stage + 1}/{len(self.schedule)}{fade}) "
             f"step {self.stage_done}/{stage.steps}, {self.done}/{self.total} in all | "
             f"critic {record['critic_loss']:.3f}, W {record['wasserstein']:.3f}, "
-            f"generator {record['generator_loss']:.3f} | {rate:.1f} steps/s | "
-            f"~{format_duration(self.seconds_left(now))} left"
+            f"generator {record['generator_loss']:.3f} | "
+            f"{self.stage_progress.pace(self.stage_done, self.seconds_left(self.clock()))}"
         )
 
     def seconds_left(self, now: float) -> float:
@@ -331,17 +330,17 @@ class PretrainProgress:
 
     def finish(self, record: dict[str, float]) -> None:
         """The summary line: steps, time, pace and the last losses."""
-        elapsed = self.clock() - self.started
         self.write(
             f"[pretrain] trained {self.done} generator steps over {len(self.schedule)} resolutions "
-            f"({', '.join(str(stage.resolution) for stage in self.schedule)} px) in {format_duration(elapsed)} "
-            f"({self.done / max(elapsed, 1e-9):.1f} steps/s); last losses: critic {record['critic_loss']:.3f}, "
+            f"({', '.join(str(stage.resolution) for stage in self.schedule)} px) in "
+            f"{format_duration(self.overall.elapsed())} ({self.overall.rate(self.done) or 0.0:.1f} steps/s); "
+            f"last losses: critic {record['critic_loss']:.3f}, "
             f"W {record['wasserstein']:.3f}, generator {record['generator_loss']:.3f}"
         )
 
     def _unit_seconds(self, now: float) -> float:
         """Seconds per work unit in the current stage so far."""
-        return (now - self.stage_started) / (self.stage_done * step_work(self.schedule[self.stage]))
+        return (now - self.stage_progress.started) / (self.stage_done * step_work(self.schedule[self.stage]))
 
 
 # -------------------------------------------------------------------------------------------- outputs
