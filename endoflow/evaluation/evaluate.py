@@ -33,7 +33,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Collection, Iterable, Iterator, Optional
+from typing import Callable, Collection, Iterable, Iterator, Optional
 
 import cv2
 import numpy as np
@@ -43,7 +43,16 @@ import torch
 from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig, Precision
 from endoflow.evaluation import metrics, plots
-from endoflow.evaluation.results import EVALUATION_FILE, PROTOCOLS, dvc_metrics, figure_rows, mlflow_metrics
+from endoflow.evaluation.scores import (
+    DEPTH_METHODS,
+    POSE_METHODS,
+    per_frame_table,
+    per_sequence_table,
+    protocol_summary,
+    score_rows,
+    scores_table,
+)
+from endoflow.evaluation.results import EVALUATION_FILE, dvc_metrics, figure_rows, mlflow_metrics
 from endoflow.io import FIGURE_FOLDER, marked_output, save_figure, staged_directory, write_csv, write_json
 from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
@@ -55,13 +64,11 @@ from endoflow.models.endoflow_model import load_trained_model
 from endoflow.models.mlflow_model import is_model_uri, local_model_file
 from endoflow.models.model_file import TrainingBaselines
 
-DEPTH_METHODS = ("model", "constant_depth", "mean_depth_map")
-POSE_METHODS = ("model", "constant_velocity")
 
 
 @dataclass
 class SequenceResult:
-    """Everything gathered for one sequence while its frames stream past."""
+    """What one sequence's protocols are computed from, gathered while its frames stream past."""
 
     name: str
     group: str
@@ -74,7 +81,6 @@ class SequenceResult:
     # protocol sees the same quantisation as the official scorer
     depth_pred: list[np.ndarray] = field(default_factory=list)
     depth_gt: list[np.ndarray] = field(default_factory=list)
-    paper: dict[str, list[dict[str, float]]] = field(default_factory=lambda: {m: [] for m in DEPTH_METHODS})
 
 
 # ------------------------------------------------------------------------------------------ selection
@@ -128,7 +134,8 @@ def batches_within_sequences(frames: Iterable[FrameRecord], size: int) -> Iterat
 
 # ------------------------------------------------------------------------------------- prediction
 class SequenceEvaluator:
-    """Runs the model over ordered frames, writes challenge predictions and gathers per-sequence results."""
+    """Runs the model over ordered frames, writes challenge predictions and gathers per-sequence results; the
+    per-image depth errors go straight into ``scores``, rows of :mod:`endoflow.evaluation.scores`' table."""
 
     def __init__(self, model: torch.nn.Module, baselines: TrainingBaselines, predictions_dir: Path,
                  device: torch.device, precision: Precision, max_examples: int) -> None:
@@ -139,6 +146,7 @@ class SequenceEvaluator:
         self.device = device
         self.precision = precision
         self.sequences: list[SequenceResult] = []
+        self.scores: list[dict] = []
         self.examples: list[dict] = []
         self._carry: Optional[FrameRecord] = None
         self.frames_done = 0
@@ -192,7 +200,8 @@ class SequenceEvaluator:
         result.depth_gt.append(frame.depth_cm)
         baselines = self.baseline_depths(frame.depth_cm.shape)
         for method, pred in (("model", prediction), *baselines.items()):
-            result.paper[method].append(metrics.paper_depth_errors(frame.depth_cm, pred))
+            errors = metrics.paper_depth_errors(frame.depth_cm, pred)
+            self.scores += score_rows(frame.sequence, frame.frame, method, "depth_paper", errors)
         if len(result.depth_frames) == 1 and len(self.examples) < self.max_examples:
             self.examples.append({"label": f"{frame.sequence} #{frame.frame}", "gt": frame.depth_cm,
                                   "rgb": frame.rgb.permute(1, 2, 0).numpy(), "pred": prediction})
@@ -224,62 +233,64 @@ class SequenceEvaluator:
 # -------------------------------------------------------------------------------------- scoring
 def score_sequences(evaluator: SequenceEvaluator) -> tuple[dict, pd.DataFrame, pd.DataFrame, dict]:
     """Aggregate metrics, per-frame table, per-sequence table and trajectories from a finished evaluator."""
-    summary: dict = {protocol: {} for protocol in PROTOCOLS}
-    frame_rows: list[dict] = []
-    sequence_rows: list[dict] = []
+    rows = list(evaluator.scores)
     trajectories: dict = {}
-    simcol_depth: dict[str, list[dict]] = {m: [] for m in DEPTH_METHODS}
-    simcol_pose: dict[str, list[dict]] = {m: [] for m in POSE_METHODS}
-    endoslam_pose: dict[str, list[dict]] = {m: [] for m in POSE_METHODS}
-    paper: dict[str, list[dict]] = {m: [] for m in DEPTH_METHODS}
     for seq in evaluator.sequences:
-        row: dict = {"sequence": seq.name, "group": seq.group, "frames": len(seq.frames)}
-        per_frame: dict[int, dict] = {f: {"sequence": seq.name, "frame": f} for f in seq.frames}
-        if seq.depth_frames:
-            gt = np.stack(seq.depth_gt)
-            for method in DEPTH_METHODS:
-                paper[method].extend(seq.paper[method])
-                pred = (np.stack(seq.depth_pred).astype(np.float32) * metrics.SIMCOL_DEPTH_RANGE_CM
-                        if method == "model" else
-                        np.broadcast_to(evaluator.baseline_depths(gt.shape[1:])[method], gt.shape))
-                result = metrics.simcol_depth_sequence(pred, gt)
-                simcol_depth[method].append(result)
-                row[f"simcol_l1_{method}"] = result["l1"]
-                for i, f in enumerate(seq.depth_frames):
-                    per_frame[f][f"abs_rel_{method}"] = seq.paper[method][i]["abs_rel"]
-                    per_frame[f][f"rmse_{method}"] = seq.paper[method][i]["rmse"]
-                    per_frame[f][f"simcol_l1_{method}"] = result["per_frame"]["l1"][i]
-        run = longest_posed_run(seq.poses, seq.gaps)
-        if run is not None:
-            start, stop = run
-            gt_poses = np.stack(seq.poses[start:stop])
-            predicted = {"model": np.stack(seq.predicted_relative[start:stop - 1]),
-                         "constant_velocity": np.repeat(evaluator.baselines.mean_relative_pose[None],
-                                                        stop - start - 1, axis=0)}
-            trajectories[seq.name] = {"gt": gt_poses[:, :3, 3], "frames": seq.frames[start:stop]}
-            for method, relative in predicted.items():
-                result = metrics.simcol_pose_sequence(gt_poses, relative)
-                simcol_pose[method].append(result)
-                endoslam_pose[method].append(metrics.endoslam_pose_sequence(gt_poses, relative))
-                trajectories[seq.name][method] = result["trajectory"][:, :3, 3]
-                row[f"rte_{method}"] = result["rte"]
-                for i, f in enumerate(seq.frames[start + 1:stop]):
-                    per_frame[f][f"rte_{method}"] = result["per_frame"]["rte"][i]
-                    per_frame[f][f"rot_{method}"] = result["per_frame"]["rot"][i]
-        frame_rows.extend(per_frame.values())
-        sequence_rows.append(row)
+        rows += depth_sequence_scores(seq, evaluator.baseline_depths)
+        pose_rows, trajectory = pose_sequence_scores(seq, evaluator.baselines.mean_relative_pose)
+        rows += pose_rows
+        if trajectory is not None:
+            trajectories[seq.name] = trajectory
+    scores = scores_table(rows)
+    frames = pd.DataFrame([{"sequence": seq.name, "frame": f} for seq in evaluator.sequences for f in seq.frames],
+                          columns=["sequence", "frame"])
+    sequences = pd.DataFrame([{"sequence": seq.name, "group": seq.group, "frames": len(seq.frames)}
+                              for seq in evaluator.sequences])
+    return protocol_summary(scores), per_frame_table(frames, scores), per_sequence_table(sequences, scores), \
+        trajectories
+
+
+def depth_sequence_scores(seq: SequenceResult, baseline_depths: Callable[[tuple[int, int]], dict]) -> list[dict]:
+    """The challenge's depth protocol over one sequence's frames with GT depth, for the model and the baselines:
+    the sequence's figures and each frame's L1."""
+    if not seq.depth_frames:
+        return []
+    gt = np.stack(seq.depth_gt)
+    rows: list[dict] = []
     for method in DEPTH_METHODS:
-        if paper[method]:
-            summary["depth_paper"][method] = metrics.mean_over(paper[method], metrics.PAPER_DEPTH_KEYS)
-            summary["depth_simcol"][method] = metrics.mean_over(simcol_depth[method], metrics.SIMCOL_DEPTH_KEYS)
-    for method in POSE_METHODS:
-        if simcol_pose[method]:
-            summary["pose_simcol"][method] = metrics.mean_over(simcol_pose[method], metrics.SIMCOL_POSE_KEYS)
-            summary["pose_endoslam"][method] = metrics.mean_over(endoslam_pose[method], metrics.ENDOSLAM_POSE_KEYS)
-    summary = {k: v for k, v in summary.items() if v}
-    frames_table = pd.DataFrame(frame_rows)
-    frames_table.insert(0, "index", np.arange(len(frames_table)))
-    return summary, frames_table, pd.DataFrame(sequence_rows), trajectories
+        pred = (np.stack(seq.depth_pred).astype(np.float32) * metrics.SIMCOL_DEPTH_RANGE_CM if method == "model"
+                else np.broadcast_to(baseline_depths(gt.shape[1:])[method], gt.shape))
+        result = metrics.simcol_depth_sequence(pred, gt)
+        rows += score_rows(seq.name, None, method, "depth_simcol",
+                           {key: result[key] for key in metrics.SIMCOL_DEPTH_KEYS})
+        for frame, l1 in zip(seq.depth_frames, result["per_frame"]["l1"]):
+            rows += score_rows(seq.name, frame, method, "depth_simcol", {"l1": l1})
+    return rows
+
+
+def pose_sequence_scores(seq: SequenceResult, mean_relative_pose: np.ndarray) -> tuple[list[dict], Optional[dict]]:
+    """The challenge's and EndoSLAM's pose protocols over the longest run of one sequence's posed frames, for the
+    model and constant velocity: the sequence's figures, each frame's RTE and ROT, and the trajectories."""
+    run = longest_posed_run(seq.poses, seq.gaps)
+    if run is None:
+        return [], None
+    start, stop = run
+    gt_poses = np.stack(seq.poses[start:stop])
+    predicted = {"model": np.stack(seq.predicted_relative[start:stop - 1]),
+                 "constant_velocity": np.repeat(mean_relative_pose[None], stop - start - 1, axis=0)}
+    trajectory = {"gt": gt_poses[:, :3, 3], "frames": seq.frames[start:stop]}
+    rows: list[dict] = []
+    for method, relative in predicted.items():
+        result = metrics.simcol_pose_sequence(gt_poses, relative)
+        rows += score_rows(seq.name, None, method, "pose_simcol", {k: result[k] for k in metrics.SIMCOL_POSE_KEYS})
+        endoslam = metrics.endoslam_pose_sequence(gt_poses, relative)
+        rows += score_rows(seq.name, None, method, "pose_endoslam",
+                           {k: endoslam[k] for k in metrics.ENDOSLAM_POSE_KEYS})
+        for i, frame in enumerate(seq.frames[start + 1:stop]):
+            rows += score_rows(seq.name, frame, method, "pose_simcol",
+                               {"rte": result["per_frame"]["rte"][i], "rot": result["per_frame"]["rot"][i]})
+        trajectory[method] = result["trajectory"][:, :3, 3]
+    return rows, trajectory
 
 
 def longest_posed_run(poses: list[Optional[np.ndarray]], gaps: Collection[int] = ()) -> Optional[tuple[int, int]]:
