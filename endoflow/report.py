@@ -1,5 +1,6 @@
-"""Markdown tables like the paper's Tables 1-3 from the evaluation metrics of the workspace and experiments,
-and the summary the evaluate stage prints for one test set (:func:`format_evaluation`).
+"""Markdown tables like the paper's Tables 1-3 from the evaluation metrics of the workspace and experiments
+(one protocol's table as :mod:`endoflow.evaluation.summary` lays it out, which also prints the evaluate stage's
+summary of one test set).
 
 Sources: the full evaluations (``<eval.predictions>/<test set>/evaluation.json``, see
 :mod:`endoflow.evaluation.results`) of the workspace and (unless disabled) of every finished DVC experiment and
@@ -37,15 +38,8 @@ from typing import Any, Callable, Iterable, Optional
 
 from endoflow.config import LossConfig, ModelConfig, flatten_params
 from endoflow.evaluation.results import EVALUATION_FILE, HEADLINE, evaluation_path
+from endoflow.evaluation.summary import PROTOCOL_TABLES, markdown_table, number_cell, protocol_table
 
-PAPER_COLUMNS = (("abs_rel", "Abs Rel"), ("sq_rel", "Sq Rel"), ("rmse", "RMSE"), ("rmse_log", "RMSE log"),
-                 ("l1", "L1"), ("a1", "δ<1.25"), ("a2", "δ<1.25²"), ("a3", "δ<1.25³"), ("ratio", "Scale"))
-SIMCOL_DEPTH_COLUMNS = (("l1", "L1 (cm)"), ("rel", "Rel (%)"), ("rmse", "RMSE (cm)"))
-SIMCOL_POSE_COLUMNS = (("ate", "ATE (cm)"), ("ate_local", "ATE local (cm)"), ("rte", "RTE (cm)"),
-                       ("rot", "ROT (°)"))
-ENDOSLAM_POSE_COLUMNS = (("ate", "ATE (cm)"), ("rpe_trans", "RPE trans (cm)"), ("rpe_rot", "RPE rot (°)"))
-BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map": "baseline: mean depth map",
-                   "constant_velocity": "baseline: constant velocity"}
 # the paper's Table 3 rows: (name, model.latent_bank, model.pose_vae); `endoflow sweep` names its experiments so
 ABLATIONS = (("full", True, True), ("no-bank", False, True), ("no-vae", True, False), ("neither", False, False))
 # the VAE study's settings (docs/method.md): with the VAE, a run whose setting differs from the default is its own
@@ -61,13 +55,6 @@ SEED_METRICS = {"abs_rel": ("Abs Rel", _HEADLINE_PROTOCOL["abs_rel"], "constant_
                 "ate": ("ATE (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity"),
                 "ate_local": ("ATE local (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity")}
 POSE_TARGET_METRICS = ("rte", "rot", "ate", "ate_local")
-# (title, protocol key of the evaluation JSON, columns), in the order the tables are shown
-PROTOCOL_TABLES = (
-    ("Depth, paper protocol (per-image median scaling, capped at 20 cm)", "depth_paper", PAPER_COLUMNS),
-    ("Depth, SimCol3D challenge protocol (one scale per sequence)", "depth_simcol", SIMCOL_DEPTH_COLUMNS),
-    ("Pose, SimCol3D challenge protocol (medians)", "pose_simcol", SIMCOL_POSE_COLUMNS),
-    ("Pose, EndoSLAM protocol (ATE RMSE, RPE means)", "pose_endoslam", ENDOSLAM_POSE_COLUMNS),
-)
 
 
 @dataclass
@@ -215,40 +202,6 @@ def _dvc_reader(project_root: str | Path) -> Callable[[str, str], Optional[str]]
     return read
 
 
-def markdown_table(headers: list[str], rows: list[list[str]]) -> str:
-    """A Markdown table with its columns padded to one width, so it also reads well as plain text."""
-    widths = [max(3, *(len(cell) for cell in column)) for column in zip(headers, *rows)]
-
-    def line(cells: list[str]) -> str:
-        return "| " + " | ".join(cell.ljust(width) for cell, width in zip(cells, widths)) + " |"
-
-    return "\n".join([line(headers), line(["-" * width for width in widths])] + [line(row) for row in rows])
-
-
-def _number(value: Any) -> str:
-    return f"{value:.4f}" if isinstance(value, (int, float)) else "–"
-
-
-def protocol_table(runs: list[RunResults], test_set: str, protocol: str,
-                   columns: tuple[tuple[str, str], ...], label_header: str = "run") -> Optional[str]:
-    """Rows: every run's model, then the first run's baselines; ``None`` when no run has this protocol."""
-    rows = []
-    baselines: dict[str, dict] = {}
-    for run in runs:
-        methods = run.test_sets.get(test_set, {}).get(protocol)
-        if not methods:
-            continue
-        if "model" in methods:
-            rows.append([run.label] + [_number(methods["model"].get(key)) for key, _ in columns])
-        for method, values in methods.items():
-            if method != "model":
-                baselines.setdefault(method, values)
-    if not rows:
-        return None
-    rows += [[BASELINE_LABELS.get(m, m)] + [_number(v.get(key)) for key, _ in columns] for m, v in baselines.items()]
-    return markdown_table([label_header] + [title for _, title in columns], rows)
-
-
 def format_report(runs: list[RunResults], order: Iterable[str] = ()) -> str:
     """Markdown: per test set (those in ``order`` first), the paper depth protocol (Table 1 style), the
     SimCol3D challenge depth protocol, and pose (Table 2 style); then an ablation summary (Table 3 style)."""
@@ -260,7 +213,8 @@ def format_report(runs: list[RunResults], order: Iterable[str] = ()) -> str:
     for test_set in test_sets:
         parts = [f"## {test_set}"]
         for title, protocol, columns in PROTOCOL_TABLES:
-            table = protocol_table(runs, test_set, protocol, columns)
+            table = protocol_table([(run.label, run.test_sets.get(test_set, {}).get(protocol)) for run in runs],
+                                   columns)
             if table:
                 parts.append(f"### {title}\n\n{table}")
         sections.append("\n\n".join(parts))
@@ -347,7 +301,7 @@ def _seed_table(runs: list[RunResults], groups: dict[str, list[RunResults]], tes
             values = seed_samples(group, test_set, metric)
             cells.append("{:.4f} ± {:.4f}".format(*mean_sd(values)) if values else "–")
         rows.append([name, str(len(group))] + cells)
-    rows.append(["trivial baseline", "–"] + [_number(trivial_baseline(runs, test_set, m)) for m in metrics])
+    rows.append(["trivial baseline", "–"] + [number_cell(trivial_baseline(runs, test_set, m)) for m in metrics])
     for name, group in groups.items():
         if name == "full" or "full" not in groups:
             continue
@@ -400,29 +354,10 @@ def ablation_table(runs: list[RunResults], test_sets: list[str]) -> str:
         row = [run.label]
         for test_set in test_sets:
             metrics = run.test_sets.get(test_set, {})
-            row.append(_number(metrics.get("depth_paper", {}).get("model", {}).get("abs_rel")))
-            row.append(_number(metrics.get("pose_simcol", {}).get("model", {}).get("rte")))
+            row.append(number_cell(metrics.get("depth_paper", {}).get("model", {}).get("abs_rel")))
+            row.append(number_cell(metrics.get("pose_simcol", {}).get("model", {}).get("rte")))
         rows.append(row)
     return markdown_table(headers, rows)
-
-
-def format_evaluation(result: dict) -> str:
-    """Plain-text summary of one test set's evaluation (the dict ``evaluate_test_set`` returns and writes):
-    what was evaluated, then per protocol a table of the model beside its baselines."""
-    name = result.get("test_set", "?")
-    counts = [f"{result[key]} {noun}" for key, noun in
-              (("sequences", "sequences"), ("frames", "frames"), ("depth_frames", "frames with GT depth"))
-              if key in result]
-    speed = f", {result['frames_per_second']:.1f} frames/s" if "frames_per_second" in result else ""
-    parts = [f"Test set {name} ({result.get('dataset', '?')}): {', '.join(counts)}{speed}"]
-    run = RunResults("model", test_sets={name: result})
-    for title, protocol, columns in PROTOCOL_TABLES:
-        table = protocol_table([run], name, protocol, columns, label_header="method")
-        if table:
-            parts.append(f"{title}\n{table}")
-    if len(parts) == 1:
-        parts.append("No depth or pose metrics: the test set has neither GT depth nor consecutive GT poses.")
-    return "\n\n".join(parts) + "\n"
 
 
 def build_report(project_root: str | Path, predictions_dir: str, params: Optional[dict] = None,

@@ -10,7 +10,7 @@ import argparse
 
 from endoflow.config import load_params
 from endoflow.evaluation.evaluate import run_evaluation
-from endoflow.report import format_evaluation
+from endoflow.evaluation.summary import format_evaluation
 
 
 def main() -> None:

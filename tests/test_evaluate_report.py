@@ -9,12 +9,11 @@ from pathlib import Path
 import pytest
 
 from endoflow.cli import main
+from endoflow.evaluation.summary import format_evaluation, markdown_table
 from endoflow.report import (
     RunResults,
     experiment_results,
-    format_evaluation,
     format_report,
-    markdown_table,
     running_in_workspace,
     runs_by_configuration,
     workspace_results,
