@@ -33,7 +33,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Collection, Iterable, Iterator, Optional
+from typing import Collection, Iterable, Iterator, Optional
 
 import cv2
 import numpy as np
@@ -43,6 +43,7 @@ import torch
 from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig, Precision
 from endoflow.evaluation import metrics, plots
+from endoflow.evaluation.baselines import baseline_depths, baseline_relative_poses
 from endoflow.evaluation.scores import (
     DEPTH_METHODS,
     POSE_METHODS,
@@ -198,21 +199,13 @@ class SequenceEvaluator:
         result.depth_frames.append(frame.frame)
         result.depth_pred.append(metrics.depth_to_simcol_unit(prediction).astype(np.float16))
         result.depth_gt.append(frame.depth_cm)
-        baselines = self.baseline_depths(frame.depth_cm.shape)
+        baselines = baseline_depths(self.baselines, frame.depth_cm.shape)
         for method, pred in (("model", prediction), *baselines.items()):
             errors = metrics.paper_depth_errors(frame.depth_cm, pred)
             self.scores += score_rows(frame.sequence, frame.frame, method, "depth_paper", errors)
         if len(result.depth_frames) == 1 and len(self.examples) < self.max_examples:
             self.examples.append({"label": f"{frame.sequence} #{frame.frame}", "gt": frame.depth_cm,
                                   "rgb": frame.rgb.permute(1, 2, 0).numpy(), "pred": prediction})
-
-    def baseline_depths(self, shape: tuple[int, int]) -> dict[str, np.ndarray]:
-        """The two depth baselines at ``shape`` (the mean map is resized if the stored size differs)."""
-        mean_map = self.baselines.mean_depth_map
-        if mean_map.shape != tuple(shape):
-            mean_map = cv2.resize(mean_map, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
-        return {"constant_depth": np.full(shape, self.baselines.mean_depth_cm, np.float32),
-                "mean_depth_map": mean_map.astype(np.float32)}
 
     def _frame_folder(self, frame: FrameRecord) -> Path:
         return self.predictions_dir / f"{slug(frame.group or 'test')}_Test" / f"Frames_{slug(frame.sequence)}_OP"
@@ -236,8 +229,8 @@ def score_sequences(evaluator: SequenceEvaluator) -> tuple[dict, pd.DataFrame, p
     rows = list(evaluator.scores)
     trajectories: dict = {}
     for seq in evaluator.sequences:
-        rows += depth_sequence_scores(seq, evaluator.baseline_depths)
-        pose_rows, trajectory = pose_sequence_scores(seq, evaluator.baselines.mean_relative_pose)
+        rows += depth_sequence_scores(seq, evaluator.baselines)
+        pose_rows, trajectory = pose_sequence_scores(seq, evaluator.baselines)
         rows += pose_rows
         if trajectory is not None:
             trajectories[seq.name] = trajectory
@@ -250,16 +243,17 @@ def score_sequences(evaluator: SequenceEvaluator) -> tuple[dict, pd.DataFrame, p
         trajectories
 
 
-def depth_sequence_scores(seq: SequenceResult, baseline_depths: Callable[[tuple[int, int]], dict]) -> list[dict]:
+def depth_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> list[dict]:
     """The challenge's depth protocol over one sequence's frames with GT depth, for the model and the baselines:
     the sequence's figures and each frame's L1."""
     if not seq.depth_frames:
         return []
     gt = np.stack(seq.depth_gt)
+    predicted = {"model": np.stack(seq.depth_pred).astype(np.float32) * metrics.SIMCOL_DEPTH_RANGE_CM,
+                 **{method: np.broadcast_to(depth, gt.shape)
+                    for method, depth in baseline_depths(training, gt.shape[1:]).items()}}
     rows: list[dict] = []
-    for method in DEPTH_METHODS:
-        pred = (np.stack(seq.depth_pred).astype(np.float32) * metrics.SIMCOL_DEPTH_RANGE_CM if method == "model"
-                else np.broadcast_to(baseline_depths(gt.shape[1:])[method], gt.shape))
+    for method, pred in predicted.items():
         result = metrics.simcol_depth_sequence(pred, gt)
         rows += score_rows(seq.name, None, method, "depth_simcol",
                            {key: result[key] for key in metrics.SIMCOL_DEPTH_KEYS})
@@ -268,7 +262,7 @@ def depth_sequence_scores(seq: SequenceResult, baseline_depths: Callable[[tuple[
     return rows
 
 
-def pose_sequence_scores(seq: SequenceResult, mean_relative_pose: np.ndarray) -> tuple[list[dict], Optional[dict]]:
+def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> tuple[list[dict], Optional[dict]]:
     """The challenge's and EndoSLAM's pose protocols over the longest run of one sequence's posed frames, for the
     model and constant velocity: the sequence's figures, each frame's RTE and ROT, and the trajectories."""
     run = longest_posed_run(seq.poses, seq.gaps)
@@ -277,7 +271,7 @@ def pose_sequence_scores(seq: SequenceResult, mean_relative_pose: np.ndarray) ->
     start, stop = run
     gt_poses = np.stack(seq.poses[start:stop])
     predicted = {"model": np.stack(seq.predicted_relative[start:stop - 1]),
-                 "constant_velocity": np.repeat(mean_relative_pose[None], stop - start - 1, axis=0)}
+                 **baseline_relative_poses(training, stop - start - 1)}
     trajectory = {"gt": gt_poses[:, :3, 3], "frames": seq.frames[start:stop]}
     rows: list[dict] = []
     for method, relative in predicted.items():
@@ -391,19 +385,18 @@ def log_evaluation(params: Params, project_root: str | Path, result: dict, plots
     """Log the headline as metrics (``test/<test set>/<name>``, columns of the runs table), every figure as the
     table ``eval/<test set>/figures.csv`` and the plots into the training run, or into a run opened for the
     model when the store lacks its training run (:func:`tracking.run_for_model`)."""
-    run_id = tracking.run_for_model(params, project_root, result.get("mlflow_run_id"), "evaluate")
-    uri = tracking.tracking_uri(params, project_root)
+    run = tracking.run_for_model(params, project_root, result.get("mlflow_run_id"), "evaluate")
     prefix = f"eval/{result['test_set']}"
     headline = mlflow_metrics(result["test_set"], result)
-    tracking.log_metrics(uri, run_id, headline)
-    tracking.show_in_runs_table(uri, run_id, headline)
-    tracking.log_table(uri, run_id, figure_rows(result), f"{prefix}/figures.csv")
-    tracking.log_artifact(uri, run_id, plots_dir, prefix)
+    run.log_metrics(headline)
+    run.show_in_runs_table(headline)
+    run.log_table(figure_rows(result), f"{prefix}/figures.csv")
+    run.log_artifact(plots_dir, prefix)
     test_set = eval_set(params, result["test_set"])
     shards = eval_set_folder(absolute_location(params.eval.shards, project_root), test_set)
     # named after the test set: MLflow keeps one input per name and digest, and the training shards may be
     # the same folder
-    tracking.log_shards_input(uri, run_id, manifest_location(shards), result["test_set"], "evaluation")
+    run.log_shards_input(manifest_location(shards), result["test_set"], "evaluation")
 
 
 def run_evaluation(params: Params, name: str, project_root: str | Path = ".") -> dict:

@@ -15,9 +15,10 @@ import numpy as np
 import pandas as pd
 
 from endoflow.evaluation import metrics
+from endoflow.evaluation.baselines import DEPTH_BASELINES, POSE_BASELINES
 
-DEPTH_METHODS = ("model", "constant_depth", "mean_depth_map")
-POSE_METHODS = ("model", "constant_velocity")
+DEPTH_METHODS = ("model", *DEPTH_BASELINES)
+POSE_METHODS = ("model", *POSE_BASELINES)
 SCORE_COLUMNS = ("sequence", "frame", "method", "protocol", "metric", "value")
 # each protocol's methods and figures, in the order evaluation.json lists them
 PROTOCOL_FIGURES = {
