@@ -208,9 +208,9 @@ def _reconstruct(args: argparse.Namespace) -> int:
         K = intrinsics_for(args.intrinsics, frames, options.crop)
         summary = reconstruct(frames, K, model_path, args.out, options)
     if args.mlflow:
-        run_id = log_reconstruction(_params_if_present(args.params), Path(".").resolve(), record.mlflow_run_id,
-                                    args.out.name, args.out)
-        print(f"logged to MLflow run {run_id} under reconstruct/{args.out.name}/")
+        run = log_reconstruction(_params_if_present(args.params), Path(".").resolve(), record.mlflow_run_id,
+                                 args.out.name, args.out)
+        print(f"logged to MLflow run {run.run_id} under reconstruct/{args.out.name}/")
     scale = summary.get("ground_truth_scale")
     fitted = f"; ground truth fits the model's depth x {scale['median']:.3f}" if scale else ""
     print(f"{summary['frames']} frames at {summary['size']} px, {summary['frames_per_second']:.1f} frames/s"

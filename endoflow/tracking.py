@@ -5,8 +5,9 @@ By default the store is embedded in the project: ``sqlite:///<project>/mlflow.db
 params points at a remote server instead. Experiments are created once, by the driver, with an explicit
 artifact location, because otherwise the first creator's working directory (perhaps a Ray session folder)
 would become the artifact root. Only one process writes to a run at a time (the driver, or rank 0 of the
-Ray workers while training), which SQLite needs. Every call names its run id explicitly (no global
-"active run"), so Ray workers can log into the driver's run.
+Ray workers while training), which SQLite needs. A run is a :class:`RunHandle` naming its id explicitly (no
+global "active run"): :func:`run` opens and ends one, and Ray workers attach to the driver's
+(:meth:`RunHandle.attach`).
 
 What MLflow's UI shows comes from here too: experiments as model-training experiments with a description,
 runs named after their DVC experiment or what distinguishes them (:func:`run_name_for`), the source and
@@ -24,6 +25,7 @@ Browse with ``mlflow ui --backend-store-uri sqlite:///$PWD/mlflow.db`` from the 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -32,8 +34,9 @@ import os
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Optional, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Optional, Sequence
 
 import requests
 from mlflow import MlflowClient
@@ -245,25 +248,6 @@ def runs_table_path(experiment_id: str) -> str:
             f"&viewStateShareKey={RUNS_VIEW_KEY}")
 
 
-def show_in_runs_table(uri: str, run_id: str, metric_keys: Iterable[str]) -> None:
-    """Add ``metric_keys`` (after those it has) to the columns of the runs table's view of the run's experiment
-    (:func:`best_effort`)."""
-    def write() -> None:
-        mlflow_client = client(uri)
-        experiment = mlflow_client.get_experiment(mlflow_client.get_run(run_id).info.experiment_id)
-        view = json.loads(experiment.tags.get(RUNS_VIEW_TAG, runs_view([])))
-        shown = [column for column in view.get("selectedColumns", []) if column.startswith("metrics.")]
-        wanted = list(dict.fromkeys([*(column[len("metrics.`"):-1] for column in shown), *metric_keys]))
-        updated = runs_view(wanted)
-        while len(updated) > MAX_EXPERIMENT_TAG_CHARACTERS:
-            wanted = wanted[1:]
-            updated = runs_view(wanted)
-        if updated != experiment.tags.get(RUNS_VIEW_TAG):
-            mlflow_client.set_experiment_tag(experiment.experiment_id, RUNS_VIEW_TAG, updated)
-
-    best_effort(uri, f"the runs table's columns of run {run_id}'s experiment", write, run_id)
-
-
 def dvc_experiment_name() -> Optional[str]:
     """The DVC experiment this process runs in, if any."""
     return os.environ.get(DVC_EXPERIMENT_ENV) or None
@@ -299,8 +283,8 @@ def git_commit(project_root: str | Path) -> Optional[str]:
 
 
 def start_run(params: Params, project_root: str | Path, experiment: str, run_name: str,
-              fingerprint: Optional[str] = None) -> str:
-    """Open a run with flat params and the git commit; returns its id.
+              fingerprint: Optional[str] = None) -> RunHandle:
+    """Open a run with flat params and the git commit, left open (:func:`run` also ends it).
 
     With ``fingerprint``, an unfinished run of the same experiment carrying the same fingerprint (an
     interrupted training being resumed) is reopened instead, so one training stays one run. What the store
@@ -309,12 +293,30 @@ def start_run(params: Params, project_root: str | Path, experiment: str, run_nam
     (:func:`end_abandoned_runs`).
     """
     run_id = _open_run(params, project_root, experiment, run_name, fingerprint)
-    keep_unlogged_in(run_id, project_unlogged_file(project_root, run_id))
-    uri = tracking_uri(params, project_root)
-    log_params(uri, run_id, flat_params(params))
-    print(f"[mlflow] run {run_name!r}: {browse_hint(uri, ensure_experiment(params, project_root, experiment))}",
+    handle = RunHandle.attach(tracking_uri(params, project_root), run_id,
+                              project_unlogged_file(project_root, run_id))
+    handle.log_params(flat_params(params))
+    print(f"[mlflow] run {run_name!r}: {browse_hint(handle.uri, ensure_experiment(params, project_root, experiment))}",
           file=sys.stderr)
-    return run_id
+    return handle
+
+
+@contextlib.contextmanager
+def run(params: Params, project_root: str | Path, experiment: str, run_name: str,
+        fingerprint: Optional[str] = None) -> Iterator[RunHandle]:
+    """Within: the run :func:`start_run` opens (or reopens). It ends FINISHED, FAILED on an error (a rerun with
+    the same fingerprint reopens it) or KILLED on an interrupt; the error is re-raised, never hidden by the end
+    (:meth:`RunHandle.end`)."""
+    handle = start_run(params, project_root, experiment, run_name, fingerprint)
+    try:
+        yield handle
+    except KeyboardInterrupt:
+        handle.end(RunStatus.KILLED)
+        raise
+    except BaseException:
+        handle.end(RunStatus.FAILED)
+        raise
+    handle.end(RunStatus.FINISHED)
 
 
 def browse_hint(uri: str, experiment_id: str) -> str:
@@ -389,7 +391,8 @@ def run_exists(uri: str, run_id: str) -> bool:
     return True
 
 
-def run_for_model(params: Params, project_root: str | Path, model_run_id: Optional[str], run_name: str) -> str:
+def run_for_model(params: Params, project_root: str | Path, model_run_id: Optional[str],
+                  run_name: str) -> RunHandle:
     """The run to log a model's results into: its training run ``model_run_id`` when this store holds it.
 
     Otherwise (a model trained elsewhere, or a fresh store) a run of ``tracking.experiment`` tagged with the
@@ -398,8 +401,7 @@ def run_for_model(params: Params, project_root: str | Path, model_run_id: Option
     kept in the project (:func:`project_unlogged_file`).
     """
     run_id = _model_run(params, project_root, model_run_id, run_name)
-    keep_unlogged_in(run_id, project_unlogged_file(project_root, run_id))
-    return run_id
+    return RunHandle.attach(tracking_uri(params, project_root), run_id, project_unlogged_file(project_root, run_id))
 
 
 def _model_run(params: Params, project_root: str | Path, model_run_id: Optional[str], run_name: str) -> str:
@@ -420,72 +422,19 @@ def _model_run(params: Params, project_root: str | Path, model_run_id: Optional[
     return run.info.run_id
 
 
-def set_tags(uri: str, run_id: str, tags: Mapping[str, str]) -> None:
-    """Set (or overwrite) ``tags`` on the run (:func:`best_effort`)."""
-    def write() -> None:
-        mlflow_client = client(uri)
-        for key, value in tags.items():
-            mlflow_client.set_tag(run_id, key, value)
-
-    best_effort(uri, f"tags of run {run_id}", write, run_id)
-
-
-def link_latent_bank(params: Params, project_root: str | Path, run_id: str, bank_digest: str) -> Optional[str]:
-    """Tag training run ``run_id`` with the digest of the latent bank file it uses and, when this store holds
-    the pretraining run that wrote that file, with that run's id; returns the id (``None`` if not found)."""
-    uri = tracking_uri(params, project_root)
+def link_latent_bank(params: Params, run: RunHandle, bank_digest: str) -> Optional[str]:
+    """Tag training run ``run`` with the digest of the latent bank file it uses and, when its store holds the
+    pretraining run that wrote that file, with that run's id; returns the id (``None`` if not found)."""
     tags = {LATENT_BANK_DIGEST_TAG: bank_digest}
-    experiment = client(uri).get_experiment_by_name(params.tracking.latent_bank_experiment)
-    found = client(uri).search_runs([experiment.experiment_id],
-                                    filter_string=f"tags.`{LATENT_BANK_DIGEST_TAG}` = '{bank_digest}'",
-                                    order_by=["attributes.start_time DESC"], max_results=1) if experiment else []
+    mlflow_client = client(run.uri)
+    experiment = mlflow_client.get_experiment_by_name(params.tracking.latent_bank_experiment)
+    found = mlflow_client.search_runs([experiment.experiment_id],
+                                      filter_string=f"tags.`{LATENT_BANK_DIGEST_TAG}` = '{bank_digest}'",
+                                      order_by=["attributes.start_time DESC"], max_results=1) if experiment else []
     if found:
         tags[LATENT_BANK_RUN_TAG] = found[0].info.run_id
-    set_tags(uri, run_id, tags)
+    run.set_tags(tags)
     return found[0].info.run_id if found else None
-
-
-def log_shards_input(uri: str, run_id: str, manifest: str, name: str, context: str) -> str:
-    """Log a shard folder as a dataset input of the run (the "Datasets used" of MLflow's UI): named ``name``,
-    its source the manifest at ``manifest`` (a path or an fsspec URL), its digest the manifest's SHA-256 (which
-    covers every shard's SHA-256 and sample count), ``context`` what the run used it for (``training``,
-    ``evaluation``). Logging the same input again (a resumed run) adds nothing. Returns the digest."""
-    hexdigest = file_sha256(manifest)[:MLFLOW_DIGEST_CHARS]
-    # the source types of MLflow's own artifact sources: "local" for a path, the URL's scheme otherwise
-    source_type, location = ((manifest.split("://", 1)[0], manifest) if "://" in manifest
-                             else ("local", str(Path(manifest).resolve())))
-    dataset = Dataset(name=name, digest=hexdigest, source_type=source_type, source=json.dumps({"uri": location}))
-    dataset_input = DatasetInput(dataset, tags=[InputTag(DATASET_CONTEXT_TAG, context)])
-    best_effort(uri, f"the dataset input of run {run_id}",
-                lambda: client(uri).log_inputs(run_id, datasets=[dataset_input]), run_id)
-    return hexdigest
-
-
-def log_params(uri: str, run_id: str, values: Mapping[str, str]) -> None:
-    """Log params in batches (MLflow caps a batch at 100 params; :func:`best_effort`)."""
-    items = [Param(k, v) for k, v in values.items()]
-
-    def write() -> None:
-        mlflow_client = client(uri)
-        for start in range(0, len(items), 100):
-            mlflow_client.log_batch(run_id, params=items[start:start + 100])
-
-    best_effort(uri, f"the params of run {run_id}", write, run_id)
-
-
-def log_metrics(uri: str, run_id: str, values: Mapping[str, float], step: int = 0) -> None:
-    """Log ``values`` at ``step`` in one request (keys are sanitised to MLflow's allowed characters); what the
-    store does not take is kept in the run's :func:`unlogged_file`."""
-    now = int(time.time() * 1000)
-    metrics = [Metric(metric_key(k), float(v), now, step) for k, v in values.items()]
-
-    def write() -> None:
-        mlflow_client = client(uri)
-        for start in range(0, len(metrics), 1000):
-            mlflow_client.log_batch(run_id, metrics=metrics[start:start + 1000])
-
-    if not best_effort(uri, f"metrics of run {run_id}", write, run_id):
-        keep_unlogged(run_id, {"step": step, "timestamp": now, "metrics": {m.key: m.value for m in metrics}})
 
 
 def metric_key(key: str) -> str:
@@ -493,46 +442,139 @@ def metric_key(key: str) -> str:
     return "".join(c if c.isalnum() or c in "_-./ " else "_" for c in key)
 
 
-def log_dict(uri: str, run_id: str, values: Mapping[str, Any], artifact_file: str) -> None:
-    """Save ``values`` as a JSON artifact (:func:`best_effort`)."""
-    best_effort(uri, f"{artifact_file} of run {run_id}",
-                lambda: client(uri).log_dict(run_id, dict(values), artifact_file), run_id)
+# ------------------------------------------------------------------------------------------- a run
+@dataclass(frozen=True)
+class RunHandle:
+    """One MLflow run of the store at ``uri``, named by its explicit id (no process-wide active run, so a Ray
+    worker logs into the run its driver opened). Every write is :func:`best_effort`: a lost store warns once and
+    what it did not take of the metrics and the end is kept in :meth:`unlogged_file`."""
 
+    uri: str
+    run_id: str
 
-def log_table(uri: str, run_id: str, rows: Sequence[Mapping[str, Any]], artifact_file: str) -> None:
-    """Save ``rows`` (one dict per row, the first one's keys as columns) as a CSV artifact, which MLflow's UI shows
-    as a table: where one-off figures go, so that the run's charts are its curves (:func:`best_effort`)."""
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]) if rows else [], lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    best_effort(uri, f"{artifact_file} of run {run_id}",
-                lambda: client(uri).log_text(run_id, buffer.getvalue(), artifact_file), run_id)
+    @classmethod
+    def attach(cls, uri: str, run_id: str, unlogged: Optional[str | Path] = None) -> RunHandle:
+        """The run ``run_id`` opened elsewhere (by the driver of a Ray training; the training run a model file
+        names); ``unlogged``: where this process keeps what the store does not take (the opener's
+        :meth:`unlogged_file`), else :func:`unlogged_file`'s default."""
+        if unlogged:
+            keep_unlogged_in(run_id, unlogged)
+        return cls(uri, run_id)
 
+    def unlogged_file(self) -> Path:
+        return unlogged_file(self.run_id)
 
-def log_figure(uri: str, run_id: str, figure: Any, artifact_file: str) -> None:
-    """Save a matplotlib figure as a PNG artifact (:func:`best_effort`)."""
-    best_effort(uri, f"{artifact_file} of run {run_id}",
-                lambda: client(uri).log_figure(run_id, figure, artifact_file), run_id)
+    def best_effort(self, what: str, write: Callable[[], Any]) -> bool:
+        """:func:`best_effort` for ``what`` of this run."""
+        return best_effort(self.uri, what, write, self.run_id)
 
+    def set_tags(self, tags: Mapping[str, str]) -> None:
+        """Set (or overwrite) ``tags`` on the run."""
+        def write() -> None:
+            mlflow_client = client(self.uri)
+            for key, value in tags.items():
+                mlflow_client.set_tag(self.run_id, key, value)
 
-def log_artifact(uri: str, run_id: str, path: str | Path, artifact_path: Optional[str] = None) -> None:
-    """Upload a file or a folder into the run's artifacts (:func:`best_effort`: they stay where they are)."""
-    def write() -> None:
-        mlflow_client = client(uri)
-        if Path(path).is_dir():
-            mlflow_client.log_artifacts(run_id, str(path), artifact_path)
-        else:
-            mlflow_client.log_artifact(run_id, str(path), artifact_path)
+        self.best_effort(f"tags of run {self.run_id}", write)
 
-    best_effort(uri, f"{path} for run {run_id}", write, run_id)
+    def log_params(self, values: Mapping[str, str]) -> None:
+        """Log params in batches (MLflow caps a batch at 100 params)."""
+        items = [Param(k, v) for k, v in values.items()]
 
+        def write() -> None:
+            mlflow_client = client(self.uri)
+            for start in range(0, len(items), 100):
+                mlflow_client.log_batch(self.run_id, params=items[start:start + 100])
 
-def end_run(uri: str, run_id: str, failed: bool = False) -> None:
-    """Mark the run FINISHED (or FAILED, so a rerun with the same inputs reopens it); with its store lost, the
-    end is kept in the run's :func:`unlogged_file`, and an error of the run stays the one raised."""
-    status = RunStatus.to_string(RunStatus.FAILED if failed else RunStatus.FINISHED)
-    now = int(time.time() * 1000)
-    if not best_effort(uri, f"the end of run {run_id}",
-                       lambda: client(uri).set_terminated(run_id, status=status, end_time=now), run_id):
-        keep_unlogged(run_id, {"status": status, "end_time": now})
+        self.best_effort(f"the params of run {self.run_id}", write)
+
+    def log_metrics(self, values: Mapping[str, float], step: int = 0) -> None:
+        """Log ``values`` at ``step`` in one request (keys are sanitised to MLflow's allowed characters); what the
+        store does not take is kept in the run's :meth:`unlogged_file`."""
+        now = int(time.time() * 1000)
+        metrics = [Metric(metric_key(k), float(v), now, step) for k, v in values.items()]
+
+        def write() -> None:
+            mlflow_client = client(self.uri)
+            for start in range(0, len(metrics), 1000):
+                mlflow_client.log_batch(self.run_id, metrics=metrics[start:start + 1000])
+
+        if not self.best_effort(f"metrics of run {self.run_id}", write):
+            keep_unlogged(self.run_id, {"step": step, "timestamp": now,
+                                        "metrics": {m.key: m.value for m in metrics}})
+
+    def show_in_runs_table(self, metric_keys: Iterable[str]) -> None:
+        """Add ``metric_keys`` (after those it has) to the columns of the runs table's view of the run's
+        experiment."""
+        def write() -> None:
+            mlflow_client = client(self.uri)
+            experiment = mlflow_client.get_experiment(mlflow_client.get_run(self.run_id).info.experiment_id)
+            view = json.loads(experiment.tags.get(RUNS_VIEW_TAG, runs_view([])))
+            shown = [column for column in view.get("selectedColumns", []) if column.startswith("metrics.")]
+            wanted = list(dict.fromkeys([*(column[len("metrics.`"):-1] for column in shown), *metric_keys]))
+            updated = runs_view(wanted)
+            while len(updated) > MAX_EXPERIMENT_TAG_CHARACTERS:
+                wanted = wanted[1:]
+                updated = runs_view(wanted)
+            if updated != experiment.tags.get(RUNS_VIEW_TAG):
+                mlflow_client.set_experiment_tag(experiment.experiment_id, RUNS_VIEW_TAG, updated)
+
+        self.best_effort(f"the runs table's columns of run {self.run_id}'s experiment", write)
+
+    def log_shards_input(self, manifest: str, name: str, context: str) -> str:
+        """Log a shard folder as a dataset input of the run (the "Datasets used" of MLflow's UI): named ``name``,
+        its source the manifest at ``manifest`` (a path or an fsspec URL), its digest the manifest's SHA-256
+        (which covers every shard's SHA-256 and sample count), ``context`` what the run used it for
+        (``training``, ``evaluation``). Logging the same input again (a resumed run) adds nothing. Returns the
+        digest."""
+        hexdigest = file_sha256(manifest)[:MLFLOW_DIGEST_CHARS]
+        # the source types of MLflow's own artifact sources: "local" for a path, the URL's scheme otherwise
+        source_type, location = ((manifest.split("://", 1)[0], manifest) if "://" in manifest
+                                 else ("local", str(Path(manifest).resolve())))
+        dataset = Dataset(name=name, digest=hexdigest, source_type=source_type,
+                          source=json.dumps({"uri": location}))
+        dataset_input = DatasetInput(dataset, tags=[InputTag(DATASET_CONTEXT_TAG, context)])
+        self.best_effort(f"the dataset input of run {self.run_id}",
+                         lambda: client(self.uri).log_inputs(self.run_id, datasets=[dataset_input]))
+        return hexdigest
+
+    def log_dict(self, values: Mapping[str, Any], artifact_file: str) -> None:
+        """Save ``values`` as a JSON artifact."""
+        self.best_effort(f"{artifact_file} of run {self.run_id}",
+                         lambda: client(self.uri).log_dict(self.run_id, dict(values), artifact_file))
+
+    def log_table(self, rows: Sequence[Mapping[str, Any]], artifact_file: str) -> None:
+        """Save ``rows`` (one dict per row, the first one's keys as columns) as a CSV artifact, which MLflow's UI
+        shows as a table: where one-off figures go, so that the run's charts are its curves."""
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, fieldnames=list(rows[0]) if rows else [], lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+        self.best_effort(f"{artifact_file} of run {self.run_id}",
+                         lambda: client(self.uri).log_text(self.run_id, buffer.getvalue(), artifact_file))
+
+    def log_figure(self, figure: Any, artifact_file: str) -> None:
+        """Save a matplotlib figure as a PNG artifact."""
+        self.best_effort(f"{artifact_file} of run {self.run_id}",
+                         lambda: client(self.uri).log_figure(self.run_id, figure, artifact_file))
+
+    def log_artifact(self, path: str | Path, artifact_path: Optional[str] = None) -> None:
+        """Upload a file or a folder into the run's artifacts (a lost store leaves them where they are)."""
+        def write() -> None:
+            mlflow_client = client(self.uri)
+            if Path(path).is_dir():
+                mlflow_client.log_artifacts(self.run_id, str(path), artifact_path)
+            else:
+                mlflow_client.log_artifact(self.run_id, str(path), artifact_path)
+
+        self.best_effort(f"{path} for run {self.run_id}", write)
+
+    def end(self, status: int = RunStatus.FINISHED) -> None:
+        """Mark the run ``status`` (a :class:`RunStatus`: FAILED and KILLED runs are reopened by a rerun with the
+        same fingerprint); with its store lost, the end is kept in the run's :meth:`unlogged_file`, and an error
+        of the run stays the one raised."""
+        name = RunStatus.to_string(status)
+        now = int(time.time() * 1000)
+        if not self.best_effort(f"the end of run {self.run_id}",
+                                lambda: client(self.uri).set_terminated(self.run_id, status=name, end_time=now)):
+            keep_unlogged(self.run_id, {"status": name, "end_time": now})

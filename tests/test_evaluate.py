@@ -199,10 +199,10 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     params = shard_params(oracle_shards)
     params.model = params.model.replace(latent_bank=False)
     uri = tracking.tracking_uri(params, tmp_path)
-    run_id = tracking.start_run(params, tmp_path, "endoflow", "train")
     manifest = oracle_shards / "simcol" / "manifest.parquet"
-    tracking.log_shards_input(uri, run_id, str(manifest), "simcol", "training")  # trained on the same folder
-    tracking.end_run(uri, run_id)
+    with tracking.run(params, tmp_path, "endoflow", "train") as run:
+        run.log_shards_input(str(manifest), "simcol", "training")  # trained on the same folder
+    run_id = run.run_id
     write_untrained_model(tmp_path / "endoflow.pt", params, run_id)
     urls = eval_set_shards(str(oracle_shards), params.eval.test_sets["simcol_3"])
     result = evaluate_test_set(params, "simcol_3", urls, tmp_path / "endoflow.pt", tmp_path / "m.json",

@@ -46,13 +46,11 @@ def logged(project: Path, params: Params) -> tuple[Path, str, str]:
     model = build_model(params, latent_bank_path=None)
     baselines = TrainingBaselines(mean_depth_cm=7.0, mean_depth_map=np.full((SIZE, SIZE), 7.0, np.float32),
                                   mean_relative_pose=np.eye(4))
-    run_id = tracking.start_run(params, project, params.tracking.experiment, "train bank vae seed0")
-    save_model_file(model_path, ModelRecord(params=params, state=model.state_dict(), epoch=0, val={},
-                                            mlflow_run_id=run_id, baselines=baselines))
-    uri = tracking.tracking_uri(params, project)
-    model_uri = log_mlflow_model(uri, run_id, model_path, NAME)
-    tracking.end_run(uri, run_id)
-    return model_path, run_id, model_uri
+    with tracking.run(params, project, params.tracking.experiment, "train bank vae seed0") as run:
+        save_model_file(model_path, ModelRecord(params=params, state=model.state_dict(), epoch=0, val={},
+                                                mlflow_run_id=run.run_id, baselines=baselines))
+        model_uri = log_mlflow_model(run.uri, run.run_id, model_path, NAME)
+    return model_path, run.run_id, model_uri
 
 
 def downloaded_model(params: Params, project: Path, destination: Path) -> Path:

@@ -35,12 +35,12 @@ def test_the_link_opens_the_runs_table_in_the_model_training_view_with_endoflows
 def test_stages_add_their_headline_to_the_runs_tables_columns_once_each_in_order(tmp_path: Path, capsys):
     params = Params()
     uri = tracking.tracking_uri(params, tmp_path)
-    run_id = tracking.start_run(params, tmp_path, "exp", "train")
-    experiment_id = tracking.client(uri).get_run(run_id).info.experiment_id
+    run = tracking.start_run(params, tmp_path, "exp", "train")
+    experiment_id = tracking.client(uri).get_run(run.run_id).info.experiment_id
     assert tracking.runs_table_link(uri, experiment_id) in capsys.readouterr().err
     assert shown_metrics(uri, experiment_id) == []  # the view exists from the start: the link always opens
-    tracking.show_in_runs_table(uri, run_id, ["test/simcol_3/abs_rel", "test/simcol_3/rte_cm"])
-    tracking.show_in_runs_table(uri, run_id, ["reconstruct/simcol_S5/ate_cm", "test/simcol_3/abs_rel"])
+    run.show_in_runs_table(["test/simcol_3/abs_rel", "test/simcol_3/rte_cm"])
+    run.show_in_runs_table(["reconstruct/simcol_S5/ate_cm", "test/simcol_3/abs_rel"])
     assert shown_metrics(uri, experiment_id) == ["test/simcol_3/abs_rel", "test/simcol_3/rte_cm",
                                                  "reconstruct/simcol_S5/ate_cm"]
     view = json.loads(tracking.client(uri).get_experiment(experiment_id).tags[tracking.RUNS_VIEW_TAG])
@@ -51,26 +51,27 @@ def test_stages_add_their_headline_to_the_runs_tables_columns_once_each_in_order
 def test_the_view_keeps_the_newest_columns_within_mlflows_tag_size(tmp_path: Path):
     params = Params()
     uri = tracking.tracking_uri(params, tmp_path)
-    run_id = tracking.start_run(params, tmp_path, "exp", "train")
+    run = tracking.start_run(params, tmp_path, "exp", "train")
     keys = [f"reconstruct/a_sequence_with_a_rather_long_name_{i:03d}/completeness_2vox_pct" for i in range(150)]
-    tracking.show_in_runs_table(uri, run_id, keys)
-    experiment_id = tracking.client(uri).get_run(run_id).info.experiment_id
+    run.show_in_runs_table(keys)
+    experiment_id = tracking.client(uri).get_run(run.run_id).info.experiment_id
     shown = shown_metrics(uri, experiment_id)
     assert 50 < len(shown) < len(keys) and shown == keys[-len(shown):]
-    tracking.log_metrics(uri, run_id, {"loss/total": 1.0})  # the store was not given up on
-    assert tracking.client(uri).get_run(run_id).data.metrics == {"loss/total": 1.0}
+    run.log_metrics({"loss/total": 1.0})  # the store was not given up on
+    assert tracking.client(uri).get_run(run.run_id).data.metrics == {"loss/total": 1.0}
 
 
 def test_one_off_figures_are_a_csv_table_artifact(tmp_path: Path):
     params = Params()
     uri = tracking.tracking_uri(params, tmp_path)
-    run_id = tracking.start_run(params, tmp_path, "exp", "train")
+    run = tracking.start_run(params, tmp_path, "exp", "train")
     rows = [{"protocol": "depth_paper", "method": "model", "metric": "abs_rel", "value": 0.25},
             {"protocol": "pose_simcol", "method": "model", "metric": "rte", "value": 0.5}]
-    tracking.log_table(uri, run_id, rows, "eval/simcol_3/figures.csv")
-    table = pd.read_csv(tracking.client(uri).download_artifacts(run_id, "eval/simcol_3/figures.csv", str(tmp_path)))
+    run.log_table(rows, "eval/simcol_3/figures.csv")
+    table = pd.read_csv(tracking.client(uri).download_artifacts(run.run_id, "eval/simcol_3/figures.csv",
+                                                                str(tmp_path)))
     assert table.to_dict("records") == rows
-    assert tracking.client(uri).get_run(run_id).data.metrics == {}
+    assert tracking.client(uri).get_run(run.run_id).data.metrics == {}
 
 
 @pytest.mark.parametrize("name", ["endoflow", "endoflow-latent-bank"])

@@ -15,6 +15,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pytest  # noqa: E402
+from mlflow.entities import RunStatus  # noqa: E402
 
 from endoflow import tracking  # noqa: E402
 from endoflow.config import Params  # noqa: E402
@@ -45,17 +46,18 @@ def test_run_has_params_commit_metrics_artifacts_and_reopens_while_unfinished(tm
                     "-m", "init"], cwd=tmp_path, check=True)
     params = Params()
     uri = tracking.tracking_uri(params, tmp_path)
-    run_id = tracking.start_run(params, tmp_path, "exp", "train", fingerprint="abc")
-    tracking.log_metrics(uri, run_id, {"loss/total": 1.5, "val abs_rel(paper)": 0.2}, step=3)
+    opened = tracking.start_run(params, tmp_path, "exp", "train", fingerprint="abc")
+    run_id = opened.run_id
+    opened.log_metrics({"loss/total": 1.5, "val abs_rel(paper)": 0.2}, step=3)
     figure = plt.figure()
-    tracking.log_figure(uri, run_id, figure, "val_depth/epoch_000.png")
+    opened.log_figure(figure, "val_depth/epoch_000.png")
     plt.close(figure)
 
     # an interrupted training resumed with the same inputs logs into the same run
-    assert tracking.start_run(params, tmp_path, "exp", "train", fingerprint="abc") == run_id
-    assert tracking.start_run(params, tmp_path, "exp", "train", fingerprint="other") != run_id
-    tracking.end_run(uri, run_id)
-    assert tracking.start_run(params, tmp_path, "exp", "train", fingerprint="abc") != run_id
+    with tracking.run(params, tmp_path, "exp", "train", fingerprint="abc") as resumed:
+        assert resumed == opened
+        assert tracking.start_run(params, tmp_path, "exp", "train", fingerprint="other") != opened
+    assert tracking.start_run(params, tmp_path, "exp", "train", fingerprint="abc") != opened
 
     run = tracking.client(uri).get_run(run_id)
     assert run.data.params["model.pose_vae"] == "True"
@@ -66,6 +68,27 @@ def test_run_has_params_commit_metrics_artifacts_and_reopens_while_unfinished(tm
     assert (tmp_path / "mlflow.db").is_file()
     assert (tmp_path / "mlartifacts").is_dir()
     assert list((tmp_path / "mlartifacts").rglob("epoch_000.png"))
+
+
+def test_a_run_ends_finished_failed_on_an_error_or_killed_on_an_interrupt_and_the_unfinished_reopen(
+        tmp_path: Path):
+    params = Params()
+    with tracking.run(params, tmp_path, "exp", "done", fingerprint="d") as done:
+        done.log_metrics({"loss/total": 1.0})
+    with pytest.raises(ValueError, match="the training's own error"):
+        with tracking.run(params, tmp_path, "exp", "failed", fingerprint="f") as failed:
+            raise ValueError("the training's own error")
+    with pytest.raises(KeyboardInterrupt):
+        with tracking.run(params, tmp_path, "exp", "interrupted", fingerprint="i") as interrupted:
+            raise KeyboardInterrupt
+
+    mlflow_client = tracking.client(tracking.tracking_uri(params, tmp_path))
+    status = {run.run_id: mlflow_client.get_run(run.run_id).info.status for run in (done, failed, interrupted)}
+    assert status == {done.run_id: "FINISHED", failed.run_id: "FAILED", interrupted.run_id: "KILLED"}
+    # a rerun with the same inputs goes on in the unfinished runs
+    assert tracking.start_run(params, tmp_path, "exp", "failed", fingerprint="f") == failed
+    assert tracking.start_run(params, tmp_path, "exp", "interrupted", fingerprint="i") == interrupted
+    assert tracking.start_run(params, tmp_path, "exp", "done", fingerprint="d") != done
 
 
 def test_experiments_are_model_training_experiments_with_a_description(tmp_path: Path):
@@ -105,17 +128,17 @@ def test_a_run_carries_its_source_its_dvc_experiment_and_its_latent_bank_run(tmp
     monkeypatch.setenv(tracking.DVC_EXPERIMENT_ENV, "no-vae")
     monkeypatch.setattr("sys.argv", [str(tmp_path / "stages" / "train.py")])
     bank_run = tracking.start_run(params, tmp_path, params.tracking.latent_bank_experiment, "bank")
-    tracking.set_tags(uri, bank_run, {tracking.LATENT_BANK_DIGEST_TAG: "d1"})
-    run_id = tracking.start_run(params, tmp_path, "endoflow", "no-vae")
-    assert tracking.link_latent_bank(params, tmp_path, run_id, "d1") == bank_run
-    tags = tracking.client(uri).get_run(run_id).data.tags
+    bank_run.set_tags({tracking.LATENT_BANK_DIGEST_TAG: "d1"})
+    run = tracking.start_run(params, tmp_path, "endoflow", "no-vae")
+    assert tracking.link_latent_bank(params, run, "d1") == bank_run.run_id
+    tags = tracking.client(uri).get_run(run.run_id).data.tags
     assert tags[tracking.SOURCE_NAME_TAG] == "stages/train.py" and tags[tracking.SOURCE_TYPE_TAG] == "LOCAL"
     assert tags[tracking.DVC_EXPERIMENT_TAG] == "no-vae"
-    assert tags[tracking.LATENT_BANK_RUN_TAG] == bank_run and tags[tracking.LATENT_BANK_DIGEST_TAG] == "d1"
+    assert tags[tracking.LATENT_BANK_RUN_TAG] == bank_run.run_id and tags[tracking.LATENT_BANK_DIGEST_TAG] == "d1"
     # a bank this store never pretrained (copied from elsewhere): its digest only
     other = tracking.start_run(params, tmp_path, "endoflow", "other")
-    assert tracking.link_latent_bank(params, tmp_path, other, "d2") is None
-    assert tracking.LATENT_BANK_RUN_TAG not in tracking.client(uri).get_run(other).data.tags
+    assert tracking.link_latent_bank(params, other, "d2") is None
+    assert tracking.LATENT_BANK_RUN_TAG not in tracking.client(uri).get_run(other.run_id).data.tags
 
 
 def test_a_shard_folder_is_a_dataset_input_named_by_its_manifest_and_digest_once_per_run(tmp_path: Path):
@@ -124,18 +147,18 @@ def test_a_shard_folder_is_a_dataset_input_named_by_its_manifest_and_digest_once
     manifest = tmp_path / "shards" / "simcol" / "manifest.parquet"
     manifest.parent.mkdir(parents=True)
     manifest.write_bytes(b"the manifest's bytes")
-    run_id = tracking.start_run(params, tmp_path, "endoflow", "train")
-    digest = tracking.log_shards_input(uri, run_id, str(manifest), "simcol", "training")
-    tracking.log_shards_input(uri, run_id, str(manifest), "simcol", "training")  # a resumed run logs it again
+    run = tracking.start_run(params, tmp_path, "endoflow", "train")
+    digest = run.log_shards_input(str(manifest), "simcol", "training")
+    run.log_shards_input(str(manifest), "simcol", "training")  # a resumed run logs it again
     assert digest == hashlib.sha256(b"the manifest's bytes").hexdigest()[:32]
-    (logged,) = tracking.client(uri).get_run(run_id).inputs.dataset_inputs
+    (logged,) = tracking.client(uri).get_run(run.run_id).inputs.dataset_inputs
     assert (logged.dataset.name, logged.dataset.digest, logged.dataset.source_type) == ("simcol", digest, "local")
     assert json.loads(logged.dataset.source) == {"uri": str(manifest)}
     assert {tag.key: tag.value for tag in logged.tags} == {"mlflow.data.context": "training"}
     # changed shards are another input (another digest)
     manifest.write_bytes(b"other bytes")
-    tracking.log_shards_input(uri, run_id, manifest.as_uri(), "simcol", "evaluation")
-    inputs = tracking.client(uri).get_run(run_id).inputs.dataset_inputs
+    run.log_shards_input(manifest.as_uri(), "simcol", "evaluation")
+    inputs = tracking.client(uri).get_run(run.run_id).inputs.dataset_inputs
     assert sorted((i.dataset.source_type, i.tags[0].value) for i in inputs) == [("file", "evaluation"),
                                                                                ("local", "training")]
 
@@ -180,16 +203,16 @@ def unlogged_entries(file: Path) -> list[dict]:
 def test_a_lost_server_warns_once_keeps_the_metrics_and_the_end_and_never_raises(
         lost_server: str, tmp_path: Path, capsys) -> None:
     kept = tmp_path / "project" / tracking.UNLOGGED_FOLDER / "run1.jsonl"
-    tracking.keep_unlogged_in("run1", kept)
+    run = tracking.RunHandle.attach(lost_server, "run1", kept)  # as a Ray worker attaches to the driver's run
     picture = tmp_path / "curves.png"
     picture.write_bytes(b"\x89PNG\r\n\x1a\n")
     started = time.monotonic()
 
     for step in range(5):
-        tracking.log_metrics(lost_server, "run1", {"loss/total": 0.5 + step}, step=step)
-    tracking.log_artifact(lost_server, "run1", picture, "plots/train")
-    tracking.set_tags(lost_server, "run1", {tracking.LATENT_BANK_DIGEST_TAG: "ab"})
-    tracking.end_run(lost_server, "run1", failed=True)
+        run.log_metrics({"loss/total": 0.5 + step}, step=step)
+    run.log_artifact(picture, "plots/train")
+    run.set_tags({tracking.LATENT_BANK_DIGEST_TAG: "ab"})
+    run.end(RunStatus.FAILED)
 
     assert time.monotonic() - started < 10
     warnings = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
@@ -202,11 +225,13 @@ def test_a_lost_server_warns_once_keeps_the_metrics_and_the_end_and_never_raises
 def test_metrics_kept_while_the_server_was_lost_are_replayed_into_the_run(lost_server: str, tmp_path: Path) -> None:
     params = Params()
     uri = tracking.tracking_uri(params, tmp_path)
-    run_id = tracking.start_run(params, tmp_path, "exp", "train")
-    tracking.log_metrics(uri, run_id, {"loss/total": 3.0}, step=0)
-    for step in (1, 2):  # the server is lost: the same run, seen through the lost URI
-        tracking.log_metrics(lost_server, run_id, {"loss/total": 3.0 - step}, step=step)
-    tracking.end_run(lost_server, run_id)
+    run = tracking.start_run(params, tmp_path, "exp", "train")
+    run_id = run.run_id
+    run.log_metrics({"loss/total": 3.0}, step=0)
+    lost = tracking.RunHandle.attach(lost_server, run_id)  # the server is lost: the same run, seen through it
+    for step in (1, 2):
+        lost.log_metrics({"loss/total": 3.0 - step}, step=step)
+    lost.end()
     kept = tracking.project_unlogged_file(tmp_path, run_id)
 
     assert tracking.replay_unlogged(uri, kept) == 3
@@ -215,7 +240,7 @@ def test_metrics_kept_while_the_server_was_lost_are_replayed_into_the_run(lost_s
     assert tracking.client(uri).get_run(run_id).info.status == "FINISHED"
     assert not kept.exists()
     with pytest.raises(FileNotFoundError):  # a local file's error is no lost store: it is raised as it is
-        tracking.log_artifact(uri, run_id, tmp_path / "missing.png")
+        run.log_artifact(tmp_path / "missing.png")
 
 
 def test_requests_give_up_after_seconds_unless_the_environment_says_otherwise(monkeypatch) -> None:
@@ -234,13 +259,13 @@ def test_runs_left_running_by_a_killed_process_of_this_machine_are_marked_killed
     params = Params()
     uri = tracking.tracking_uri(params, tmp_path)
     mlflow_client = tracking.client(uri)
-    killed = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed0")
-    elsewhere = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed1")
-    mlflow_client.set_tag(killed, tracking.PROCESS_TAG, ended_process_mark())  # killed before end_run
+    killed = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed0").run_id
+    elsewhere = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed1").run_id
+    mlflow_client.set_tag(killed, tracking.PROCESS_TAG, ended_process_mark())  # killed before its run ended
     mlflow_client.set_tag(elsewhere, tracking.PROCESS_TAG, ended_process_mark().split("@")[0] + "@another-host")
-    still_running = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed2")  # this process
+    still_running = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed2").run_id  # this process
 
-    again = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed0")
+    again = tracking.start_run(params, tmp_path, "latent-bank", "latent-bank seed0").run_id
 
     status = {run_id: mlflow_client.get_run(run_id).info.status for run_id in (killed, elsewhere, still_running, again)}
     assert status == {killed: "KILLED", elsewhere: "RUNNING", still_running: "RUNNING", again: "RUNNING"}

@@ -69,12 +69,12 @@ def test_a_run_logs_params_metrics_and_artifacts_through_the_server(server, tmp_
     project = tmp_path / "project"
     project.mkdir()
     assert tracking.tracking_uri(params, project) == uri
-    run_id = tracking.start_run(params, project, params.tracking.experiment, "train bank vae seed0", "f1")
-    tracking.log_metrics(uri, run_id, {"loss/total": 0.5}, step=7)
     picture = tmp_path / "curves.png"
     picture.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
-    tracking.log_artifact(uri, run_id, picture, "plots/train")
-    tracking.end_run(uri, run_id)
+    with tracking.run(params, project, params.tracking.experiment, "train bank vae seed0", "f1") as opened:
+        opened.log_metrics({"loss/total": 0.5}, step=7)
+        opened.log_artifact(picture, "plots/train")
+    run_id = opened.run_id
 
     # read back through another client, as the MLflow UI of the server would show it
     run = tracking.client(uri).get_run(run_id)

@@ -258,9 +258,9 @@ def test_a_lost_tracking_server_neither_stalls_training_nor_hides_its_error(tmp_
     params = project(tmp_path)
     params.tracking.uri = lost_server_uri(monkeypatch)
 
-    def opened_before_the_server_was_lost(_params, root, *_args, **_kwargs) -> str:
-        tracking.keep_unlogged_in("run0", tracking.project_unlogged_file(root, "run0"))
-        return "run0"
+    def opened_before_the_server_was_lost(run_params, root, *_args, **_kwargs) -> tracking.RunHandle:
+        return tracking.RunHandle.attach(tracking.tracking_uri(run_params, root), "run0",
+                                         tracking.project_unlogged_file(root, "run0"))
 
     def node_lost(*_args, **_kwargs):
         raise RuntimeError("the worker's node was lost")

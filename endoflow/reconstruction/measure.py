@@ -274,15 +274,12 @@ def log_measurement(params: Params, project_root: Path, model_run_id: str, name:
     """Into the model's MLflow run (:func:`log_reconstruction`, with the reconstruction's files): the headline
     as metrics ``reconstruct/<name>/<figure>`` (columns of the runs table; finite values only, MLflow refuses
     NaN) and every figure as the table ``reconstruct/<name>/figures.csv``."""
-    from endoflow import tracking  # MLflow takes seconds to import: only runs that log pay for it
-
-    run_id = log_reconstruction(params, project_root, model_run_id, name, out_dir)
-    uri = tracking.tracking_uri(params, project_root)
+    run = log_reconstruction(params, project_root, model_run_id, name, out_dir)
     headline = {f"reconstruct/{name}/{key}": value for key, value in headline_measurement(result).items()
                 if np.isfinite(value)}
-    tracking.log_metrics(uri, run_id, headline)
-    tracking.show_in_runs_table(uri, run_id, headline)
-    tracking.log_table(uri, run_id, measurement_rows(result), f"reconstruct/{name}/figures.csv")
+    run.log_metrics(headline)
+    run.show_in_runs_table(headline)
+    run.log_table(measurement_rows(result), f"reconstruct/{name}/figures.csv")
 
 
 def measurement_rows(result: dict) -> list[dict]:

@@ -29,7 +29,7 @@ import math
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 import torch
@@ -48,6 +48,9 @@ from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply
 from endoflow.reconstruction.pictures import FrameSampler, SideBySideVideo, depth_preview, write_contact_sheet
 from endoflow.reconstruction.recording import RECORDING_FILE, Recording
+
+if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for it
+    from endoflow.tracking import RunHandle
 
 # What MLflow gets of a reconstruction: what a person opens first, the path and the surface (not the depth maps).
 LOGGED_OUTPUTS = ("sheet.png", "video.mp4", RECORDING_FILE, "reconstruction.json", "trajectory.tum",
@@ -300,15 +303,13 @@ def source_frame_count(source: FrameSource, frames: FrameRange) -> Optional[int]
 
 
 def log_reconstruction(params: Params, project_root: Path, model_run_id: Optional[str], name: str,
-                       out_dir: Path) -> str:
+                       out_dir: Path) -> RunHandle:
     """Log a reconstruction's :data:`LOGGED_OUTPUTS` as artifacts under ``reconstruct/<name>/`` of the model's
     MLflow run (or of the run :func:`endoflow.tracking.run_for_model` opens for a model whose run the store
-    lacks, with a warning); returns the run id."""
+    lacks, with a warning); returns the run."""
     from endoflow import tracking  # MLflow takes seconds to import: only runs that log pay for it
-    run_id = tracking.run_for_model(params, project_root, model_run_id, "reconstruct")
-    uri = tracking.tracking_uri(params, project_root)
-    prefix = f"reconstruct/{name}"
+    run = tracking.run_for_model(params, project_root, model_run_id, "reconstruct")
     for file in LOGGED_OUTPUTS:
         if (out_dir / file).is_file():
-            tracking.log_artifact(uri, run_id, out_dir / file, prefix)
-    return run_id
+            run.log_artifact(out_dir / file, f"reconstruct/{name}")
+    return run

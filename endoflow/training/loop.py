@@ -359,10 +359,9 @@ class RankZeroLogger:
 
     def __init__(self, config: WorkerConfig, rank: int) -> None:
         self.active = rank == 0
-        self.uri = config.tracking_uri
-        self.run_id = config.run_id
-        if self.active and config.unlogged_metrics:
-            tracking.keep_unlogged_in(config.run_id, config.unlogged_metrics)
+        # the driver's run, by the id it crossed to the workers with
+        self.run = tracking.RunHandle.attach(config.tracking_uri, config.run_id,
+                                             config.unlogged_metrics if self.active else None)
         self.log_every = config.params.train.log_every
         self.epochs = config.params.train.epochs
         self.precision = config.params.train.precision
@@ -375,9 +374,8 @@ class RankZeroLogger:
             return
         progress(f"[train] epoch {epoch + 1}/{self.epochs} step {step + 1}/{total_steps} "
                  f"loss {losses['total']:.4f} | {epoch_progress.pace(samples)} (training only)")
-        tracking.log_metrics(self.uri, self.run_id, {**logged_losses(losses, self.loss_weights),
-                                                     "samples_per_second": epoch_progress.rate(samples) or 0.0},
-                             step=global_step)
+        self.run.log_metrics({**logged_losses(losses, self.loss_weights),
+                              "samples_per_second": epoch_progress.rate(samples) or 0.0}, step=global_step)
 
     def epoch_end(self, record: dict[str, Any], global_step: int, model: EndoflowModel, examples: list[dict],
                   device: torch.device) -> None:
@@ -389,12 +387,12 @@ class RankZeroLogger:
         values = {k: v for k, v in record.items() if k != "epoch" and isinstance(v, (int, float))}
         progress(f"[train] epoch {record['epoch']}/{self.epochs} done: "
                  + ", ".join(f"{k} {v:.4g}" for k, v in values.items()))
-        tracking.log_metrics(self.uri, self.run_id, {**values, "epoch": record["epoch"]}, step=global_step)
+        self.run.log_metrics({**values, "epoch": record["epoch"]}, step=global_step)
         if examples:
             figure = examples_figure(model, examples, device, self.precision,
                                      f"validation frames after epoch {record['epoch']}")
             for name in (f"epoch_{record['epoch']:04d}", "latest"):
-                tracking.log_figure(self.uri, self.run_id, figure, f"val_depth/{name}.png")
+                self.run.log_figure(figure, f"val_depth/{name}.png")
             plt.close(figure)
 
 

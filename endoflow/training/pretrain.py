@@ -417,11 +417,9 @@ def pretrain_latent_bank(
     report_line(f"[pretrain] {len(train)} training depth maps, {swd_count} held out for the SWD; "
                 f"generator steps per resolution: {stages}; on {device} in {dtype}")
 
-    uri = tracking.tracking_uri(params, project_root)
-    run_id = tracking.start_run(params, project_root, params.tracking.latent_bank_experiment,
-                                tracking.run_name_for("latent-bank", [f"seed{params.seed}"]))
-    try:
-        tracking.log_shards_input(uri, run_id, manifest_location(str(shards_dir)), shards_dir.name, "training")
+    with tracking.run(params, project_root, params.tracking.latent_bank_experiment,
+                      tracking.run_name_for("latent-bank", [f"seed{params.seed}"])) as run:
+        run.log_shards_input(manifest_location(str(shards_dir)), shards_dir.name, "training")
         spec = generator_spec(params)
         untrained = LatentBankGenerator(spec).to(device)
         fake_untrained = generate(untrained, swd_count, spec.latent_dim, params.seed + 1, device)
@@ -430,9 +428,7 @@ def pretrain_latent_bank(
         report_line(f"[pretrain] SWD to the held-out maps: untrained generator {swd_untrained['mean']:.1f}, "
                     f"real training maps {swd_reference['mean']:.1f} (the floor)")
 
-        ema, history = train_gan(
-            params, train, device, lambda values, step: tracking.log_metrics(uri, run_id, values, step)
-        )
+        ema, history = train_gan(params, train, device, run.log_metrics)
         fake_final = generate(ema.model, swd_count, spec.latent_dim, params.seed + 1, device)
         swd_final = swd_against(heldout, fake_final, params.seed)
 
@@ -441,7 +437,7 @@ def pretrain_latent_bank(
             {"normalisation": {"kind": "centred_log_depth", "depth_log_range": cfg.depth_log_range}},
         )
         save_torch(out_path, payload)
-        tracking.set_tags(uri, run_id, {tracking.LATENT_BANK_DIGEST_TAG: file_sha256(out_path)})
+        run.set_tags({tracking.LATENT_BANK_DIGEST_TAG: file_sha256(out_path)})
 
         with staged_directory(plots_dir, FIGURE_FOLDER) as folder:
             save_sample_grid(fake_final, heldout, folder / "samples_final.png",
@@ -466,15 +462,11 @@ def pretrain_latent_bank(
         report_line(summary_line(metrics, out_path))
         # the headline as metrics (columns of the runs table); the one-off figures in metrics.json, not charts
         headline = dvc_metrics(metrics)["latent_bank"]
-        tracking.log_metrics(uri, run_id, headline, step=len(history))
-        tracking.show_in_runs_table(uri, run_id, headline)
-        tracking.log_dict(uri, run_id, metrics, "metrics.json")
-        tracking.log_artifact(uri, run_id, plots_dir, "plots")
-        tracking.log_artifact(uri, run_id, out_path)
-    except BaseException:
-        tracking.end_run(uri, run_id, failed=True)
-        raise
-    tracking.end_run(uri, run_id)
+        run.log_metrics(headline, step=len(history))
+        run.show_in_runs_table(headline)
+        run.log_dict(metrics, "metrics.json")
+        run.log_artifact(plots_dir, "plots")
+        run.log_artifact(out_path)
     return metrics
 
 

@@ -128,7 +128,8 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
     """Run the ``train`` stage: Ray training, then the model file, metrics and plots. Returns the metrics.
 
     Inputs are checked before Ray starts (shards listed in their manifests, the latent bank readable); any
-    failure after the MLflow run is opened marks it FAILED (a rerun with the same inputs reopens it).
+    failure after the MLflow run is opened marks it FAILED, an interrupt KILLED (a rerun with the same inputs
+    reopens it).
     """
     root = Path(project_root).resolve()
     shards = absolute_location(params.train.shards, root)
@@ -139,26 +140,20 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
     if latent_bank:
         check_latent_bank_file(local_file(latent_bank))
     fingerprint = training_fingerprint(params, shards, latent_bank)
-    uri = tracking.tracking_uri(params, root)
     name = tracking.run_name_for("train", [*tracking.ablation_switches(params), f"seed{params.seed}"])
-    run_id = tracking.start_run(params, root, params.tracking.experiment, name, fingerprint)
-    try:
-        tracking.log_shards_input(uri, run_id, manifest_location(shards), posixpath.basename(shards.rstrip("/")),
-                                  "training")
+    with tracking.run(params, root, params.tracking.experiment, name, fingerprint) as run:
+        run.log_shards_input(manifest_location(shards), posixpath.basename(shards.rstrip("/")), "training")
         if latent_bank:
-            tracking.link_latent_bank(params, root, run_id, file_sha256(latent_bank))
-        config = WorkerConfig(params, tuple(train_urls), tuple(val_urls), latent_bank, uri, run_id, resume_from=None,
-                              unlogged_metrics=str(tracking.unlogged_file(run_id)))
-        summary = train_in_run(params, root, config, fingerprint)
-    except BaseException:
-        tracking.end_run(uri, run_id, failed=True)
-        raise
-    tracking.end_run(uri, run_id)
-    return summary
+            tracking.link_latent_bank(params, run, file_sha256(latent_bank))
+        # the run crosses to the Ray workers by its id
+        config = WorkerConfig(params, tuple(train_urls), tuple(val_urls), latent_bank, run.uri, run.run_id,
+                              resume_from=None, unlogged_metrics=str(run.unlogged_file()))
+        return train_in_run(params, root, run, config, fingerprint)
 
 
-def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: str) -> dict[str, Any]:
-    """Train (or resume) on Ray and write the outputs, inside the open MLflow run of ``config``."""
+def train_in_run(params: Params, root: Path, run: tracking.RunHandle, config: WorkerConfig,
+                 fingerprint: str) -> dict[str, Any]:
+    """Train (or resume) on Ray and write the outputs, inside the open MLflow ``run`` (``config``'s)."""
     baselines = training_baselines(list(config.train_shards), params.preprocess.neighbour_offset)
     storage = absolute_location(params.ray.storage_path, home_project(root))
     run_name = f"{params.ray.run_name}-{fingerprint}"
@@ -177,14 +172,13 @@ def train_in_run(params: Params, root: Path, config: WorkerConfig, fingerprint: 
             except Exception as exc:
                 raise TrainingError(training_failure(exc, storage)) from exc
             finally:
-                log_ray_lines(config, ray_log)
-    summary = write_training_outputs(params, root, saved.state, config.run_id, baselines, fingerprint)
-    uri, run_id = config.tracking_uri, config.run_id
+                log_ray_lines(run, ray_log)
+    summary = write_training_outputs(params, root, saved.state, run.run_id, baselines, fingerprint)
     # one-off figures: an artifact, not single-point charts above the run's curves
-    tracking.log_dict(uri, run_id, summary, TRAINING_SUMMARY_ARTIFACT)
+    run.log_dict(summary, TRAINING_SUMMARY_ARTIFACT)
     model_file, registered = root / params.train.out, params.tracking.registered_model
-    tracking.best_effort(uri, "the MLflow model", lambda: log_mlflow_model(uri, run_id, model_file, registered), run_id)
-    tracking.log_artifact(uri, run_id, root / params.train.plots, "plots/train")
+    run.best_effort("the MLflow model", lambda: log_mlflow_model(run.uri, run.run_id, model_file, registered))
+    run.log_artifact(root / params.train.plots, "plots/train")
     return summary
 
 
@@ -196,12 +190,12 @@ def format_training_summary(summary: dict[str, Any], model_path: str) -> str:
             f"[train] model written to {model_path}; MLflow run {summary['mlflow_run_id']}\n")
 
 
-def log_ray_lines(config: WorkerConfig, ray_log: Path) -> None:
+def log_ray_lines(run: tracking.RunHandle, ray_log: Path) -> None:
     """Upload the attempt's Ray log into the run; a failed upload is a warning, never the training's outcome."""
     if not ray_log.exists():
         return
     try:
-        tracking.log_artifact(config.tracking_uri, config.run_id, ray_log, RAY_LOG_FOLDER)
+        run.log_artifact(ray_log, RAY_LOG_FOLDER)
     except Exception as exc:  # the training's own result or error is what the caller must see
         print(f"[train] warning: Ray's log {ray_log.name} was not logged to MLflow: {exc}", file=sys.stderr)
 
