@@ -233,3 +233,64 @@ def test_motion_statistics_hand_computed_changes_and_a_backward_step():
     assert stats["step_change_mm"] == pytest.approx((0.2 + 2.2) / 2)  # |0.12 - 0.1|, |-0.1 - 0.12| cm
     assert stats["rotation_change_deg"] == pytest.approx(2.0)  # 0 -> 2 -> 0 degrees
     assert stats["forward_share"] == pytest.approx(2 / 3)
+
+
+def path_of(steps: list[np.ndarray]) -> np.ndarray:
+    """Camera-to-world poses from ``P_0 = I`` by the relative steps ``Q_i``."""
+    return metrics.chain_relative_poses(np.eye(4), np.stack(steps))
+
+
+def test_motion_agreement_of_an_exact_or_scaled_prediction_is_perfect():
+    truth = path_of([translation(0.1 * i, 0.05, 0.5 + 0.3 * math.sin(i)) @ rotation_y(4.0 + i) @ rotation_z(2.0)
+                     for i in range(11)])
+    relative = metrics.relative_poses(truth)
+    for scale in (1.0, 0.3):
+        figures = metrics.motion_agreement(truth, metrics.scaled_relative_poses(relative, scale))
+        assert figures["step_corr"] == pytest.approx(1.0)
+        assert figures["forward_corr"] == pytest.approx(1.0)
+        assert figures["rotation_corr"] == pytest.approx(1.0)
+        assert figures["step_spread"] == pytest.approx(1.0)
+        assert figures["direction_deg"] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_motion_agreement_of_a_constant_step_follows_nothing():
+    truth = path_of([translation(0, 0, z) @ rotation_y(a) for z, a in ((1, 1), (2, 3), (3, 2), (0.5, 4))])
+    constant = np.repeat((translation(0, 0, 1.5) @ rotation_y(2.5))[None], 4, axis=0)
+    figures = metrics.motion_agreement(truth, constant)
+    assert figures["step_corr"] == figures["forward_corr"] == figures["rotation_corr"] == 0.0
+    assert figures["step_spread"] == 0.0
+    assert figures["direction_deg"] == pytest.approx(0.0, abs=1e-6)  # every true step points forward too
+
+
+def test_motion_agreement_hand_computed():
+    # true steps 1, 2, 3 cm forward; predicted 1, 1, 2: correlation 1 / (sqrt(2) sqrt(6) / 3) = 0.8660
+    truth = path_of([translation(0, 0, z) for z in (1, 2, 3)])
+    predicted = np.stack([translation(0, 0, z) for z in (1, 1, 2)])
+    figures = metrics.motion_agreement(truth, predicted)
+    assert figures["step_corr"] == pytest.approx(3 / math.sqrt(12))
+    assert figures["forward_corr"] == pytest.approx(3 / math.sqrt(12))
+    assert figures["rotation_corr"] == 0.0  # neither side turns
+    # scale fit sum(gt.pred) / sum(pred^2) = (1 + 2 + 6) / 6 = 1.5; std(1.5 * [1, 1, 2]) / std([1, 2, 3])
+    assert figures["step_spread"] == pytest.approx(1.5 * np.std([1, 1, 2]) / np.std([1, 2, 3]))
+
+
+def test_motion_agreement_signs_and_directions():
+    truth = path_of([translation(0, 0, z) for z in (1, -1, 2, -2)])  # forward, back, forward, back
+    backwards = np.stack([translation(0, 0, -z) for z in (1, -1, 2, -2)])
+    assert metrics.motion_agreement(truth, backwards)["forward_corr"] == pytest.approx(-1.0)
+    assert metrics.motion_agreement(truth, backwards)["step_corr"] == pytest.approx(1.0)  # lengths agree
+    sideways = np.stack([translation(z, 0, 0) for z in (1, -1, 2, -2)])
+    assert metrics.motion_agreement(truth, sideways)["direction_deg"] == pytest.approx(90.0)
+
+
+def test_motion_agreement_leaves_the_direction_of_a_pausing_camera_out():
+    # the 1e-4 cm step (a pause) points sideways in the prediction; the moving steps agree exactly
+    truth = path_of([translation(0, 0, z) for z in (1, 1e-4, 2, 1)])
+    predicted = np.stack([translation(0, 0, 1), translation(1e-4, 0, 0), translation(0, 0, 2), translation(0, 0, 1)])
+    assert metrics.motion_agreement(truth, predicted)["direction_deg"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_motion_agreement_needs_two_steps():
+    truth = path_of([translation(0, 0, 1)])
+    with pytest.raises(ValueError, match="at least 2"):
+        metrics.motion_agreement(truth, metrics.relative_poses(truth))

@@ -55,5 +55,6 @@ def test_the_tables_list_every_frame_and_sequence_with_their_figures_as_columns(
     assert table["rte_constant_velocity"].notna().tolist() == [False] * 6 + [True]
     sequences = per_sequence_table(pd.DataFrame({"sequence": ["A", "B"], "group": ["g", "g"], "frames": [4, 3]}),
                                    scores)
-    assert list(sequences.columns) == ["sequence", "group", "frames", "simcol_l1_model", "rte_constant_velocity"]
+    assert list(sequences.columns) == ["sequence", "group", "frames", "simcol_l1_model", "rte_constant_velocity",
+                                       "rot_constant_velocity"]
     assert sequences["simcol_l1_model"].tolist() == [1.0, 3.0]

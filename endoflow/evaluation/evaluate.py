@@ -263,8 +263,8 @@ def depth_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> l
 
 
 def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> tuple[list[dict], Optional[dict]]:
-    """The challenge's and EndoSLAM's pose protocols over the longest run of one sequence's posed frames, for the
-    model and constant velocity: the sequence's figures, each frame's RTE and ROT, and the trajectories."""
+    """The challenge's, EndoSLAM's and the motion protocols over the longest run of one sequence's posed frames, for
+    the model and constant velocity: the sequence's figures, each frame's RTE and ROT, and the trajectories."""
     run = longest_posed_run(seq.poses, seq.gaps)
     if run is None:
         return [], None
@@ -280,6 +280,8 @@ def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> tu
         endoslam = metrics.endoslam_pose_sequence(gt_poses, relative)
         rows += score_rows(seq.name, None, method, "pose_endoslam",
                            {k: endoslam[k] for k in metrics.ENDOSLAM_POSE_KEYS})
+        if len(relative) >= 2:
+            rows += score_rows(seq.name, None, method, "pose_motion", metrics.motion_agreement(gt_poses, relative))
         for i, frame in enumerate(seq.frames[start + 1:stop]):
             rows += score_rows(seq.name, frame, method, "pose_simcol",
                                {"rte": result["per_frame"]["rte"][i], "rot": result["per_frame"]["rot"][i]})

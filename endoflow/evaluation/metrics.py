@@ -20,6 +20,12 @@ Three protocols, each labelled in every output so tables never mix them:
 - ``endoslam``: KITTI-odometry-style figures as EndoSLAM reports them: ATE as the RMSE of positions after a
   least-squares scale alignment of the trajectory (both starting at the first GT pose), RPE as the mean
   translation (cm) and rotation (degrees) error of consecutive relative poses.
+- ``motion`` (ours): whether a predicted path follows the camera's changes of motion, which RTE and ROT cannot
+  tell where the true motion barely changes: the Pearson correlation over a sequence's steps of the predicted
+  and true step length, signed forward component and rotation angle (0 where either side is constant: a
+  constant step follows none of the changes), the spread of the predicted step lengths (after the challenge's
+  scale) over the true ones, and the median angle between predicted and true translation directions (the
+  error two-view methods make apart from rotation).
 
 Conventions: depth maps are z-depth in cm, ``H x W`` (or ``N x H x W``); poses are ``4 x 4`` camera-to-world
 ``T_world_cam``; a relative pose ``Q_i = inv(P_i) @ P_{i+1}`` maps points in frame ``i+1`` into frame ``i``.
@@ -41,6 +47,9 @@ PAPER_DEPTH_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "l1", "a1", "a2", "
 SIMCOL_DEPTH_KEYS = ("l1", "rel", "rmse")
 SIMCOL_POSE_KEYS = ("ate", "ate_local", "rte", "rot")
 ENDOSLAM_POSE_KEYS = ("ate", "rpe_trans", "rpe_rot")
+MOTION_KEYS = ("step_corr", "forward_corr", "rotation_corr", "step_spread", "direction_deg")
+# a step shorter than this share of the sequence's median true step has no direction to find (a pausing camera)
+DIRECTION_MIN_STEP_SHARE = 0.1
 
 
 # ------------------------------------------------------------------------------------------ depth
@@ -228,6 +237,54 @@ def endoslam_pose_sequence(gt_poses: np.ndarray, pred_relative: np.ndarray) -> d
         "rpe_trans": float(np.mean(np.linalg.norm(errors[:, :3, 3], axis=1))),
         "rpe_rot": float(np.mean(rotation_angle_deg(errors[:, :3, :3]))),
     }
+
+
+def motion_agreement(gt_poses: np.ndarray, pred_relative: np.ndarray) -> dict[str, float]:
+    """The ``motion`` figures of one sequence (see the module docstring).
+
+    Args:
+        gt_poses: ``N x 4 x 4`` GT camera-to-world poses ``P_i``.
+        pred_relative: ``(N-1) x 4 x 4`` predicted ``Q'_i`` (frame ``i+1`` into frame ``i``).
+
+    Returns:
+        ``step_corr``, ``forward_corr`` (z, the view direction), ``rotation_corr`` (in [-1, 1]), ``step_spread``
+        (standard deviation of the predicted step lengths, scaled by the challenge's translation scale, over the
+        true ones'; 1 when the path varies its speed as much as the camera) and ``direction_deg`` (median, over
+        steps of at least :data:`DIRECTION_MIN_STEP_SHARE` of the median true step).
+    """
+    gt_poses = _pose_stack(gt_poses, "GT poses")
+    pred_relative = _pose_stack(pred_relative, "predicted relative poses")
+    if len(pred_relative) != len(gt_poses) - 1 or len(pred_relative) < 2:
+        raise ValueError(f"expected {len(gt_poses) - 1} (at least 2) relative poses for {len(gt_poses)} GT poses, "
+                         f"got {len(pred_relative)}")
+    gt_relative = relative_poses(gt_poses)
+    gt_t, pred_t = gt_relative[:, :3, 3], pred_relative[:, :3, 3]
+    gt_step, pred_step = np.linalg.norm(gt_t, axis=1), np.linalg.norm(pred_t, axis=1)
+    scale = abs(fit_translation_scale(gt_t, pred_t))
+    moving = gt_step >= DIRECTION_MIN_STEP_SHARE * np.median(gt_step)
+    cosine = np.sum(gt_t * pred_t, axis=1) / np.maximum(gt_step * pred_step, 1e-12)
+    return {
+        "step_corr": correlation(gt_step, pred_step),
+        "forward_corr": correlation(gt_t[:, 2], pred_t[:, 2]),
+        "rotation_corr": correlation(rotation_angle_deg(gt_relative[:, :3, :3]),
+                                     rotation_angle_deg(pred_relative[:, :3, :3])),
+        "step_spread": float(scale * np.std(pred_step) / max(float(np.std(gt_step)), 1e-12)),
+        "direction_deg": float(np.median(np.degrees(np.arccos(np.clip(cosine[moving], -1.0, 1.0))))),
+    }
+
+
+def correlation(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson correlation of two series of the same length; 0 where either is constant (nothing varies together)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if _constant(a) or _constant(b):
+        return 0.0
+    a, b = a - a.mean(), b - b.mean()
+    return float(np.clip(np.sum(a * b) / np.sqrt(np.sum(a * a) * np.sum(b * b)), -1.0, 1.0))
+
+
+def _constant(series: np.ndarray) -> bool:
+    # relative to the values' size: the rounding residue of a repeated step is no variation
+    return float(np.ptp(series)) <= 1e-9 * float(np.max(np.abs(series)))
 
 
 # -------------------------------------------------------------------------------------- helpers

@@ -26,6 +26,7 @@ PROTOCOL_FIGURES = {
     "depth_simcol": (DEPTH_METHODS, metrics.SIMCOL_DEPTH_KEYS),
     "pose_simcol": (POSE_METHODS, metrics.SIMCOL_POSE_KEYS),
     "pose_endoslam": (POSE_METHODS, metrics.ENDOSLAM_POSE_KEYS),
+    "pose_motion": (POSE_METHODS, metrics.MOTION_KEYS),
 }
 AVERAGED_OVER_IMAGES = ("depth_paper",)
 # the columns of per_frame.csv and per_sequence.csv: (methods, (protocol, metric, column prefix)...), in order;
@@ -34,7 +35,8 @@ PER_FRAME_COLUMNS = ((DEPTH_METHODS, (("depth_paper", "abs_rel", "abs_rel"), ("d
                                       ("depth_simcol", "l1", "simcol_l1"))),
                      (POSE_METHODS, (("pose_simcol", "rte", "rte"), ("pose_simcol", "rot", "rot"))))
 PER_SEQUENCE_COLUMNS = ((DEPTH_METHODS, (("depth_simcol", "l1", "simcol_l1"),)),
-                        (POSE_METHODS, (("pose_simcol", "rte", "rte"),)))
+                        (POSE_METHODS, (("pose_simcol", "rte", "rte"), ("pose_simcol", "rot", "rot"),
+                                        ("pose_motion", "step_corr", "step_corr"))))
 
 
 def score_rows(sequence: str, frame: Optional[int], method: str, protocol: str,

@@ -15,6 +15,8 @@ SIMCOL_DEPTH_COLUMNS = (("l1", "L1 (cm)"), ("rel", "Rel (%)"), ("rmse", "RMSE (c
 SIMCOL_POSE_COLUMNS = (("ate", "ATE (cm)"), ("ate_local", "ATE local (cm)"), ("rte", "RTE (cm)"),
                        ("rot", "ROT (°)"))
 ENDOSLAM_POSE_COLUMNS = (("ate", "ATE (cm)"), ("rpe_trans", "RPE trans (cm)"), ("rpe_rot", "RPE rot (°)"))
+MOTION_COLUMNS = (("step_corr", "step corr"), ("forward_corr", "forward corr"), ("rotation_corr", "rotation corr"),
+                  ("step_spread", "step spread"), ("direction_deg", "direction (°)"))
 BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map": "baseline: mean depth map",
                    "constant_velocity": "baseline: constant velocity"}
 # (title, protocol key of the evaluation JSON, columns), in the order the tables are shown
@@ -23,6 +25,8 @@ PROTOCOL_TABLES = (
     ("Depth, SimCol3D challenge protocol (one scale per sequence)", "depth_simcol", SIMCOL_DEPTH_COLUMNS),
     ("Pose, SimCol3D challenge protocol (medians)", "pose_simcol", SIMCOL_POSE_COLUMNS),
     ("Pose, EndoSLAM protocol (ATE RMSE, RPE means)", "pose_endoslam", ENDOSLAM_POSE_COLUMNS),
+    ("Motion: does the path follow the camera's changes? (correlations and spread: 1 is best; per sequence, "
+     "averaged)", "pose_motion", MOTION_COLUMNS),
 )
 
 
