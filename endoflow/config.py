@@ -175,6 +175,12 @@ class SynthLayoutConfig(Section):
     frames: int = setting(doc="frames per sequence", ge=2)
 
 
+class SynthTubeLayoutConfig(SynthLayoutConfig):
+    test_frames: Optional[int] = setting(
+        None, "frames of each test sequence, whose camera follows a script crossing every change of motion (a slow "
+              "advance, a pause, a withdrawal with a turn, a fast advance); null: as frames", ge=2)
+
+
 class SynthConfig(Section):
     # the data reaches training through the shards, whose manifest is hashed
     TRAINING: ClassVar[Optional[bool]] = False
@@ -185,9 +191,11 @@ class SynthConfig(Section):
     workers: Count = setting(2, "processes rendering sequences in parallel (CPU)")
     device: Device = setting("cpu", "auto, cpu, cuda or cuda:N; a GPU renders in one process, its float "
                                     "arithmetic may differ from the CPU's in the last bits")
-    simcol: SynthLayoutConfig = setting(default_factory=lambda: SynthLayoutConfig(sequences=15, frames=60))
-    # at most one sequence per UnityCam organ: the writers check that
-    endoslam: SynthLayoutConfig = setting(default_factory=lambda: SynthLayoutConfig(sequences=2, frames=120))
+    simcol: SynthTubeLayoutConfig = setting(
+        default_factory=lambda: SynthTubeLayoutConfig(sequences=15, frames=60, test_frames=120))
+    # at most one sequence per UnityCam organ: the writers check that; with data.endoslam.split test, every one
+    # is a test sequence
+    endoslam: SynthTubeLayoutConfig = setting(default_factory=lambda: SynthTubeLayoutConfig(sequences=2, frames=120))
     scenenet: SynthLayoutConfig = setting(default_factory=lambda: SynthLayoutConfig(sequences=60, frames=20))
 
 
@@ -523,10 +531,11 @@ def _bank_growth(p: Params) -> Optional[str]:
 def _synth_triplets(p: Params) -> Optional[str]:
     offset = p.preprocess.neighbour_offset
     for layout in (name for name in DATASETS if name not in DEPTH_ONLY_DATASETS):
-        frames = getattr(p.synth, layout).frames
-        if frames <= 2 * offset:
-            return (f"synth.{layout}.frames must exceed 2 x preprocess.neighbour_offset = {2 * offset} (a sample "
-                    f"needs frames cur - {offset} and cur + {offset}), got {frames}")
+        for key in ("frames", "test_frames"):
+            frames = getattr(getattr(p.synth, layout), key)
+            if frames is not None and frames <= 2 * offset:
+                return (f"synth.{layout}.{key} must exceed 2 x preprocess.neighbour_offset = {2 * offset} (a "
+                        f"sample needs frames cur - {offset} and cur + {offset}), got {frames}")
     return None
 
 

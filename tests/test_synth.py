@@ -20,6 +20,7 @@ from endoflow.data.scenenet import SceneNetReader, scenenet_intrinsics
 from endoflow.data.simcol import SimColReader
 from endoflow.geometry.pose import relative_pose
 from endoflow.geometry.warp import warp_frame
+from endoflow.synth.camera_path import _turns, scripted_arcs
 from endoflow.synth.render import ATLAS_PAD, MAX_DEPTH_CM, pixel_rays, render_tube_frame
 from endoflow.synth.rooms import Room, render_room
 from endoflow.synth.scenes import STYLES, make_tube_sequence
@@ -348,3 +349,36 @@ def test_the_preview_names_a_folder_that_is_no_simcol3d_root(tmp_path, monkeypat
     assert stop.value.code == 2
     assert f"--real: {tmp_path}: no SimCol3D scene folder found" in capsys.readouterr().err
     assert not (tmp_path / "picture.png").exists()
+
+
+def test_test_sequences_follow_the_script_and_others_their_random_phases():
+    params = Params()
+    jobs = {job.name: job for job in plan_jobs("simcol", Path("unused"), 15, 60, 48, 0, "cpu", params,
+                                               test_frames=120)}
+    for name, job in jobs.items():
+        test = name in params.data.simcol.test
+        assert (job.scripted, job.frames) == ((True, 120) if test else (False, 60))
+    endoslam = plan_jobs("endoslam", Path("unused"), 2, 40, 48, 0, "cpu", params, test_frames=90)
+    assert all(job.scripted and job.frames == 90 for job in endoslam)  # data.endoslam.split is test
+
+
+def test_a_scripted_camera_crosses_every_change_of_motion():
+    """A slow advance, a pause, a withdrawal, a fast advance (each about a quarter), and one turn: what a path that
+    repeats one step cannot follow. Signed speeds along the path from the arc lengths, per quarter."""
+    motion = STYLES["SyntheticColon_I"].motion
+    for seed in range(5):
+        arcs = scripted_arcs(120, motion, 4.0, np.random.default_rng(seed))
+        speed = np.diff(arcs)
+        # the middle of each phase (ramps spread changes over camera_path.RAMP_FRAMES)
+        slow, pause, withdraw, fast = (np.median(speed[int(a * 119):int(b * 119)])
+                                       for a, b in ((0.05, 0.18), (0.32, 0.42), (0.58, 0.68), (0.85, 0.97)))
+        assert slow == pytest.approx(motion.speed[0], rel=0.05)
+        assert abs(pause) < 0.01 * motion.speed[0]
+        assert withdraw == pytest.approx(-np.mean(motion.speed), rel=0.05)
+        assert fast == pytest.approx(motion.speed[1], rel=0.05)
+        assert arcs.min() >= 4.0
+        yaw, pitch = _turns(120, motion, np.random.default_rng(seed), scripted=True)
+        swing = np.hypot(yaw, pitch)
+        started = np.flatnonzero(swing > 0)[0]
+        assert 0.3 * 120 - 1 <= started <= 0.6 * 120 + 1
+        assert np.degrees(swing[-1]) >= motion.turn_deg[0] - 1e-9

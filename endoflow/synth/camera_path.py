@@ -1,8 +1,8 @@
 """A colonoscope-like camera trajectory along a tube: poses ``T_world_cam`` (OpenCV, cm), exact by construction.
 
 Smooth phases of advancing, withdrawing and pausing along the centreline, with slow drift, sway, roll and now
-and then a deliberate turn, calibrated on real SimCol3D poses. See docs/synthetic_data.md, "Camera, light and
-mucosa".
+and then a deliberate turn, calibrated on real SimCol3D poses; a test sequence follows a script that crosses every
+change of motion. See docs/synthetic_data.md, "Camera, light and mucosa".
 """
 
 from __future__ import annotations
@@ -20,6 +20,12 @@ CENTRELINE_SMOOTHING_CM = 1.0
 VIEW_SMOOTHING_CM = 6.0
 RAMP_FRAMES = 12  # speed changes between phases spread over this many frames
 PHASES = ("advance", "withdraw", "pause")
+# What a test sequence's camera does, in order, each phase about a quarter of its frames: every change a colonoscope
+# makes, so that a path repeating one step cannot pass for one that follows the camera. (phase, speed as a share
+# of MotionStyle.speed's range: 0 its slowest, 1 its fastest); a turn starts within TEST_TURN_START.
+TEST_SCRIPT = (("advance", 0.0), ("pause", 0.0), ("withdraw", 0.5), ("advance", 1.0))
+TEST_PHASE_JITTER = 0.2  # each phase's share of the frames varies by up to this fraction
+TEST_TURN_START = (0.3, 0.6)  # as shares of the frames
 
 
 @dataclass
@@ -48,14 +54,36 @@ def trajectory_arcs(frames: int, motion: MotionStyle, start: float, rng: np.rand
         speeds[position:position + length] = {"advance": speed, "withdraw": -speed, "pause": 0.0}[phase]
         position += length
         phase = PHASES[int(rng.choice(3, p=np.asarray(motion.phase_shares) / np.sum(motion.phase_shares)))]
+    return _arcs_from_speeds(speeds, start)
+
+
+def scripted_arcs(frames: int, motion: MotionStyle, start: float, rng: np.random.Generator) -> np.ndarray:
+    """Arc length of a test sequence's camera at each frame, never behind ``start``: the phases of
+    :data:`TEST_SCRIPT` in order (a slow advance, a pause, a withdrawal, a fast advance), their lengths jittered,
+    with the same ramps between them as :func:`trajectory_arcs`."""
+    shares = rng.uniform(1 - TEST_PHASE_JITTER, 1 + TEST_PHASE_JITTER, size=len(TEST_SCRIPT))
+    bounds = np.round(np.concatenate([[0.0], np.cumsum(shares)]) / shares.sum() * frames).astype(int)
+    slowest, fastest = motion.speed
+    speeds = np.zeros(frames)
+    for (phase, share), begin, end in zip(TEST_SCRIPT, bounds[:-1], bounds[1:]):
+        speed = slowest + share * (fastest - slowest)
+        speeds[begin:end] = {"advance": speed, "withdraw": -speed, "pause": 0.0}[phase]
+    return _arcs_from_speeds(speeds, start)
+
+
+def _arcs_from_speeds(speeds: np.ndarray, start: float) -> np.ndarray:
+    """Arc lengths of per-frame speeds with each change spread over :data:`RAMP_FRAMES`, never behind ``start``."""
+    frames = len(speeds)
     ramp = np.hanning(RAMP_FRAMES + 2)[1:-1]
     smooth = np.convolve(np.pad(speeds, RAMP_FRAMES, mode="edge"), ramp / ramp.sum(), mode="same")
     arcs = np.concatenate([[0.0], np.cumsum(smooth[RAMP_FRAMES:RAMP_FRAMES + frames - 1])])
     return start + arcs - min(arcs.min(), 0.0)
 
 
-def camera_poses(tube: Tube, arcs: np.ndarray, motion: MotionStyle, rng: np.random.Generator) -> np.ndarray:
-    """``[F, 4, 4]`` camera-to-world poses at arc lengths ``arcs`` (OpenCV: x right, y down, z forward)."""
+def camera_poses(tube: Tube, arcs: np.ndarray, motion: MotionStyle, rng: np.random.Generator,
+                 scripted: bool = False) -> np.ndarray:
+    """``[F, 4, 4]`` camera-to-world poses at arc lengths ``arcs`` (OpenCV: x right, y down, z forward); a
+    ``scripted`` (test) sequence turns exactly once, starting within :data:`TEST_TURN_START`."""
     frames = len(arcs)
     path = _smoothed_centreline(tube, arcs.min() - 3.0, arcs.max() + 3.0, CENTRELINE_SMOOTHING_CM)
     view = _smoothed_centreline(tube, arcs.min() - 3.0, arcs.max() + 3.0, VIEW_SMOOTHING_CM)
@@ -72,7 +100,7 @@ def camera_poses(tube: Tube, arcs: np.ndarray, motion: MotionStyle, rng: np.rand
     roll = np.radians(motion.roll_deg) * _slow_wave(frames, rng, periods=(300.0, 900.0))
     yaw = np.radians(motion.sway_deg) * _slow_wave(frames, rng, periods=(200.0, 600.0))
     pitch = np.radians(motion.sway_deg) * _slow_wave(frames, rng, periods=(200.0, 600.0))
-    turn_yaw, turn_pitch = _turns(frames, motion, rng)
+    turn_yaw, turn_pitch = _turns(frames, motion, rng, scripted)
     yaw, pitch = yaw + turn_yaw, pitch + turn_pitch
     poses = np.tile(np.eye(4), (frames, 1, 1))
     for f in range(frames):
@@ -84,13 +112,16 @@ def camera_poses(tube: Tube, arcs: np.ndarray, motion: MotionStyle, rng: np.rand
     return poses
 
 
-def _turns(frames: int, motion: MotionStyle, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _turns(frames: int, motion: MotionStyle, rng: np.random.Generator,
+           scripted: bool) -> tuple[np.ndarray, np.ndarray]:
     """Yaw and pitch (rad) of the deliberate turns: each swings the view by a drawn angle in a drawn direction
-    over a drawn number of frames (a smooth S-curve) and stays there."""
+    over a drawn number of frames (a smooth S-curve) and stays there. A scripted sequence has one, starting within
+    :data:`TEST_TURN_START`; others a Poisson count starting anywhere."""
     yaw, pitch = np.zeros(frames), np.zeros(frames)
-    count = rng.poisson(motion.turns_per_100_frames * frames / 100.0)
+    count = 1 if scripted else rng.poisson(motion.turns_per_100_frames * frames / 100.0)
+    window = TEST_TURN_START if scripted else (0.0, 1.0)
     for _ in range(count):
-        begin = rng.uniform(0, frames)
+        begin = rng.uniform(window[0] * frames, window[1] * frames)
         duration = rng.uniform(*motion.turn_frames)
         angle = np.radians(rng.uniform(*motion.turn_deg))
         direction = rng.uniform(0, 2 * np.pi)

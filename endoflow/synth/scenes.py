@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from endoflow.geometry.pose import quaternion_xyzw_to_matrix
-from endoflow.synth.camera_path import MotionStyle, camera_poses, trajectory_arcs
+from endoflow.synth.camera_path import MotionStyle, camera_poses, scripted_arcs, trajectory_arcs
 from endoflow.synth.render import LightStyle, TubeScene, make_scene
 from endoflow.synth.texture import MucosaStyle, bump_slopes, mucosa_atlas
 from endoflow.synth.tube import TubeShape, build_tube
@@ -170,11 +170,13 @@ class TubeSequence:
     poses: np.ndarray  # [F, 4, 4] T_world_cam, OpenCV, cm
 
 
-def make_tube_sequence(style: SceneStyle, frames: int, rng: np.random.Generator, device: torch.device) -> TubeSequence:
-    """A random tube, texture and camera trajectory for ``frames`` frames, placed at a random world pose."""
-    arcs = trajectory_arcs(frames, style.motion, LEAD_IN_CM, rng)
+def make_tube_sequence(style: SceneStyle, frames: int, rng: np.random.Generator, device: torch.device,
+                       scripted: bool = False) -> TubeSequence:
+    """A random tube, texture and camera trajectory for ``frames`` frames, placed at a random world pose; a
+    ``scripted`` (test) sequence's camera follows :data:`~endoflow.synth.camera_path.TEST_SCRIPT`."""
+    arcs = (scripted_arcs if scripted else trajectory_arcs)(frames, style.motion, LEAD_IN_CM, rng)
     tube = build_tube(style.shape, float(arcs.max()) + VIEW_AHEAD_CM, rng)
-    poses = camera_poses(tube, arcs, style.motion, rng)
+    poses = camera_poses(tube, arcs, style.motion, rng, scripted)
     width = 8 * int(round(2 * np.pi * np.mean(style.shape.radius) / TEXEL_CM / 8))
     texel_cm = 2 * np.pi * np.mean(style.shape.radius) / width
     # Rows for the whole wall profile, plus the cap's disc (textured as the wall continued inwards).

@@ -57,6 +57,7 @@ class Job:
     name: str  # SimCol sequence (S1), organ file stem (colon), SceneNet trajectory
     target: str  # the folder that holds the finished sequence
     frames: int
+    scripted: bool  # a test sequence: its camera follows camera_path.TEST_SCRIPT
     size: int
     entropy: tuple[int, ...]
     device: str
@@ -73,6 +74,7 @@ def synthesize_layout(
     size: Optional[int] = None,
     seed: Optional[int] = None,
     *,
+    test_frames: Optional[int] = None,
     params: Optional[Params] = None,
     workers: Optional[int] = None,
     device: Optional[str] = None,
@@ -80,8 +82,10 @@ def synthesize_layout(
     """Render ``layout`` (``simcol``, ``endoslam``, ``scenenet``) into dataset root ``out``; returns a summary.
 
     ``None`` arguments take ``params.synth`` defaults (``Params()`` when ``params`` is None): sequences per
-    scene / organ count / trajectories, frames per sequence, square image size, seed, worker processes,
-    device name (as ``synth.device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``). The EndoSLAM depth scale,
+    scene / organ count / trajectories, frames per sequence, frames per test sequence (``frames`` given alone
+    sets both), square image size, seed, worker processes, device name (as ``synth.device``: ``auto``, ``cpu``,
+    ``cuda`` or ``cuda:N``). Test sequences (``data.simcol.test``; every EndoSLAM sequence when
+    ``data.endoslam.split`` is test) follow the test script of :mod:`endoflow.synth.camera_path`. The EndoSLAM depth scale,
     pose unit and frame rate come from ``params.data.endoslam``, so that the reader decodes what was written.
     Same arguments, same bytes.
     """
@@ -90,15 +94,18 @@ def synthesize_layout(
     params = params or Params()
     defaults = getattr(params.synth, layout)
     sequences = defaults.sequences if sequences is None else sequences
+    if test_frames is None:
+        test_frames = frames if frames is not None else getattr(defaults, "test_frames", None) or defaults.frames
     frames = defaults.frames if frames is None else frames
     size = params.synth.size if size is None else size
     seed = params.synth.seed if seed is None else seed
     device = str(resolve_device(params.synth.device if device is None else device, "synth.device"))
     workers = params.synth.workers if workers is None else workers
-    if sequences < 1 or frames < 2 or size < 8:
-        raise ValueError(f"need sequences >= 1, frames >= 2, size >= 8; got {sequences}, {frames}, {size}")
+    if sequences < 1 or min(frames, test_frames) < 2 or size < 8:
+        raise ValueError(f"need sequences >= 1, frames and test frames >= 2, size >= 8; got {sequences}, {frames}, "
+                         f"{test_frames}, {size}")
     out = Path(out)
-    jobs = plan_jobs(layout, out, sequences, frames, size, seed, device, params)
+    jobs = plan_jobs(layout, out, sequences, frames, size, seed, device, params, test_frames)
     out.mkdir(parents=True, exist_ok=True)
     if layout == "simcol":
         for scene in sorted({job.group for job in jobs}):
@@ -125,12 +132,14 @@ def _frame_size(layout: str, size: int) -> str:
     return f"{width}x{height}"
 
 
-def plan_jobs(
-    layout: str, out: Path, sequences: int, frames: int, size: int, seed: int, device: str, params: Params
-) -> list[Job]:
-    """The sequences a call of :func:`synthesize_layout` renders, in order."""
+def plan_jobs(layout: str, out: Path, sequences: int, frames: int, size: int, seed: int, device: str, params: Params,
+              test_frames: Optional[int] = None) -> list[Job]:
+    """The sequences a call of :func:`synthesize_layout` renders, in order; a test sequence has ``test_frames``
+    (``None``: ``frames``)."""
+    def length(test: bool) -> dict:
+        return {"frames": (test_frames or frames) if test else frames, "scripted": test}
+
     common = dict(
-        frames=frames,
         size=size,
         device=device,
         endoslam_depth_full_scale_cm=params.data.endoslam.depth_full_scale_cm,
@@ -145,19 +154,22 @@ def plan_jobs(
             for i in range(1, count + 1):
                 name = f"{letter}{i}"
                 target = out / scene / f"Frames_{name}"
-                jobs.append(Job("simcol", scene, name, str(target), entropy=(seed, layout_id, scene_id, i), **common))
+                jobs.append(Job("simcol", scene, name, str(target), entropy=(seed, layout_id, scene_id, i),
+                                **length(name in params.data.simcol.test), **common))
     elif layout == "endoslam":
         if sequences > len(UNITYCAM_ORGANS):
             raise ConfigError(f"synth.endoslam.sequences must be at most {len(UNITYCAM_ORGANS)} (one sequence per "
                               f"UnityCam organ), got {sequences}")
         for organ_id, (organ, stem) in enumerate(UNITYCAM_ORGANS[:sequences]):
             target = out / "UnityCam" / organ
-            jobs.append(Job("endoslam", organ, stem, str(target), entropy=(seed, layout_id, organ_id), **common))
+            jobs.append(Job("endoslam", organ, stem, str(target), entropy=(seed, layout_id, organ_id),
+                            **length(params.data.endoslam.split == "test"), **common))
     else:
         for i in range(sequences):
             split = "val" if i % SCENENET_VAL_EVERY == SCENENET_VAL_EVERY - 1 else "train"
             target = out / split / "0" / str(i)
-            jobs.append(Job("scenenet", split, str(i), str(target), entropy=(seed, layout_id, i), **common))
+            jobs.append(Job("scenenet", split, str(i), str(target), entropy=(seed, layout_id, i), **length(False),
+                            **common))
     return jobs
 
 
@@ -185,7 +197,7 @@ def job_rng(job: Job) -> np.random.Generator:
 
 def tube_sequence(job: Job) -> TubeSequence:
     """The scene and camera poses of a SimCol or EndoSLAM job (what its files are rendered from)."""
-    return make_tube_sequence(STYLES[job.group], job.frames, job_rng(job), torch.device(job.device))
+    return make_tube_sequence(STYLES[job.group], job.frames, job_rng(job), torch.device(job.device), job.scripted)
 
 
 # -------------------------------------------------------------------------------------------- SimCol3D
