@@ -299,6 +299,9 @@ class LossConfig(Section):
     # The paper gives no value; 1e-3 pushed the pose log-variance up until sampling noise (~0.03 rad) swamped the
     # per-frame rotation of the default data, and pose learned nothing (docs/method.md).
     kl_weight: Number = setting(1e-5, "beta, the pose VAE's KL weight", ge=0)
+    geometry_weight: Number = setting(
+        0.0, "weight of the depth consistency between neighbouring frames (SC-SfMLearner: one scale for depth and "
+             "path over a video); 0: off, and no depth pass over the neighbours", ge=0)
 
 
 # -------------------------------------------------------------------------------------------- training

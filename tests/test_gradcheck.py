@@ -23,6 +23,7 @@ from endoflow.geometry.pose import (
     relative_pose,
 )
 from endoflow.geometry.warp import project_target_pixels, warp_frame
+from endoflow.losses.consistency import depth_inconsistency, geometry_consistency
 from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
 from endoflow.losses.kl import kl_standard_normal
 from endoflow.losses.photometric import photometric_error, reprojection_loss, ssim_map
@@ -146,6 +147,18 @@ def test_warp_from_a_pose_vector_gradcheck():
 
 
 # ------------------------------------------------------------------------------------------- losses
+def test_depth_inconsistency_gradcheck_in_both_depths_the_pose_and_intrinsics():
+    depth_tgt = uniform(1, 1, HEIGHT, WIDTH, low=1.0, high=3.0, seed=30)
+    depth_src = uniform(1, 1, HEIGHT, WIDTH, low=1.0, high=3.0, seed=31)
+    check(lambda *args: depth_inconsistency(*args)[0], depth_tgt, depth_src, rigid(seed=32), intrinsics())
+
+
+def test_geometry_consistency_gradcheck_over_two_sources():
+    depths = [uniform(2, 1, HEIGHT, WIDTH, low=1.0, high=3.0, seed=s) for s in (33, 34, 35)]
+    check(lambda tgt, a, b, Ta, Tb: geometry_consistency(tgt, [a, b], [Ta, Tb], intrinsics(2).detach()),
+          *depths, rigid(2, seed=36), rigid(2, seed=37))
+
+
 def test_ssim_gradcheck():
     check(ssim_map, uniform(1, 2, HEIGHT, WIDTH, seed=12), uniform(1, 2, HEIGHT, WIDTH, seed=13))
 

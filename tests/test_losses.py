@@ -8,6 +8,8 @@ import pytest
 import torch
 
 from endoflow.config import LossConfig
+from endoflow.geometry.pose import pose_vec_to_matrix
+from endoflow.losses.consistency import depth_inconsistency, geometry_consistency
 from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
 from endoflow.losses.kl import kl_standard_normal
 from endoflow.losses.photometric import photometric_error, reprojection_loss, ssim_map
@@ -211,3 +213,59 @@ def test_penalty_interpolates_between_real_and_fake(seed: int) -> None:
     gradient_penalty(recording_critic, real, fake, gamma=1.0)
     values = seen[0].numpy()
     assert ((values >= 0) & (values <= 1)).all() and np.std(values) > 0.1
+
+
+def bumpy_depth(height: int = 16, width: int = 20) -> torch.Tensor:
+    """A tilted, rippled surface 2-4 cm away: ``[1, 1, H, W]``."""
+    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
+                          indexing="ij")
+    return (2.5 + 0.03 * u + 0.4 * torch.sin(u / 3) * torch.cos(v / 4))[None, None]
+
+
+def camera(height: int = 16, width: int = 20) -> torch.Tensor:
+    return torch.tensor([[[18.0, 0.0, (width - 1) / 2], [0.0, 18.0, (height - 1) / 2], [0.0, 0.0, 1.0]]],
+                        dtype=torch.float64)
+
+
+def source_depth_seeing(depth_tgt: torch.Tensor, T_src_tgt: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """The exact source-frame depth of a fronto-parallel plane after a pure move along the view: the plane at ``d``
+    seen from the source camera, where target points have z ``d + t_z`` (``t_z`` of ``T_src_tgt``)."""
+    return depth_tgt + T_src_tgt[:, 2, 3].reshape(-1, 1, 1, 1)
+
+
+def test_consistent_depths_give_zero_and_the_loss_grows_with_disagreement() -> None:
+    plane = torch.full((1, 1, 16, 20), 3.0, dtype=torch.float64)
+    forward = pose_vec_to_matrix(torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, -0.2]], dtype=torch.float64))
+    K = camera()
+    seen = source_depth_seeing(plane, forward, K)
+    difference, valid = depth_inconsistency(plane, seen, forward, K)
+    assert valid.any() and difference.abs().max() < 1e-9
+    assert geometry_consistency(plane, [seen], [forward], K) < 1e-9
+    worse = [geometry_consistency(plane, [seen * factor], [forward], K).item() for factor in (1.05, 1.2, 1.5)]
+    assert 0 < worse[0] < worse[1] < worse[2]
+    # |a - b| / (a + b): a depth 1.2 times the truth gives 0.2 / 2.2
+    assert worse[1] == pytest.approx(0.2 / 2.2, rel=1e-6)
+
+
+def test_the_identity_pose_compares_a_frame_with_itself_at_any_common_scale() -> None:
+    depth, K, identity = bumpy_depth(), camera(), torch.eye(4, dtype=torch.float64)[None]
+    assert geometry_consistency(depth, [depth], [identity], K) < 1e-9
+    # one scale for both frames and the path: nothing to disagree about
+    assert geometry_consistency(3.7 * depth, [3.7 * depth], [identity], K) < 1e-9
+    assert geometry_consistency(depth, [1.1 * depth], [identity], K) == pytest.approx(0.1 / 2.1, rel=1e-6)
+
+
+def test_points_that_leave_the_source_image_count_for_nothing() -> None:
+    depth, K = bumpy_depth(), camera()
+    sideways = pose_vec_to_matrix(torch.tensor([[0.0, 0.0, 0.0, 1e3, 0.0, 0.0]], dtype=torch.float64))
+    difference, valid = depth_inconsistency(depth, depth, sideways, K)
+    assert not valid.any() and (difference == 0).all()
+    assert geometry_consistency(depth, [depth], [sideways], K) == 0
+
+
+def test_consistency_refuses_mismatched_sources_and_shapes() -> None:
+    depth, K, identity = bumpy_depth(), camera(), torch.eye(4, dtype=torch.float64)[None]
+    with pytest.raises(ValueError, match="one pose per source"):
+        geometry_consistency(depth, [depth, depth], [identity], K)
+    with pytest.raises(ValueError, match="depth_src"):
+        depth_inconsistency(depth, depth[..., :-1], identity, K)

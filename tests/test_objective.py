@@ -101,8 +101,23 @@ def test_losses_have_every_term_and_the_total_adds_up():
     cfg = params.loss
     expected = out["photometric"] + cfg.smoothness_weight * out["smoothness"] + cfg.kl_weight * out["kl"]
     torch.testing.assert_close(out["total"], expected)
+    assert "geometry" not in out  # weighted 0: not computed
     single = training_step_losses(model.eval(), batch, cfg.replace(multiscale=False))
     assert "photometric/1" not in single
+
+
+def test_the_geometry_consistency_term_adds_its_weighted_share_and_reaches_both_networks():
+    batch = simcol_triplets(size=32)
+    params = Params()
+    model = build_model(params, None).eval()  # deterministic: the same losses twice
+    cfg = params.loss.replace(geometry_weight=0.5)
+    off = training_step_losses(model, batch, params.loss)
+    on = training_step_losses(model, batch, cfg)
+    assert 0 < on["geometry"] < 1
+    torch.testing.assert_close(on["total"], off["total"] + 0.5 * on["geometry"])
+    on["geometry"].backward()
+    assert model.pose_net.mean_head.weight.grad.abs().sum() > 0
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.depth_net.parameters())
 
 
 def test_short_optimisation_learns_depth_and_motion():

@@ -69,10 +69,9 @@ from endoflow.training.checkpoint import (  # noqa: E402
     weights_digest,
     write_rank_audit,
 )
-from endoflow.training.objective import training_step_losses  # noqa: E402
+from endoflow.training.objective import loss_weights, training_step_losses  # noqa: E402
 from endoflow.training.worker_config import WorkerConfig  # noqa: E402
 
-LOGGED_LOSSES = ("total", "photometric", "smoothness", "kl")
 
 
 class NonFiniteLossError(RuntimeError):
@@ -197,6 +196,7 @@ def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[st
     ctx.module.train()
     keys: list[str] = []
     losses: list[float] = []
+    logged = ("total", *loss_weights(ctx.config.params.loss))
     samples_per_step = cfg.batch_size * ctx.world
     # the time left counts this epoch's steps and the later epochs' at this epoch's pace (validation aside)
     epoch_progress = Progress((cfg.epochs - epoch) * total_steps * samples_per_step, "samples", clock=time.perf_counter)
@@ -207,10 +207,10 @@ def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[st
         inputs = batch_to_device(batch, ctx.device, cfg.precision)
         with autocast(ctx.device, cfg.precision):
             out = ctx.module(inputs)
-        reduced = mean_over_ranks(torch.stack([out[k].detach().float() for k in LOGGED_LOSSES]), ctx.world)
+        reduced = mean_over_ranks(torch.stack([out[k].detach().float() for k in logged]), ctx.world)
         if not torch.isfinite(reduced).all():
             raise NonFiniteLossError(
-                f"non-finite training loss {dict(zip(LOGGED_LOSSES, reduced.tolist()))} at epoch {epoch}, "
+                f"non-finite training loss {dict(zip(logged, reduced.tolist()))} at epoch {epoch}, "
                 f"step {step} (global step {state.global_step}); stopped before updating the weights, "
                 f"the last checkpoint (epoch {state.epoch}) is kept; lower train.lr or check the data")
         ctx.optimizer.zero_grad(set_to_none=True)
@@ -220,7 +220,7 @@ def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[st
         ctx.optimizer.step()
         state.global_step += 1
         losses.append(float(reduced[0]))
-        ctx.logger.step(state.global_step, epoch, step, total_steps, dict(zip(LOGGED_LOSSES, reduced.tolist())),
+        ctx.logger.step(state.global_step, epoch, step, total_steps, dict(zip(logged, reduced.tolist())),
                         samples=(step + 1) * samples_per_step, epoch_progress=epoch_progress)
     return {"keys": keys, "mean_loss": float(np.mean(losses)) if losses else math.nan}
 
@@ -365,8 +365,7 @@ class RankZeroLogger:
         self.log_every = config.params.train.log_every
         self.epochs = config.params.train.epochs
         self.precision = config.params.train.precision
-        self.loss_weights = {"photometric": 1.0, "smoothness": config.params.loss.smoothness_weight,
-                             "kl": config.params.loss.kl_weight}
+        self.loss_weights = loss_weights(config.params.loss)
 
     def step(self, global_step: int, epoch: int, step: int, total_steps: int, losses: dict[str, float],
              samples: int, epoch_progress: Progress) -> None:

@@ -12,7 +12,11 @@ For a target frame ``cur`` and its neighbours ``prev`` and ``next``:
 - ``smoothness``: edge-aware smoothness of each scale's disparity, divided by ``2^scale``, averaged.
 - ``kl``: the closed-form KL of both predicted pose distributions to N(0, I), summed over the two poses,
   averaged over the batch (zero without the pose VAE).
-- ``total = photometric + loss.smoothness_weight * smoothness + loss.kl_weight * kl`` (``kl_weight`` is beta).
+- ``geometry``: with ``loss.geometry_weight`` > 0, DepthNet also predicts both neighbours' depth and
+  :func:`~endoflow.losses.consistency.geometry_consistency` compares it with the target's depth moved by the
+  predicted poses (scale 0), so that depth and path keep one scale over a video (else zero, and no extra pass).
+- ``total = photometric + loss.smoothness_weight * smoothness + loss.kl_weight * kl + loss.geometry_weight *
+  geometry`` (``kl_weight`` is beta; :func:`loss_weights`).
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import torch.nn.functional as F
 
 from endoflow.config import LossConfig
 from endoflow.geometry.warp import warp_frame
+from endoflow.losses.consistency import geometry_consistency
 from endoflow.losses.kl import kl_standard_normal
 from endoflow.losses.photometric import identity_error, reprojection_loss
 from endoflow.losses.smoothness import edge_aware_smoothness
@@ -29,6 +34,15 @@ from endoflow.models.endoflow_model import EndoflowModel, PoseEstimate
 from endoflow.shapes import check_shape
 
 REQUIRED_KEYS = ("prev", "cur", "next", "K")
+
+
+def loss_weights(loss_cfg: LossConfig) -> dict[str, float]:
+    """The weight in the total of each term computed: the photometric loss first, the geometry consistency only
+    where its weight is not 0 (it costs a depth pass over both neighbours); a KL weighted 0 is still computed."""
+    weights = {"photometric": 1.0, "smoothness": loss_cfg.smoothness_weight, "kl": loss_cfg.kl_weight}
+    if loss_cfg.geometry_weight > 0:
+        weights["geometry"] = loss_cfg.geometry_weight
+    return weights
 
 
 def _check_batch(batch: dict) -> None:
@@ -70,8 +84,8 @@ def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig
     ``K [B, 3, 3]``).
 
     Returns:
-        ``total`` (what to back-propagate), ``photometric``, ``smoothness``, ``kl``, and per scale s
-        ``photometric/s`` and ``smoothness/s``; all scalars.
+        ``total`` (what to back-propagate), each term of :func:`loss_weights`, and per scale s ``photometric/s``
+        and ``smoothness/s``; all scalars.
     """
     _check_batch(batch)
     cur, sources = batch["cur"], [batch["prev"], batch["next"]]
@@ -98,5 +112,20 @@ def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig
     out["photometric"] = torch.stack(photometric).mean()
     out["smoothness"] = torch.stack(smoothness).mean()
     out["kl"] = pose_kl(poses)
-    out["total"] = out["photometric"] + loss_cfg.smoothness_weight * out["smoothness"] + loss_cfg.kl_weight * out["kl"]
+    weights = loss_weights(loss_cfg)
+    if "geometry" in weights:
+        out["geometry"] = neighbour_consistency(model, disps[0], sources, poses, K)
+    total = out["photometric"]
+    for term in list(weights)[1:]:
+        total = total + weights[term] * out[term]
+    out["total"] = total
     return out
+
+
+def neighbour_consistency(model: EndoflowModel, disp_cur: torch.Tensor, sources: list[torch.Tensor],
+                          poses: list[PoseEstimate], K: torch.Tensor) -> torch.Tensor:
+    """:func:`geometry_consistency` of the target's full-resolution depth (from its scale-0 disparity) with each
+    source's own predicted depth, through the poses that warp the sources."""
+    depth_cur = model.disp_to_depth(disp_cur)
+    depth_sources = [model.predict_depth(source) for source in sources]
+    return geometry_consistency(depth_cur, depth_sources, [pose.T_source_target for pose in poses], K)
