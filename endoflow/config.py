@@ -211,6 +211,11 @@ class PreprocessConfig(Section):
     shard_multiple: Count = setting(4, "each split's shard count is a multiple of this, so whole shards divide "
                                        "evenly over workers")
     neighbour_offset: Count = setting(1, "prev/next are frames cur -/+ this offset", unit="frames")
+    # A mixture keeps consecutive pairs, the pairs the model is scored on, in training, while wider pairs carry
+    # several frames' motion: a pose network that answers one step for every pair cannot fit them all.
+    train_offsets: Optional[list[Count]] = setting(
+        None, "the train split's offsets, one per target frame in turn (its position in the sequence modulo their "
+              "count); null: neighbour_offset", unit="frames", min_length=1)
 
 
 # ----------------------------------------------------------------------------------------- latent bank
@@ -532,13 +537,14 @@ def _bank_growth(p: Params) -> Optional[str]:
 
 
 def _synth_triplets(p: Params) -> Optional[str]:
-    offset = p.preprocess.neighbour_offset
+    offset = max([p.preprocess.neighbour_offset, *(p.preprocess.train_offsets or [])])
     for layout in (name for name in DATASETS if name not in DEPTH_ONLY_DATASETS):
         for key in ("frames", "test_frames"):
             frames = getattr(getattr(p.synth, layout), key)
             if frames is not None and frames <= 2 * offset:
-                return (f"synth.{layout}.{key} must exceed 2 x preprocess.neighbour_offset = {2 * offset} (a "
-                        f"sample needs frames cur - {offset} and cur + {offset}), got {frames}")
+                return (f"synth.{layout}.{key} must exceed 2 x the largest of preprocess.neighbour_offset and "
+                        f"train_offsets = {2 * offset} (a sample needs frames cur - {offset} and cur + {offset}), "
+                        f"got {frames}")
     return None
 
 

@@ -21,9 +21,8 @@ exceeds the seed spread (both have at least two seeds and the two mean +- sd int
 where the model is better by more than its spread (``mean + sd < constant velocity``). Runs with the same
 configuration and seed (the workspace and the experiment it came from) count once; one with other params (a
 run of another preset, say) is left out with a note on stderr. A configuration is the two
-switches plus, with the VAE, the VAE study's settings where they differ from the defaults (``model.pose_sample``
-and ``loss.kl_weight``: ``full, β=0.001``, ``full, mean warp``); nothing else, so compare experiments of one
-preset.
+switches plus the studies' settings where they differ from the defaults (:data:`STUDY_SETTINGS`: ``full,
+β=0.001``, ``full, mean warp``, ``full, offsets 1/2/3``); nothing else, so compare experiments of one preset.
 """
 
 from __future__ import annotations
@@ -36,16 +35,35 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional
 
-from endoflow.config import LossConfig, ModelConfig, flatten_params
+from endoflow.config import LossConfig, ModelConfig, PreprocessConfig, flatten_params
 from endoflow.evaluation.results import EVALUATION_FILE, HEADLINE, evaluation_path
 from endoflow.evaluation.summary import PROTOCOL_TABLES, markdown_table, number_cell, protocol_table
 
 # the paper's Table 3 rows: (name, model.latent_bank, model.pose_vae); `endoflow sweep` names its experiments so
 ABLATIONS = (("full", True, True), ("no-bank", False, True), ("no-vae", True, False), ("neither", False, False))
-# the VAE study's settings (docs/method.md): with the VAE, a run whose setting differs from the default is its own
-# configuration, named after the ablation and the setting
 DEFAULT_KL_WEIGHT = LossConfig().kl_weight
 DEFAULT_POSE_SAMPLE = ModelConfig().pose_sample
+
+
+@dataclass(frozen=True)
+class StudySetting:
+    """A training setting a study varies (docs/method.md, docs/results.md): a run whose value differs from the
+    default is its own configuration, named after the ablation and this setting's label."""
+
+    key: str  # dotted params key
+    default: Any
+    label: Callable[[Any], str]
+    needs_vae: bool = False  # without the pose VAE the setting does nothing: read as its default
+
+
+# in the order configurations sort and name them
+STUDY_SETTINGS = (
+    StudySetting("model.pose_sample", DEFAULT_POSE_SAMPLE, lambda value: "mean warp", needs_vae=True),
+    StudySetting("loss.kl_weight", DEFAULT_KL_WEIGHT, lambda value: f"β={value:g}", needs_vae=True),
+    StudySetting("preprocess.train_offsets", PreprocessConfig().train_offsets,
+                 lambda value: "offsets " + "/".join(str(offset) for offset in value)),
+    StudySetting("loss.geometry_weight", LossConfig().geometry_weight, lambda value: f"geometry {value:g}"),
+)
 _HEADLINE_PROTOCOL = {metric: protocol for _, protocol, _, metric in HEADLINE}  # by the evaluation JSON's name
 # the seed statistics' figures: column title, protocol of the evaluation JSON (the headline figures' own, the
 # ATEs beside RTE's), and the trivial baseline in it
@@ -68,31 +86,45 @@ class RunResults:
 
     @property
     def configuration(self) -> Optional[str]:
-        """The configuration's name: the ablation's (``full``, ``no-bank``, ``no-vae``, ``neither``) followed, with
-        the VAE, by the VAE study's settings that differ from the defaults (``full, mean warp``,
-        ``full, β=0.001``); None for a run without the two switches."""
+        """The configuration's name: the ablation's (``full``, ``no-bank``, ``no-vae``, ``neither``) followed by the
+        labels of the :data:`STUDY_SETTINGS` that differ from their defaults (``full, mean warp``,
+        ``full, β=0.001``, ``full, offsets 1/2/3``); None for a run without the two switches."""
         key = self.configuration_key
         if key is None:
             return None
-        _, ablation, mean_warp, beta = key
-        settings = (["mean warp"] if mean_warp else []) + ([f"β={beta:g}"] if beta != DEFAULT_KL_WEIGHT else [])
-        return ", ".join([ABLATIONS[ablation][0]] + settings)
+        values = self.study_values()
+        labels = [setting.label(values[setting.key]) for setting in STUDY_SETTINGS
+                  if values[setting.key] != setting.default]
+        return ", ".join([ABLATIONS[key[1]][0]] + labels)
 
     @property
-    def configuration_key(self) -> Optional[tuple[bool, int, bool, float]]:
-        """(a VAE study setting differs from its default, index in :data:`ABLATIONS`, warps with the pose's mean,
-        beta): sorts the four ablations first, in the paper's order, then the VAE study's configurations by their
-        settings. Without the VAE, which neither samples nor has a KL term, the settings read as defaults."""
-        model, loss = self.params.get("model", {}), self.params.get("loss", {})
+    def configuration_key(self) -> Optional[tuple[bool, int, tuple[Any, ...]]]:
+        """(a study setting differs from its default, index in :data:`ABLATIONS`, the settings in a sortable form):
+        sorts the four ablations first, in the paper's order, then the studies' configurations by their settings
+        (a switch after its default, numbers in numeric order)."""
+        model = self.params.get("model", {})
         if "latent_bank" not in model or "pose_vae" not in model:
             return None
         switches = (bool(model["latent_bank"]), bool(model["pose_vae"]))
         ablation = [(bank, vae) for _, bank, vae in ABLATIONS].index(switches)
-        mean_warp, beta = False, DEFAULT_KL_WEIGHT
-        if switches[1]:
-            mean_warp = model.get("pose_sample", DEFAULT_POSE_SAMPLE) is False
-            beta = _float_or(loss.get("kl_weight"), DEFAULT_KL_WEIGHT)
-        return mean_warp or beta != DEFAULT_KL_WEIGHT, ablation, mean_warp, beta
+        values = self.study_values()
+        differs = any(values[setting.key] != setting.default for setting in STUDY_SETTINGS)
+        return differs, ablation, tuple(_sortable(values[setting.key], setting.default) for setting in STUDY_SETTINGS)
+
+    def study_values(self) -> dict[str, Any]:
+        """Each study setting's value in the run's params (its default where the params lack it, or where it needs
+        the pose VAE and the run has none)."""
+        vae = bool(self.params.get("model", {}).get("pose_vae"))
+        values = {}
+        for setting in STUDY_SETTINGS:
+            section, name = setting.key.split(".")
+            value = self.params.get(section, {}).get(name, setting.default)
+            if setting.needs_vae and not vae:
+                value = setting.default
+            elif isinstance(setting.default, float):
+                value = _float_or(value, setting.default)
+            values[setting.key] = value
+        return values
 
     @property
     def label(self) -> str:
@@ -100,6 +132,16 @@ class RunResults:
         switches = [f"{text} {'on' if model[key] else 'off'}" for key, text in
                     (("latent_bank", "bank"), ("pose_vae", "VAE")) if key in model]
         return f"{self.name} ({', '.join(switches)})" if switches else self.name
+
+
+def _sortable(value: Any, default: Any) -> Any:
+    """A study setting's value as something runs sort by: a switch as whether it is off its default, a number as
+    itself, a list (or null) as a tuple."""
+    if isinstance(default, bool):
+        return value != default
+    if isinstance(default, float):
+        return value
+    return tuple(value or ())
 
 
 def _float_or(value: Any, default: float) -> float:

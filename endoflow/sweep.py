@@ -1,12 +1,13 @@
 """Studies as DVC experiments, each configuration with each seed, queued in DVC's experiment queue and run one
-after another by ``dvc queue start``: the paper's Table 3 (``ablation``: :data:`ABLATIONS`) and the VAE study
-(``vae``: :data:`VAE_STUDY`).
+after another by ``dvc queue start``: the paper's Table 3 (``ablation``: :data:`ABLATIONS`), the VAE study
+(``vae``: :data:`VAE_STUDY`) and the motion study (``motion``: :data:`MOTION_STUDY`).
 
 Each experiment reproduces the pipeline up to the ``evaluate`` stages (:data:`SWEEP_TARGET`), Table 3's
 metrics; reconstruction is left out (``dvc exp apply`` then ``dvc repro`` makes it for a chosen run).
 
 Each experiment is named ``<configuration>-seed<k>`` and sets every switch it relies on, the two ablation
-switches and the VAE study's two settings (``-S`` edits the queued copy's ``params.yaml`` only). DVC runs queued
+switches and every setting a study varies (:data:`~endoflow.report.STUDY_SETTINGS`; ``-S`` edits the queued
+copy's ``params.yaml`` only), so that no experiment inherits a setting from the workspace. DVC runs queued
 experiments in temporary copies of the project; the MLflow store and Ray's checkpoints stay in the project
 (:func:`endoflow.locations.home_project`). One worker at a time (``-j 1``): the embedded MLflow store is one
 SQLite file, and one training already uses every core. When the queue is done, ``endoflow report`` aggregates
@@ -15,22 +16,27 @@ the runs by configuration over seeds.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Iterable
 
 from endoflow.config import ConfigError, load_params
-from endoflow.report import ABLATIONS, DEFAULT_KL_WEIGHT, DEFAULT_POSE_SAMPLE
+from endoflow.report import ABLATIONS, DEFAULT_KL_WEIGHT, STUDY_SETTINGS
 
 SWEEP_TARGET = "evaluate"
 # The VAE study (docs/method.md): the full model with the warp's sampling or the KL taken away, and beta over
-# decades: (name, model.pose_sample, loss.kl_weight). Beside the ablation sweep's full and no-vae runs of the same
-# seeds it tells what the VAE contributes.
-VAE_STUDY = (("vae-mean-warp", False, DEFAULT_KL_WEIGHT), ("vae-beta0", True, 0.0), ("vae-beta1e-4", True, 1e-4),
-             ("vae-beta1e-3", True, 1e-3))
-STUDIES = ("ablation", "vae")
+# decades. Beside the ablation sweep's full and no-vae runs of the same seeds it tells what the VAE contributes.
+VAE_STUDY = (("vae-mean-warp", {"model.pose_sample": False}), ("vae-beta0", {"loss.kl_weight": 0.0}),
+             ("vae-beta1e-4", {"loss.kl_weight": 1e-4}), ("vae-beta1e-3", {"loss.kl_weight": 1e-3}))
+# The motion study (docs/results.md): the full model as it is, trained on a mixture of frame offsets, with the
+# depth consistency between neighbouring frames (SC-SfMLearner's weight), and with both.
+MOTION_STUDY = (("motion-base", {}), ("motion-offsets", {"preprocess.train_offsets": [1, 2, 3]}),
+                ("motion-geometry", {"loss.geometry_weight": 0.5}),
+                ("motion-both", {"preprocess.train_offsets": [1, 2, 3], "loss.geometry_weight": 0.5}))
+STUDIES = ("ablation", "vae", "motion")
 
 
 class SweepError(RuntimeError):
@@ -41,24 +47,28 @@ class SweepError(RuntimeError):
 def sweep_commands(seeds: Iterable[int], study: str = "ablation") -> list[list[str]]:
     """The ``dvc`` arguments that queue every configuration of ``study`` (:data:`STUDIES`) with every seed,
     seed by seed."""
-    return [["exp", "run", "--queue", "-n", f"{name}-seed{seed}", "-S", f"model.latent_bank={_flag(bank)}",
-             "-S", f"model.pose_vae={_flag(vae)}", "-S", f"model.pose_sample={_flag(sample)}",
-             "-S", f"loss.kl_weight={beta!r}", "-S", f"seed={seed}", SWEEP_TARGET]
-            for seed in seeds for name, bank, vae, sample, beta in study_configurations(study)]
+    return [["exp", "run", "--queue", "-n", f"{name}-seed{seed}",
+             *(word for key, value in settings.items() for word in ("-S", f"{key}={_value(value)}")),
+             "-S", f"seed={seed}", SWEEP_TARGET]
+            for seed in seeds for name, settings in study_configurations(study)]
 
 
-def study_configurations(study: str) -> list[tuple[str, bool, bool, bool, float]]:
-    """``study``'s configurations as (name, model.latent_bank, model.pose_vae, model.pose_sample,
-    loss.kl_weight); the ablations keep the VAE study's defaults."""
+def study_configurations(study: str) -> list[tuple[str, dict[str, Any]]]:
+    """``study``'s configurations as (name, {dotted params key: value}): the two ablation switches and every study
+    setting, at its default unless the configuration changes it."""
     if study not in STUDIES:
         raise ValueError(f"study: expected one of {', '.join(STUDIES)}, got {study!r}")
+    defaults = {setting.key: setting.default for setting in STUDY_SETTINGS}
     if study == "ablation":
-        return [(name, bank, vae, DEFAULT_POSE_SAMPLE, DEFAULT_KL_WEIGHT) for name, bank, vae in ABLATIONS]
-    return [(name, True, True, sample, beta) for name, sample, beta in VAE_STUDY]
+        return [(name, {"model.latent_bank": bank, "model.pose_vae": vae, **defaults}) for name, bank, vae in ABLATIONS]
+    changes = VAE_STUDY if study == "vae" else MOTION_STUDY
+    return [(name, {"model.latent_bank": True, "model.pose_vae": True, **defaults, **changed})
+            for name, changed in changes]
 
 
-def _flag(value: bool) -> str:
-    return str(value).lower()
+def _value(value: Any) -> str:
+    """A value as ``-S`` takes it (YAML: ``true``, ``1e-05``, ``[1,2,3]``, ``null``)."""
+    return repr(value) if isinstance(value, float) else json.dumps(value, separators=(",", ":"))
 
 
 def check_sweep_params(project_root: str | Path, commands: list[list[str]]) -> None:

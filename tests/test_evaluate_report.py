@@ -201,13 +201,13 @@ def test_the_sweep_queues_every_configuration_with_every_seed_naming_each_switch
 
     commands = sweep_commands([0, 1, 2])
     assert len(commands) == 12
-    # the VAE study's settings too, at their defaults: the ablation does not inherit the workspace's
+    # the studies' settings too, at their defaults: the ablation does not inherit the workspace's
+    defaults = ["-S", "model.pose_sample=true", "-S", "loss.kl_weight=1e-05", "-S", "preprocess.train_offsets=null",
+                "-S", "loss.geometry_weight=0.0"]
     assert commands[0] == ["exp", "run", "--queue", "-n", "full-seed0", "-S", "model.latent_bank=true",
-                           "-S", "model.pose_vae=true", "-S", "model.pose_sample=true", "-S", "loss.kl_weight=1e-05",
-                           "-S", "seed=0", "evaluate"]
+                           "-S", "model.pose_vae=true", *defaults, "-S", "seed=0", "evaluate"]
     assert commands[-1] == ["exp", "run", "--queue", "-n", "neither-seed2", "-S", "model.latent_bank=false",
-                            "-S", "model.pose_vae=false", "-S", "model.pose_sample=true", "-S", "loss.kl_weight=1e-05",
-                            "-S", "seed=2", "evaluate"]
+                            "-S", "model.pose_vae=false", *defaults, "-S", "seed=2", "evaluate"]
     assert len({tuple(c) for c in commands}) == 12
 
 
@@ -226,14 +226,27 @@ def test_the_vae_study_queues_the_full_model_without_sampling_and_with_beta_over
     assert len(commands) == 8
     assert commands[0] == ["exp", "run", "--queue", "-n", "vae-mean-warp-seed0", "-S", "model.latent_bank=true",
                            "-S", "model.pose_vae=true", "-S", "model.pose_sample=false",
-                           "-S", "loss.kl_weight=1e-05", "-S", "seed=0", "evaluate"]
+                           "-S", "loss.kl_weight=1e-05", "-S", "preprocess.train_offsets=null",
+                           "-S", "loss.geometry_weight=0.0", "-S", "seed=0", "evaluate"]
     betas = [next(word for word in command if word.startswith("loss.kl_weight=")) for command in commands[:4]]
     assert betas == ["loss.kl_weight=1e-05", "loss.kl_weight=0.0", "loss.kl_weight=0.0001", "loss.kl_weight=0.001"]
     with pytest.raises(ValueError, match="study"):
         sweep_commands([0], study="vea")
 
 
-@pytest.mark.parametrize("study", ["ablation", "vae"])
+def test_the_motion_study_queues_the_full_model_with_mixed_offsets_the_depth_consistency_and_both():
+    from endoflow.sweep import sweep_commands
+
+    commands = sweep_commands([0], study="motion")
+    changed = [[word for word in command if word.startswith(("preprocess.train_offsets", "loss.geometry_weight"))]
+               for command in commands]
+    assert changed == [["preprocess.train_offsets=null", "loss.geometry_weight=0.0"],
+                       ["preprocess.train_offsets=[1,2,3]", "loss.geometry_weight=0.0"],
+                       ["preprocess.train_offsets=null", "loss.geometry_weight=0.5"],
+                       ["preprocess.train_offsets=[1,2,3]", "loss.geometry_weight=0.5"]]
+
+
+@pytest.mark.parametrize("study", ["ablation", "vae", "motion"])
 def test_the_sweeps_settings_as_dvc_writes_them_load_as_the_studys_values(tmp_path: Path, study: str):
     """`-S` as DVC applies it to the queued copy's params.yaml (Hydra's override grammar, written back by ruamel),
     then read by endoflow's config."""
@@ -243,13 +256,15 @@ def test_the_sweeps_settings_as_dvc_writes_them_load_as_the_studys_values(tmp_pa
     from endoflow.config import Params, load_params, params_to_dict
     from endoflow.sweep import study_configurations, sweep_commands
 
-    for command, (_, bank, vae, sample, beta) in zip(sweep_commands([3], study), study_configurations(study)):
+    for command, (_, settings) in zip(sweep_commands([3], study), study_configurations(study)):
         path = tmp_path / "params.yaml"
         path.write_text(yaml.safe_dump(params_to_dict(Params())))
         apply_overrides(path, [command[i + 1] for i, word in enumerate(command) if word == "-S"])
         params = load_params(path)
-        assert (params.model.latent_bank, params.model.pose_vae, params.model.pose_sample) == (bank, vae, sample)
-        assert params.loss.kl_weight == beta and params.seed == 3
+        for key, value in settings.items():
+            section, name = key.split(".")
+            assert getattr(getattr(params, section), name) == value, key
+        assert params.seed == 3
 
 
 def study_run(name: str, seed: int, abs_rel: float, *, sample: bool = True, beta: float = 1e-5,
@@ -271,6 +286,17 @@ def test_vae_study_runs_are_their_own_configurations_named_by_the_setting():
                               "loss": {"kl_weight": "1e-05"}}).configuration == "full"
     # runs from before the setting existed are the default
     assert RunResults("old", {"model": {"latent_bank": True, "pose_vae": True}}).configuration == "full"
+
+
+def test_motion_study_runs_are_named_by_their_offsets_and_consistency_weight_with_or_without_the_vae():
+    def run(vae: bool, **changes) -> RunResults:
+        return RunResults("r", {"model": {"latent_bank": True, "pose_vae": vae}, **changes})
+
+    assert run(True, preprocess={"train_offsets": [1, 2, 3]}).configuration == "full, offsets 1/2/3"
+    assert run(True, loss={"geometry_weight": "0.5"}).configuration == "full, geometry 0.5"
+    assert run(False, preprocess={"train_offsets": [1, 2]}, loss={"geometry_weight": 0.5}).configuration == \
+        "no-vae, offsets 1/2, geometry 0.5"
+    assert run(True, preprocess={"train_offsets": None}, loss={"geometry_weight": 0.0}).configuration == "full"
 
 
 def test_vae_study_rows_follow_the_four_configurations_and_are_compared_with_the_full_model():

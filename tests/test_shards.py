@@ -389,3 +389,27 @@ def assert_same_files(a: Path, b: Path) -> None:
     assert names == sorted(p.name for p in b.iterdir())
     for name in names:
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
+
+
+def test_train_offsets_give_each_train_target_its_offset_in_turn_and_leave_val_and_test_consecutive(tmp_path):
+    from endoflow.data.loader import raw_samples
+    from tests.fixtures_native import write_simcol
+    from endoflow.data.shard_format import decode_meta
+
+    root = tmp_path / "simcol"
+    write_simcol(root, frames=12, size=32)
+    params = Params()
+    params.data.simcol.root = str(root)
+    params.data.size = 32
+    params.preprocess = params.preprocess.replace(out=str(tmp_path / "shards"), workers=1, train_offsets=[1, 3])
+    preprocess_dataset("simcol", params, tmp_path / "shards" / "simcol")
+    offsets: dict[str, dict[int, int]] = {}
+    for tar in sorted((tmp_path / "shards" / "simcol").glob("*.tar")):
+        for sample in raw_samples([str(tar)]):
+            meta = decode_meta(sample["meta.json"], str(tar))
+            ids = meta["frame_ids"]
+            assert ids["next"] - ids["cur"] == ids["cur"] - ids["prev"] == meta["neighbour_offset"]
+            offsets.setdefault(meta["split"], {})[meta["frame"]] = meta["neighbour_offset"]
+    # frame i takes offset [1, 3][i % 2] where both its neighbours exist: even frames 2-10 at 1, odd 3-7 at 3
+    assert offsets["train"] == {2: 1, 3: 3, 4: 1, 5: 3, 6: 1, 7: 3, 8: 1, 10: 1}
+    assert offsets["val"] == offsets["test"] == {i: 1 for i in range(1, 11)}

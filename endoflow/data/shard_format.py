@@ -11,7 +11,8 @@ order. A complete sample is exactly :data:`TRIPLET_MEMBERS` (a target frame with
 - ``prev.png``, ``cur.png``, ``next.png``: RGB ``uint8`` at the stored square size.
 - ``depth.png``: ``uint16`` z-depth of ``cur``, ``depth_cm = count * meta["depth_unit"]``, 0 = unknown.
 - ``meta.json``: ``dataset``, ``sequence``, ``group``, ``split``, ``frame``, ``frame_ids``
-  (``prev``/``cur``/``next``), ``K`` (3x3 at the stored size, pixel centres at integers), ``T_world_cam``
+  (``prev``/``cur``/``next``), ``neighbour_offset`` (how many regular frame steps ``prev`` and ``next`` lie from
+  ``cur``; null when depth-only), ``K`` (3x3 at the stored size, pixel centres at integers), ``T_world_cam``
   (``prev``/``cur``/``next``: 4x4 camera-to-world in cm, or null), ``depth_unit`` (cm per count),
   ``native_size`` ``[H, W]``.
 
@@ -58,7 +59,7 @@ MANIFEST = "manifest.parquet"
 # Parquet schema metadata key: JSON {shard name: {"samples": n, "sha256": hex}}, empty shards included.
 SHARD_TABLE_KEY = b"endoflow.shards"
 # Bumped whenever the bytes written for the same input change.
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 
 IMAGE_NAMES = ("prev", "cur", "next")
 DEPTH_MEMBER = "depth.png"

@@ -1,9 +1,10 @@
 """The preprocessing plan: which samples a dataset gives, how they fill shards, and each shard's resume key.
 
 Each sample is one target frame ``cur`` with its neighbours ``prev`` / ``next`` at
-``-/+ preprocess.neighbour_offset``; depth-only datasets (SceneNet, for the latent bank) make every frame a
-sample. A target is taken only when its neighbours are the frames exactly ``neighbour_offset`` regular frame
-steps away, so no sample spans a missing frame (the reader warns about gaps). A frame without a pose (none in
+``-/+ preprocess.neighbour_offset`` (in the train split, with ``preprocess.train_offsets``, at each target's own
+offset, taken from that list in turn); depth-only datasets (SceneNet, for the latent bank) make every frame a
+sample. A target is taken only when its neighbours are the frames exactly its offset in regular frame steps away,
+so no sample spans a missing frame (the reader warns about gaps). A frame without a pose (none in
 the data, or NaN / inf in the pose file: the reader warns, naming the file and frames) keeps its sample, whose
 images are sound; :func:`samples_without_pose` counts them for the summary.
 
@@ -41,6 +42,7 @@ class EncodeSettings:
     dataset: str
     size: int
     neighbour_offset: int
+    train_offsets: tuple[int, ...]  # the train split's offsets in turn (preprocess.train_offsets, else neighbour_offset)
     depth_unit: float
     depth_only: bool
     # data.<dataset> as JSON: reader settings (depth scale, units, intrinsics...) change the decoded frames
@@ -58,6 +60,7 @@ class SampleSpec:
     frame: int
     split: str
     group: str
+    offset: int  # neighbours at position -/+ offset (0: depth only)
 
 
 @dataclass(frozen=True)
@@ -68,12 +71,14 @@ class ShardSpec:
 
 
 def encode_settings(dataset: str, params: Params) -> EncodeSettings:
-    if params.data.size < 1 or params.preprocess.neighbour_offset < 1:
+    preprocess = params.preprocess
+    if params.data.size < 1 or preprocess.neighbour_offset < 1:
         raise ValueError("data.size and preprocess.neighbour_offset must be positive")
     return EncodeSettings(
         dataset=dataset,
         size=params.data.size,
-        neighbour_offset=params.preprocess.neighbour_offset,
+        neighbour_offset=preprocess.neighbour_offset,
+        train_offsets=tuple(preprocess.train_offsets or [preprocess.neighbour_offset]),
         depth_unit=DEPTH_UNIT_CM.get(dataset, DEPTH_UNIT_CM["simcol"]),
         depth_only=dataset in DEPTH_ONLY_DATASETS,
         reader_params=json.dumps(params_to_dict(getattr(params.data, dataset)), sort_keys=True),
@@ -104,13 +109,19 @@ def plan_shards(
 def sequence_samples(sequence: Sequence, settings: EncodeSettings) -> list[SampleSpec]:
     """Target frames of a sequence: all of them when depth-only, else those with both neighbours.
 
-    A neighbour is the frame exactly ``neighbour_offset`` regular steps (:attr:`Sequence.frame_step`)
-    before or after the target, so no sample spans a gap in the frame numbers (the reader reports gaps).
+    A neighbour is the frame exactly the target's offset in regular steps (:attr:`Sequence.frame_step`) before
+    or after it, so no sample spans a gap in the frame numbers (the reader reports gaps). The offset is
+    ``neighbour_offset``, or in the train split the entry of ``train_offsets`` at the target's position modulo
+    their count.
     """
     if settings.depth_only:
-        targets = range(len(sequence))
+        offsets = {i: 0 for i in range(len(sequence))}
     else:
-        targets = targets_with_neighbours(sequence.frame_ids, settings.neighbour_offset, sequence.frame_step)
+        choices = settings.train_offsets if sequence.split == "train" else (settings.neighbour_offset,)
+        valid = {offset: set(targets_with_neighbours(sequence.frame_ids, offset, sequence.frame_step))
+                 for offset in set(choices)}
+        offsets = {i: choices[i % len(choices)] for i in range(len(sequence))
+                   if i in valid[choices[i % len(choices)]]}
     return [
         SampleSpec(
             key=sample_key(settings.dataset, sequence.name, sequence.frame_ids[i]),
@@ -119,8 +130,9 @@ def sequence_samples(sequence: Sequence, settings: EncodeSettings) -> list[Sampl
             frame=int(sequence.frame_ids[i]),
             split=sequence.split,
             group=sequence.group,
+            offset=offset,
         )
-        for i in targets
+        for i, offset in offsets.items()
     ]
 
 
@@ -161,7 +173,7 @@ def shard_count(samples: int, samples_per_shard: int, multiple: int) -> int:
 
 def sample_positions(spec: SampleSpec, settings: EncodeSettings) -> list[int]:
     """Positions of the frames a sample is built from: ``cur``, and ``prev`` / ``next`` unless depth-only."""
-    i, offset = spec.position, settings.neighbour_offset
+    i, offset = spec.position, spec.offset
     return [i] if settings.depth_only else [i - offset, i, i + offset]
 
 

@@ -130,6 +130,7 @@ def sample_meta(
         "split": spec.split,
         "frame": spec.frame,
         "frame_ids": frame_ids,
+        "neighbour_offset": None if settings.depth_only else spec.offset,
         "K": stored_intrinsics(sequence.K, sequence.image_size, settings.size).tolist(),
         "T_world_cam": poses,
         "depth_unit": settings.depth_unit,

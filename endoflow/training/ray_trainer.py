@@ -94,16 +94,15 @@ def training_fingerprint(params: Params, train_shards: str, latent_bank: Optiona
     return digest.hexdigest()[:16]
 
 
-def training_baselines(train_urls: list[str], neighbour_offset: int) -> TrainingBaselines:
+def training_baselines(train_urls: list[str]) -> TrainingBaselines:
     """Mean GT depth (scalar and per pixel) and mean per-frame relative pose of the train shards.
 
-    A sample's ``inv(T_cur) @ T_next`` spans ``neighbour_offset`` frames (``preprocess.neighbour_offset``, which
-    made the shards); its per-frame root (:func:`step_root`) is what the constant-velocity baseline repeats
-    between consecutive frames.
+    A sample's ``inv(T_cur) @ T_next`` spans its ``neighbour_offset`` frames (``meta.json``); its per-frame root
+    (:func:`step_root`) is what the constant-velocity baseline repeats between consecutive frames.
     """
     depth_sum: Optional[np.ndarray] = None
     depth_count: Optional[np.ndarray] = None
-    steps = []
+    steps: dict[int, list[np.ndarray]] = {}
     for sample in raw_samples(train_urls):
         meta = decode_meta(sample[META_MEMBER], sample["__url__"])
         depth = decode_depth(sample[DEPTH_MEMBER], meta["depth_unit"], sample["__url__"]).astype(np.float64)
@@ -115,13 +114,14 @@ def training_baselines(train_urls: list[str], neighbour_offset: int) -> Training
         poses = meta["T_world_cam"]
         if poses.get("cur") is not None and poses.get("next") is not None:
             relative = np.linalg.inv(np.array(poses["cur"])) @ np.array(poses["next"])
-            steps.append(relative)
+            steps.setdefault(int(meta["neighbour_offset"]), []).append(relative)
     if depth_sum is None or depth_count.sum() == 0:
         raise ValueError(f"train shards {train_urls[:1]}...: no GT depth to compute the baselines from")
     mean_depth = float(depth_sum.sum() / depth_count.sum())
     mean_map = np.where(depth_count > 0, depth_sum / np.maximum(depth_count, 1), mean_depth)
-    per_frame = step_root(np.array(steps).reshape(-1, 4, 4), neighbour_offset)
-    return TrainingBaselines(mean_depth, mean_map.astype(np.float32), mean_step(per_frame))
+    per_frame = [step_root(np.array(spanned), offset) for offset, spanned in sorted(steps.items())]
+    return TrainingBaselines(mean_depth, mean_map.astype(np.float32),
+                             mean_step(np.concatenate(per_frame) if per_frame else np.zeros((0, 4, 4))))
 
 
 def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
@@ -154,7 +154,7 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
 def train_in_run(params: Params, root: Path, run: tracking.RunHandle, config: WorkerConfig,
                  fingerprint: str) -> dict[str, Any]:
     """Train (or resume) on Ray and write the outputs, inside the open MLflow ``run`` (``config``'s)."""
-    baselines = training_baselines(list(config.train_shards), params.preprocess.neighbour_offset)
+    baselines = training_baselines(list(config.train_shards))
     storage = absolute_location(params.ray.storage_path, home_project(root))
     run_name = f"{params.ray.run_name}-{fingerprint}"
     resume_from = latest_checkpoint(f"{storage.rstrip('/')}/{run_name}", params.ray.num_workers)
