@@ -72,7 +72,8 @@ SEED_METRICS = {"abs_rel": ("Abs Rel", _HEADLINE_PROTOCOL["abs_rel"], "constant_
                 "rot": ("ROT (°)", _HEADLINE_PROTOCOL["rot"], "constant_velocity"),
                 "ate": ("ATE (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity"),
                 "ate_local": ("ATE local (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity"),
-                "step_corr": ("step corr (↑)", "pose_motion", "constant_velocity")}
+                "step_corr": ("step corr (↑)", "pose_motion", "constant_velocity"),
+                "path_over_depth": ("path / depth scale (1)", "scale", "model")}
 POSE_TARGET_METRICS = ("rte", "rot", "ate", "ate_local")
 
 
@@ -321,7 +322,8 @@ def seed_statistics(runs: list[RunResults], test_sets: list[str]) -> str:
     if not any(len(group) > 1 for group in groups.values()):
         return ""
     parts = ["## Seed statistics\n\nMean ± sample standard deviation over seeds; lower is better for every "
-             "figure but the step correlation (↑: 1 follows every change of the camera's speed, 0 none). Trivial "
+             "figure but the step correlation (↑: 1 follows every change of the camera's speed, 0 none) and the "
+             "ratio of the path's scale to the depth's (1: one scale for both, as a map needs). Trivial "
              "baselines: constant depth for Abs Rel, constant velocity for pose. Differences are of the means from "
              "the full model, marked `*` where they exceed the seed spread (the mean ± sd intervals do not "
              "overlap)."]

@@ -46,11 +46,11 @@ SEQUENCES = {"S1": ("SyntheticColon_I", "train"), "S2": ("SyntheticColon_I", "tr
 
 
 def trajectory(index: int) -> np.ndarray:
-    """GT ``T_world_cam`` of frame ``index``: forward along z while yawing and drifting."""
-    angle = 0.05 * index
+    """GT ``T_world_cam`` of frame ``index``: forward along z while yawing and drifting, faster and faster."""
+    angle = 0.05 * index + 0.01 * index**2
     pose = np.eye(4)
     pose[:3, :3] = [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
-    pose[:3, 3] = (0.3 * index, -0.1 * index, 1.0 + 0.8 * index)
+    pose[:3, 3] = (0.3 * index, -0.1 * index, 1.0 + 0.8 * index + 0.1 * index**2)
     return pose
 
 
@@ -147,6 +147,11 @@ def test_oracle_scores_zero_in_every_protocol_and_baselines_do_not(oracle_shards
         assert summary["pose_simcol"]["model"][key] == pytest.approx(0.0, abs=1e-4), key
     assert summary["pose_endoslam"]["model"]["ate"] == pytest.approx(0.0, abs=1e-4)
     np.testing.assert_allclose(trajectories["S5"]["model"], trajectories["S5"]["gt"], atol=1e-4)
+    # the oracle follows every change of the motion, at the depth's scale; constant velocity follows none
+    for key in ("step_corr", "forward_corr", "rotation_corr", "step_spread"):
+        assert summary["pose_motion"]["model"][key] == pytest.approx(1.0, abs=1e-3), key
+        assert summary["pose_motion"]["constant_velocity"][key] == 0.0, key
+    assert summary["scale"]["model"] == pytest.approx({"path_over_depth": 1.0, "depth_drift": 1.0}, abs=1e-3)
 
     assert summary["depth_paper"]["constant_depth"]["abs_rel"] > 0.1
     assert summary["depth_paper"]["mean_depth_map"]["abs_rel"] > 0.1

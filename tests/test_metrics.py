@@ -294,3 +294,22 @@ def test_motion_agreement_needs_two_steps():
     truth = path_of([translation(0, 0, 1)])
     with pytest.raises(ValueError, match="at least 2"):
         metrics.motion_agreement(truth, metrics.relative_poses(truth))
+
+
+def test_scale_consistency_of_a_path_and_depth_at_one_scale_is_one():
+    truth = path_of([translation(0, 0, z) for z in (1, 2, 3, 2)])
+    half = metrics.scaled_relative_poses(metrics.relative_poses(truth), 0.5)  # GT = 2 x predicted path
+    figures = metrics.scale_consistency(truth, half, [2.0] * 5)  # GT = 2 x predicted depth in every frame
+    assert figures == pytest.approx({"path_over_depth": 1.0, "depth_drift": 1.0})
+
+
+def test_scale_consistency_hand_computed():
+    truth = path_of([translation(0, 0, z) for z in (1, 2, 3, 2)])
+    half = metrics.scaled_relative_poses(metrics.relative_poses(truth), 0.5)
+    # depth scaling 1.0 1.0 1.5 2.0 2.0 3.0 3.0 3.0: median 2.0; quarters (2 frames) 1.0 and 3.0
+    figures = metrics.scale_consistency(truth, half, [1.0, 1.0, 1.5, 2.0, 2.0, 3.0, 3.0, 3.0])
+    assert figures["path_over_depth"] == pytest.approx(2.0 / 2.0)
+    assert figures["depth_drift"] == pytest.approx(3.0)
+    assert metrics.scale_consistency(truth, half, [4.0] * 5)["path_over_depth"] == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="positive"):
+        metrics.scale_consistency(truth, half, [])

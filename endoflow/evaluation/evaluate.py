@@ -82,6 +82,8 @@ class SequenceResult:
     # protocol sees the same quantisation as the official scorer
     depth_pred: list[np.ndarray] = field(default_factory=list)
     depth_gt: list[np.ndarray] = field(default_factory=list)
+    # per frame (as ``frames``), the paper protocol's median scaling of the model's depth; None without GT depth
+    depth_ratios: list[Optional[float]] = field(default_factory=list)
 
 
 # ------------------------------------------------------------------------------------------ selection
@@ -193,6 +195,7 @@ class SequenceEvaluator:
             result.gaps.add(len(result.frames))
         result.frames.append(frame.frame)
         result.poses.append(frame.pose)
+        result.depth_ratios.append(None)
         self._write_depth(frame, prediction)
         if frame.depth_cm is None:
             return
@@ -203,6 +206,8 @@ class SequenceEvaluator:
         for method, pred in (("model", prediction), *baselines.items()):
             errors = metrics.paper_depth_errors(frame.depth_cm, pred)
             self.scores += score_rows(frame.sequence, frame.frame, method, "depth_paper", errors)
+            if method == "model":
+                result.depth_ratios[-1] = errors["ratio"]
         if len(result.depth_frames) == 1 and len(self.examples) < self.max_examples:
             self.examples.append({"label": f"{frame.sequence} #{frame.frame}", "gt": frame.depth_cm,
                                   "rgb": frame.rgb.permute(1, 2, 0).numpy(), "pred": prediction})
@@ -264,7 +269,8 @@ def depth_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> l
 
 def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> tuple[list[dict], Optional[dict]]:
     """The challenge's, EndoSLAM's and the motion protocols over the longest run of one sequence's posed frames, for
-    the model and constant velocity: the sequence's figures, each frame's RTE and ROT, and the trajectories."""
+    the model and constant velocity, and the model's scale consistency where the run has GT depth: the sequence's
+    figures, each frame's RTE and ROT, and the trajectories."""
     run = longest_posed_run(seq.poses, seq.gaps)
     if run is None:
         return [], None
@@ -286,6 +292,10 @@ def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> tu
             rows += score_rows(seq.name, frame, method, "pose_simcol",
                                {"rte": result["per_frame"]["rte"][i], "rot": result["per_frame"]["rot"][i]})
         trajectory[method] = result["trajectory"][:, :3, 3]
+    ratios = [ratio for ratio in seq.depth_ratios[start:stop] if ratio is not None]
+    if ratios:
+        rows += score_rows(seq.name, None, "model", "scale",
+                           metrics.scale_consistency(gt_poses, predicted["model"], ratios))
     return rows, trajectory
 
 

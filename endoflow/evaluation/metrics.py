@@ -26,6 +26,10 @@ Three protocols, each labelled in every output so tables never mix them:
   constant step follows none of the changes), the spread of the predicted step lengths (after the challenge's
   scale) over the true ones, and the median angle between predicted and true translation directions (the
   error two-view methods make apart from rotation).
+- ``scale`` (ours): whether depth and path share one scale, which a map needs (a length measured in it is wrong by
+  their ratio): ``path_over_depth``, the challenge's translation scale of the path over the median of the paper
+  protocol's per-frame depth scaling (1 when they agree), and ``depth_drift``, the median depth scaling of the
+  sequence's last quarter over its first quarter (1 when the depth keeps its scale along the sequence).
 
 Conventions: depth maps are z-depth in cm, ``H x W`` (or ``N x H x W``); poses are ``4 x 4`` camera-to-world
 ``T_world_cam``; a relative pose ``Q_i = inv(P_i) @ P_{i+1}`` maps points in frame ``i+1`` into frame ``i``.
@@ -48,6 +52,7 @@ SIMCOL_DEPTH_KEYS = ("l1", "rel", "rmse")
 SIMCOL_POSE_KEYS = ("ate", "ate_local", "rte", "rot")
 ENDOSLAM_POSE_KEYS = ("ate", "rpe_trans", "rpe_rot")
 MOTION_KEYS = ("step_corr", "forward_corr", "rotation_corr", "step_spread", "direction_deg")
+SCALE_KEYS = ("path_over_depth", "depth_drift")
 # a step shorter than this share of the sequence's median true step has no direction to find (a pausing camera)
 DIRECTION_MIN_STEP_SHARE = 0.1
 
@@ -268,9 +273,30 @@ def motion_agreement(gt_poses: np.ndarray, pred_relative: np.ndarray) -> dict[st
         "forward_corr": correlation(gt_t[:, 2], pred_t[:, 2]),
         "rotation_corr": correlation(rotation_angle_deg(gt_relative[:, :3, :3]),
                                      rotation_angle_deg(pred_relative[:, :3, :3])),
-        "step_spread": float(scale * np.std(pred_step) / max(float(np.std(gt_step)), 1e-12)),
+        "step_spread": 0.0 if _constant(pred_step) else float(scale * np.std(pred_step) / max(float(np.std(gt_step)),
+                                                                                               1e-12)),
         "direction_deg": float(np.median(np.degrees(np.arccos(np.clip(cosine[moving], -1.0, 1.0))))),
     }
+
+
+def scale_consistency(gt_poses: np.ndarray, pred_relative: np.ndarray, depth_ratios: list[float]) -> dict[str, float]:
+    """The ``scale`` figures of one sequence (see the module docstring).
+
+    Args:
+        gt_poses: ``N x 4 x 4`` GT camera-to-world poses ``P_i``.
+        pred_relative: ``(N-1) x 4 x 4`` predicted ``Q'_i``.
+        depth_ratios: the per-frame ``median(gt) / median(pred)`` of the predicted depth (the paper protocol's
+            ``ratio``) of the same frames, in temporal order (frames without GT depth left out).
+    """
+    gt_poses = _pose_stack(gt_poses, "GT poses")
+    pred_relative = _pose_stack(pred_relative, "predicted relative poses")
+    ratios = np.asarray(depth_ratios, dtype=np.float64)
+    if len(ratios) == 0 or not np.all(ratios > 0):
+        raise ValueError(f"expected positive per-frame depth ratios, got {len(ratios)} of them")
+    path_scale = fit_translation_scale(relative_poses(gt_poses)[:, :3, 3], pred_relative[:, :3, 3])
+    quarter = max(1, len(ratios) // 4)
+    return {"path_over_depth": float(path_scale / np.median(ratios)),
+            "depth_drift": float(np.median(ratios[-quarter:]) / np.median(ratios[:quarter]))}
 
 
 def correlation(a: np.ndarray, b: np.ndarray) -> float:

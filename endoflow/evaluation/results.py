@@ -16,7 +16,7 @@ from pathlib import Path
 
 EVALUATION_FILE = "evaluation.json"
 # the blocks of an evaluation result that hold {method: {metric: value}}
-PROTOCOLS = ("depth_paper", "depth_simcol", "pose_simcol", "pose_endoslam", "pose_motion")
+PROTOCOLS = ("depth_paper", "depth_simcol", "pose_simcol", "pose_endoslam", "pose_motion", "scale")
 # (name with its unit, protocol, method, metric) of each headline figure: the paper's depth metric (a ratio) and
 # the SimCol3D challenge's pose metrics (medians, cm and degrees), of the model
 HEADLINE = (("abs_rel", "depth_paper", "model", "abs_rel"),

@@ -17,6 +17,7 @@ SIMCOL_POSE_COLUMNS = (("ate", "ATE (cm)"), ("ate_local", "ATE local (cm)"), ("r
 ENDOSLAM_POSE_COLUMNS = (("ate", "ATE (cm)"), ("rpe_trans", "RPE trans (cm)"), ("rpe_rot", "RPE rot (°)"))
 MOTION_COLUMNS = (("step_corr", "step corr"), ("forward_corr", "forward corr"), ("rotation_corr", "rotation corr"),
                   ("step_spread", "step spread"), ("direction_deg", "direction (°)"))
+SCALE_COLUMNS = (("path_over_depth", "path / depth scale"), ("depth_drift", "depth scale drift"))
 BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map": "baseline: mean depth map",
                    "constant_velocity": "baseline: constant velocity"}
 # (title, protocol key of the evaluation JSON, columns), in the order the tables are shown
@@ -27,6 +28,8 @@ PROTOCOL_TABLES = (
     ("Pose, EndoSLAM protocol (ATE RMSE, RPE means)", "pose_endoslam", ENDOSLAM_POSE_COLUMNS),
     ("Motion: does the path follow the camera's changes? (correlations and spread: 1 is best; per sequence, "
      "averaged)", "pose_motion", MOTION_COLUMNS),
+    ("Scale: do depth and path share one scale along a sequence? (1 is best; per sequence, averaged)", "scale",
+     SCALE_COLUMNS),
 )
 
 
