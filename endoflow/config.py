@@ -161,6 +161,9 @@ class SceneNetConfig(Section):
 
 
 class DataConfig(Section):
+    # the data reaches training through the shards, whose manifest (every shard's SHA-256) is in the fingerprint
+    TRAINING: ClassVar[Optional[bool]] = False
+
     size: ImageSize = setting(64, "stored square size of shard images (centre crop to square, then resize)",
                               unit="px")
     simcol: SimColConfig = setting(default_factory=SimColConfig)
@@ -201,6 +204,9 @@ class SynthConfig(Section):
 
 # ------------------------------------------------------------------------------------------ preprocess
 class PreprocessConfig(Section):
+    # as data: the shards' bytes are in the fingerprint, so how they were written (engine, workers) is not
+    TRAINING: ClassVar[Optional[bool]] = False
+
     out: str = setting("data/shards", "a local path or an fsspec URL (file:///shared/shards, s3://bucket/shards) "
                                       "that every Ray node can write")
     engine: Literal["local", "ray"] = setting(
@@ -221,6 +227,9 @@ class PreprocessConfig(Section):
 # ----------------------------------------------------------------------------------------- latent bank
 class LatentBankConfig(Section):
     """Generative pretraining of the StyleGAN-like depth generator (WGAN-GP, progressive growing)."""
+
+    # the bank reaches training as its file, whose bytes are in the fingerprint
+    TRAINING: ClassVar[Optional[bool]] = False
 
     shards: str = setting("data/shards/scenenet", "depth shards the bank learns from")
     out: str = setting("models/latent_bank.pt", "the bank file", training=False)

@@ -90,13 +90,14 @@ def test_training_keys_are_derived_from_the_schema():
     flat = flatten_params(Params())
     assert keys <= set(flat)
     # what training computes
-    for key in ("seed", "threads", "data.size", "data.simcol.root", "preprocess.neighbour_offset", "model.latent_bank",
-                "loss.kl_weight", "train.lr", "train.batch_size", "train.loader_workers", "ray.num_workers",
-                "latent_bank.steps_per_stage"):
+    for key in ("seed", "threads", "model.latent_bank", "loss.kl_weight", "loss.geometry_weight", "train.lr",
+                "train.batch_size", "train.loader_workers", "ray.num_workers"):
         assert key in keys, key
-    # where it runs, how long, what it logs, and every later stage: editing these resumes an interrupted training
+    # where it runs, how long, what it logs, every later stage, and what reaches training as files whose bytes
+    # the fingerprint hashes (the shards, the bank): editing these resumes an interrupted training
     for prefix in ("train.epochs", "train.out", "train.log_every", "ray.use_gpu", "ray.cpus_per_worker",
-                   "ray.storage_path", "latent_bank.device", "synth.", "eval.", "reconstruct.", "tracking."):
+                   "ray.storage_path", "synth.", "data.", "preprocess.", "latent_bank.", "eval.", "reconstruct.",
+                   "tracking."):
         assert not any(key.startswith(prefix) for key in keys), prefix
         assert any(key.startswith(prefix) for key in flat), prefix
 

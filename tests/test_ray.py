@@ -193,6 +193,12 @@ def test_fingerprint_ignores_the_epoch_count_but_not_what_training_computes(tmp_
     base = training_fingerprint(params, str(tmp_path), None)
     params.train = params.train.replace(epochs=params.train.epochs + 5, log_every=1)
     assert training_fingerprint(params, str(tmp_path), None) == base  # more epochs continue the run
+    # later stages, and how the shards were written (their bytes are the manifest's): the run resumes
+    params.reconstruct = params.reconstruct.replace(voxel_cm=0.05, device="cpu")
+    params.eval = params.eval.replace(batch_size=3)
+    params.preprocess = params.preprocess.replace(workers=7, engine="ray")
+    params.data.endoslam = params.data.endoslam.replace(fps=25.0)
+    assert training_fingerprint(params, str(tmp_path), None) == base
     params.train = params.train.replace(lr=params.train.lr * 2)
     assert training_fingerprint(params, str(tmp_path), None) != base
     (tmp_path / "manifest.parquet").write_bytes(b"other data")
