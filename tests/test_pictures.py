@@ -298,7 +298,7 @@ def test_a_sheet_without_frames_or_with_colours_that_do_not_match_the_vertices_i
     with pytest.raises(ValueError, match="100 vertices but 99 colours"):
         write_contact_sheet(tmp_path / "sheet.png", [sample(0)], PREVIEW_RANGE_CM, path_along_z(3), vertices,
                             colours[1:], "t")
-    with pytest.raises(ValueError, match="ground-truth path: expected 3 x 3 positions"):
+    with pytest.raises(ValueError, match=r"ground-truth path: expected shape \[N, 3\] with N=3"):
         write_contact_sheet(tmp_path / "sheet.png", [sample(0)], PREVIEW_RANGE_CM, path_along_z(3), vertices,
                             colours, "t", gt_positions=np.zeros((2, 3)))
     assert not (tmp_path / "sheet.png").exists()

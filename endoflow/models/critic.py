@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from endoflow.models.latent_bank import GeneratorSpec
+from endoflow.shapes import check_shape
 
 
 class ResidualDown(nn.Module):
@@ -70,8 +71,7 @@ class Critic(nn.Module):
         resolution = resolution or self.spec.resolution
         if resolution not in self.spec.resolutions:
             raise ValueError(f"resolution {resolution} not in {self.spec.resolutions}")
-        if depth.ndim != 4 or depth.shape[1] != 1 or depth.shape[-2:] != (resolution, resolution):
-            raise ValueError(f"depth: expected [B, 1, {resolution}, {resolution}], got {tuple(depth.shape)}")
+        check_shape("depth", depth, "B,1,H,W", H=resolution, W=resolution)
         level = self.spec.resolutions.index(resolution)
         x = F.leaky_relu(self.from_depth[level](depth), 0.2)
         if level > 0:

@@ -19,6 +19,7 @@ from torch import nn
 
 from endoflow.errors import DataFormatError
 from endoflow.io import load_plain_torch_file
+from endoflow.shapes import check_shape
 
 LATENT_BANK_FORMAT = "endoflow.latent_bank/2"  # 2: the synthesis convolutions record their init_scale
 _RERUN = "(re)run the pretrain_latent_bank stage to write it"
@@ -252,8 +253,7 @@ class LatentBankGenerator(nn.Module):
         resolution = resolution or self.spec.resolution
         if resolution not in self.spec.resolutions:
             raise ValueError(f"resolution {resolution} not in {self.spec.resolutions}")
-        if z.ndim != 2 or z.shape[1] != self.spec.latent_dim:
-            raise ValueError(f"z: expected [B, {self.spec.latent_dim}], got {tuple(z.shape)}")
+        check_shape("z", z, "B,L", L=self.spec.latent_dim)
         w = self.mapping(z)
         x = self.const.expand(z.shape[0], -1, -1, -1)
         last = self.spec.resolutions.index(resolution)
@@ -294,11 +294,7 @@ class LatentBankGenerator(nn.Module):
         features = []
         for k, (style, pair) in enumerate(zip(styles, adains)):
             expected = (h * 2**k, w * 2**k)
-            if style.ndim != 4 or tuple(style.shape[-2:]) != expected or style.shape[1] != self.spec.style_dim:
-                raise ValueError(
-                    f"styles[{k}]: expected [B, {self.spec.style_dim}, {expected[0]}, {expected[1]}], "
-                    f"got {tuple(style.shape)}"
-                )
+            check_shape(f"styles[{k}]", style, "B,S,H,W", S=self.spec.style_dim, H=expected[0], W=expected[1])
             x = self.blocks[k](x, style, adains=pair, noise=noise)
             features.append(x)
         return features

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from endoflow.models.resnet_encoder import ResNetEncoder
+from endoflow.shapes import check_shape
 
 MEAN_SCALE = 0.01
 
@@ -36,10 +37,7 @@ class PoseNet(nn.Module):
 
     def forward(self, target: torch.Tensor, source: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """``target, source [B, 3, H, W]`` in [0, 1] -> (``mean [B, 6]``, ``logvar [B, 6]`` or ``None``)."""
-        if target.shape != source.shape or target.ndim != 4 or target.shape[1] != 3:
-            raise ValueError(
-                f"target and source: expected two [B, 3, H, W] tensors, got {tuple(target.shape)}, {tuple(source.shape)}"
-            )
+        check_shape("source", source, "B,3,H,W", **check_shape("target", target, "B,3,H,W"))
         x = self.encoder(torch.cat([target, source], dim=1))[-1]
         x = self.trunk(F.relu(self.squeeze(x)))
         mean = MEAN_SCALE * self.mean_head(x).mean(dim=(2, 3))

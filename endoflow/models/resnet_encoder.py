@@ -15,6 +15,7 @@ from torch import nn
 from endoflow.config import ENCODER_STRIDE
 from endoflow.errors import DataFormatError
 from endoflow.io import load_plain_torch_file
+from endoflow.shapes import check_shape
 
 # Feature channels at strides 2, 4, 8, 16, 32.
 CHANNELS = (64, 64, 128, 256, 512)
@@ -66,13 +67,9 @@ class ResNetEncoder(nn.Module):
             load_imagenet_weights(self, weights)
 
     def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
-        expected = 3 * self.num_images
-        if (images.ndim != 4 or images.shape[1] != expected
-                or images.shape[-2] % ENCODER_STRIDE or images.shape[-1] % ENCODER_STRIDE):
-            raise ValueError(
-                f"images: expected [B, {expected}, H, W] with H, W divisible by {ENCODER_STRIDE}, "
-                f"got {tuple(images.shape)}"
-            )
+        sizes = check_shape("images", images, "B,C,H,W", C=3 * self.num_images)
+        if sizes["H"] % ENCODER_STRIDE or sizes["W"] % ENCODER_STRIDE:
+            raise ValueError(f"images: expected H, W divisible by {ENCODER_STRIDE}, got {tuple(images.shape)}")
         x = F.relu(self.bn1(self.conv1((images - MEAN) / STD)))
         features = [x]
         x = self.layer1(F.max_pool2d(x, 3, stride=2, padding=1))

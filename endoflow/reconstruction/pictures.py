@@ -42,6 +42,7 @@ from matplotlib.figure import Figure
 from matplotlib.gridspec import GridSpecBase
 
 from endoflow.io import atomic_path, write_bytes
+from endoflow.shapes import check_shape
 
 Sample = tuple[int, np.ndarray, np.ndarray]  # (frame index, rgb, depth preview)
 
@@ -332,15 +333,15 @@ def contact_sheet(samples: list[Sample], depth_range_cm: tuple[float, float], po
     if not samples:
         raise ValueError("a contact sheet needs at least one sampled frame")
     poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
-        raise ValueError(f"camera path: expected N x 4 x 4 poses with N >= 1, got shape {poses.shape}")
+    check_shape("camera path", poses, "N,4,4")
+    if len(poses) == 0:
+        raise ValueError("camera path: expected at least one pose")
     vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     colours = np.asarray(colours, dtype=np.uint8).reshape(-1, 3)
     if len(vertices) != len(colours):
         raise ValueError(f"surface: {len(vertices)} vertices but {len(colours)} colours")
-    if gt_positions is not None and np.shape(gt_positions) != (len(poses), 3):
-        raise ValueError(f"ground-truth path: expected {len(poses)} x 3 positions, got shape "
-                         f"{np.shape(gt_positions)}")
+    if gt_positions is not None:
+        check_shape("ground-truth path", np.asarray(gt_positions), "N,3", N=len(poses))
     columns = max(len(samples), SHEET_MIN_COLUMNS)
     samples_height = SHEET_WIDTH_IN / columns * 2 + 0.6  # two rows of squares and the colour bar under them
     figure = Figure(figsize=(SHEET_WIDTH_IN, samples_height + 5.6), dpi=SHEET_DPI)
