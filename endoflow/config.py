@@ -94,7 +94,9 @@ ImageSize = Annotated[int, _expect(lambda v: v >= ENCODER_STRIDE and v % ENCODER
                                    f"that)")]
 Count = Annotated[int, Field(ge=1)]
 CountOrCounts = Annotated[Union[int, list[int]], PlainValidator(_count_or_counts)]
-Intrinsics = Optional[list[list[Number]]]
+Intrinsics = Optional[Annotated[list[list[Number]],
+                                _expect(lambda rows: len(rows) == 3 and all(len(row) == 3 for row in rows),
+                                        "a 3x3 matrix (three rows of three numbers)")]]
 PlainName = Annotated[str, _expect(_is_plain_name, "a name of letters, digits, _ and -")]
 
 
@@ -122,7 +124,8 @@ class Section(BaseModel):
         try:
             return type(self).model_validate({**dict(self), **changes})
         except ValidationError as exc:
-            raise ConfigError("; ".join(_describe(error, type(self)) for error in exc.errors())) from None
+            where = section_path(type(self))
+            raise ConfigError("; ".join(_describe(error, type(self), where) for error in exc.errors())) from None
 
 
 # ------------------------------------------------------------------------------------------------ data
@@ -732,9 +735,30 @@ _WORDS = {
 _BOUNDS = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
 
 
-def _describe(error: dict[str, Any], root: type[Section] = Params) -> str:
-    """``<dotted key> must be <expected>, got <value>`` for one pydantic error (keys from ``root`` down)."""
-    key = _dotted(error["loc"], root)
+def section_path(cls: type[Section]) -> str:
+    """Where a section class sits in :class:`Params` (``train``, ``data.simcol``, ``eval.test_sets.*``); its class
+    name where it does not."""
+    def find(section: type[BaseModel], prefix: str) -> Optional[str]:
+        for name, info in section.model_fields.items():
+            child = _section_after(section, name)
+            entry = child.cls if isinstance(child, _Entries) else child
+            if entry is None:
+                continue
+            path = f"{prefix}{name}" + (".*" if isinstance(child, _Entries) else "")
+            if entry is cls:
+                return path
+            found = find(entry, path + ".")
+            if found:
+                return found
+        return None
+
+    return "" if cls is Params else find(Params, "") or cls.__name__
+
+
+def _describe(error: dict[str, Any], root: type[Section] = Params, where: str = "") -> str:
+    """``<dotted key> must be <expected>, got <value>`` for one pydantic error (keys from ``root`` down, under
+    ``where``, the root's own path)."""
+    key = ".".join(part for part in (where, _dotted(error["loc"], root)) if part)
     kind, ctx, value = error["type"], error.get("ctx") or {}, error.get("input")
     if kind == "extra_forbidden":
         return _unknown_key(error["loc"], root)
@@ -747,8 +771,11 @@ def _describe(error: dict[str, Any], root: type[Section] = Params) -> str:
     if kind in _BOUNDS:
         bound = next(iter(ctx.values()))
         return f"{key} must be {_BOUNDS[kind]} {bound:g}, got {value!r}"
-    if kind in ("too_short", "too_long"):
-        return f"{key} must be a list of {ctx.get('min_length', ctx.get('max_length'))} entries, got {value!r}"
+    if kind == "too_short":
+        least = ctx.get("min_length")
+        return f"{key} must be a list of at least {least} entr{'y' if least == 1 else 'ies'}, got {value!r}"
+    if kind == "too_long":
+        return f"{key} must be a list of at most {ctx.get('max_length')} entries, got {value!r}"
     if kind == "expected":
         return f"{key} must be {ctx['expected']}, got {value!r}"
     if kind == "entry":

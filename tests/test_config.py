@@ -217,6 +217,11 @@ OUT_OF_RANGE = [
     ("preprocess.samples_per_shard", 0),
     ("preprocess.shard_multiple", 0),
     ("preprocess.neighbour_offset", 0),
+    ("preprocess.train_offsets", []),
+    ("data.simcol.intrinsics", [[1.0, 0.0], [0.0, 1.0]]),
+    ("data.endoslam.intrinsics", [[1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [0.0, 0.0]]),
+    ("loss.geometry_weight", -0.5),
+    ("synth.simcol.test_frames", 1),
     ("latent_bank.resolution", 48),
     ("latent_bank.resolution", 8),  # below the SWD's 16 px
     ("latent_bank.start_resolution", 2),
@@ -282,6 +287,7 @@ def test_out_of_range_value_names_key_value_and_expectation(key, value):
         ("latent_bank.steps_per_stage", [300, 300, 0, 300, 300], "latent_bank.steps_per_stage[2]"),
         ("latent_bank.n_critic", [1, 1, 1, 1, -1], "latent_bank.n_critic[4]"),
         ("latent_bank.betas", [0.0, 1.0], "latent_bank.betas[1]"),
+        ("preprocess.train_offsets", [1, 0], "preprocess.train_offsets[1]"),
     ],
 )
 def test_bad_list_entry_is_named_by_index(key, value, named):
@@ -355,3 +361,13 @@ def test_non_finite_numbers_are_refused_naming_the_key(tmp_path, key: str, value
     path.write_text("seed: 0\n")
     with pytest.raises(ConfigError, match=f"{key} must be a finite number"):
         load_params(path, [f"{key}={value}"])
+
+
+def test_a_sections_copy_names_the_dotted_key_it_refuses():
+    params = Params()
+    with pytest.raises(ConfigError, match=r"^train\.lr must be > 0, got -2$"):
+        params.train.replace(lr=-2)
+    with pytest.raises(ConfigError, match=r"^data\.simcol\.intrinsics must be a 3x3 matrix"):
+        params.data.simcol.replace(intrinsics=[[1, 2], [3]])
+    with pytest.raises(ConfigError, match=r"^eval\.test_sets\.\*\.split must be one of"):
+        params.eval.test_sets["simcol_12"].replace(split="tests")
