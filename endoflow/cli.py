@@ -101,6 +101,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--trunc-cm", type=float, default=None, help="TSDF truncation in cm (default: 4 voxels)")
     rec.add_argument("--npy", action="store_true", help="also write float32 depth in cm as .npy")
     rec.add_argument("--no-fusion", dest="fuse", action="store_false", help="skip the TSDF surface")
+    rec.add_argument("--no-refine", dest="refine", action="store_false",
+                     help="keep the pose network's path as it is (default: refined by photometric alignment to "
+                          "keyframes with the predicted depth, as params.yaml's refine section says)")
     rec.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     rec.add_argument("--threads", type=_positive_int, default=None,
                      help="torch's CPU threads (default: the model's params' threads; a fixed count gives the "
@@ -194,12 +197,15 @@ def _reconstruct(args: argparse.Namespace) -> int:
     from endoflow.models.model_file import load_model_file
     from endoflow.reconstruction.crop import Crop
     from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
+    from endoflow.geometry.direct_alignment import tracker_settings
     from endoflow.reconstruction.reconstruct import ReconstructOptions, log_reconstruction, reconstruct
 
+    refine = _params_if_present(args.params).refine
     try:
         options = ReconstructOptions(FrameRange(args.start, args.stop, args.stride), args.size, args.scale,
                                      args.voxel_cm, args.trunc_cm, args.npy, args.fuse, args.device, args.force,
-                                     Crop.parse(args.crop) if args.crop else None)
+                                     Crop.parse(args.crop) if args.crop else None,
+                                     tracker_settings(refine) if args.refine and refine.enabled else None)
     except ValueError as exc:
         print(f"endoflow reconstruct: error: {exc}", file=sys.stderr)
         return 2

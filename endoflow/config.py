@@ -460,6 +460,25 @@ class ReconstructConfig(Section):
     device: Device = setting("auto", "auto, cpu, cuda or cuda:N (endoflow.devices)")
 
 
+# ---------------------------------------------------------------------------------------------- refine
+class RefineConfig(Section):
+    """The pose network's path refined by direct photometric alignment of each frame to a keyframe with the
+    predicted depth (endoflow/geometry/direct_alignment.py): what `reconstruct` writes, and a method of its own
+    beside the pose network's in `evaluate`."""
+
+    TRAINING: ClassVar[Optional[bool]] = False
+
+    enabled: bool = setting(True, "refine the path (false: the pose network's chain as it is)")
+    levels: Count = setting(3, "image pyramid levels, coarse to fine")
+    iterations: Count = setting(12, "Gauss-Newton steps per level at most")
+    huber: Number = setting(0.04, "residual beyond which a pixel counts less (intensity in [0, 1])", gt=0)
+    light_falloff: Number = setting(0.91, "the light sits at the lens: brightness goes as distance^-this (an "
+                                          "inverse-square fall-off through display gamma 2.2); 0: no fall-off", ge=0)
+    keyframe_every: Count = setting(6, "a new keyframe after this many frames at most", unit="frames")
+    min_overlap: Number = setting(0.5, "... or once a smaller share of the keyframe's pixels still takes part",
+                                  ge=0, le=1)
+
+
 # -------------------------------------------------------------------------------------------- tracking
 class TrackingConfig(Section):
     TRAINING: ClassVar[Optional[bool]] = False
@@ -493,6 +512,7 @@ class Params(Section):
     tracking: TrackingConfig = setting(default_factory=TrackingConfig)
     eval: EvalConfig = setting(default_factory=EvalConfig)
     reconstruct: ReconstructConfig = setting(default_factory=ReconstructConfig)
+    refine: RefineConfig = setting(default_factory=RefineConfig)
 
     @model_validator(mode="after")
     def _cross_field_rules(self) -> "Params":

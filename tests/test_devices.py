@@ -274,7 +274,8 @@ def test_bf16_evaluation_writes_float32_depth_close_to_float32(tmp_path: Path, o
     torch.manual_seed(0)
     model = build_model(params, None).eval()
     rgb = shifted_triplets(batch=3, seed=1)["cur"]
-    frames = [FrameRecord("S1", "g", i, rgb[i], np.full((SIZE, SIZE), 5.0, np.float32), np.eye(4), (SIZE, SIZE))
+    K = np.array([[SIZE, 0.0, SIZE / 2], [0.0, SIZE, SIZE / 2], [0.0, 0.0, 1.0]])
+    frames = [FrameRecord("S1", "g", i, rgb[i], np.full((SIZE, SIZE), 5.0, np.float32), np.eye(4), (SIZE, SIZE), K)
               for i in range(3)]
     baselines = TrainingBaselines(5.0, np.full((SIZE, SIZE), 5.0, np.float32), np.eye(4))
     depth = {}

@@ -218,7 +218,7 @@ def test_evaluate_stage_writes_metrics_plots_predictions_and_logs_to_the_trainin
     assert written == json.loads(json.dumps(result))
     assert written["sequences"] == 1 and written["frames"] == FRAMES and written["mlflow_run_id"] == run_id
     assert set(written["depth_paper"]) == {"model", "constant_depth", "mean_depth_map"}
-    assert set(written["pose_simcol"]) == {"model", "constant_velocity"}
+    assert set(written["pose_simcol"]) == {"model", "refined", "constant_velocity"}  # refine.enabled
     assert set(written["depth_simcol"]["model"]) == {"l1", "rel", "rmse"}
     # what DVC reads: the headline, under a key of the test set's own, each name with its unit
     assert json.loads((tmp_path / "m.json").read_text()) == {"test_simcol_3": {
@@ -282,6 +282,7 @@ def target_sample(frame: int, sequence: str = "S1") -> dict:
     """A decoded triplet sample of ``frame`` with neighbours frame -/+ 1 and identity poses."""
     pose = np.eye(4).tolist()
     meta = {"sequence": sequence, "group": "g", "frame": frame, "split": "test", "native_size": [8, 8],
+            "K": [[8.0, 0.0, 3.5], [0.0, 8.0, 3.5], [0.0, 0.0, 1.0]],
             "frame_ids": {"prev": frame - 1, "cur": frame, "next": frame + 1},
             "T_world_cam": {"prev": pose, "cur": pose, "next": pose}}
     image = torch.zeros(3, 8, 8)

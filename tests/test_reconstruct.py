@@ -356,7 +356,25 @@ def test_a_long_path_stays_rigid_however_many_float32_steps_it_chains() -> None:
     depth = np.ones((4, 4), np.float32)
     for i in range(3000):
         noisy = (step + rng.normal(0, 1e-7, (4, 4)) * [[1, 1, 1, 0]] * 4).astype(np.float32)  # float32 network output
-        path.add(InputFrame(i, i / 30, np.zeros((4, 4, 3), np.uint8)), None if i == 0 else noisy, 1.0, depth, 4)
+        network = path.network_step(None if i == 0 else noisy, 1.0)
+        path.add(InputFrame(i, i / 30, np.zeros((4, 4, 3), np.uint8)), network, network, depth, 4)
     rotations = np.stack(path.poses)[:, :3, :3]
     np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rotations.shape),
                                atol=1e-12)
+
+
+def test_a_refined_path_is_written_with_the_networks_own_beside_it(scene: Path, model_file: Path, params: Params,
+                                                                   tmp_path: Path) -> None:
+    from endoflow.data.trajectory_files import read_tum
+    from endoflow.geometry.direct_alignment import tracker_settings
+    from endoflow.reconstruction.reconstruct import NETWORK_PATH_FILE
+
+    refined = run(scene, model_file, tmp_path / "refined", params, "S1", refine=tracker_settings(params.refine))
+    plain = run(scene, model_file, tmp_path / "plain", params, "S1")
+    assert refined["path"]["refined"] and refined["path"]["keyframes"] >= 1
+    assert plain["path"] == {"refined": False} and not (tmp_path / "plain" / NETWORK_PATH_FILE).exists()
+    # the network's own chain is the unrefined reconstruction's path, to the bit
+    _, network = read_tum(tmp_path / "refined" / NETWORK_PATH_FILE)
+    np.testing.assert_array_equal(network, read_tum(tmp_path / "plain" / "trajectory.tum")[1])
+    _, path = read_tum(tmp_path / "refined" / "trajectory.tum")
+    assert len(path) == len(network) and np.array_equal(path[0], network[0])

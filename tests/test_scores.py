@@ -8,6 +8,8 @@ import pandas as pd
 import pytest
 
 from endoflow.evaluation.scores import (
+    DEPTH_METHODS,
+    POSE_METHODS,
     per_frame_table,
     per_sequence_table,
     protocol_summary,
@@ -49,12 +51,17 @@ def test_paper_depth_averages_over_images_the_other_protocols_over_sequences(sco
 def test_the_tables_list_every_frame_and_sequence_with_their_figures_as_columns(scores: pd.DataFrame) -> None:
     frames = pd.DataFrame({"sequence": ["A"] * 4 + ["B"] * 3, "frame": [0, 1, 2, 3, 4, 5, 6]})
     table = per_frame_table(frames, scores)
-    assert list(table.columns) == ["index", "sequence", "frame", "abs_rel_model", "rmse_model",
-                                   "rte_constant_velocity", "rot_constant_velocity"]
+    # one schema whatever the methods scored: every column of the layout, empty where nothing was scored
+    assert list(table.columns) == ["index", "sequence", "frame",
+                                   *(f"{figure}_{method}" for method in DEPTH_METHODS
+                                     for figure in ("abs_rel", "rmse", "simcol_l1")),
+                                   *(f"{figure}_{method}" for method in POSE_METHODS for figure in ("rte", "rot"))]
+    assert table["rte_model"].isna().all() and table["simcol_l1_model"].isna().all()
     assert table["abs_rel_model"].tolist() == pytest.approx([nan, 0.1, 0.2, 0.3, nan, 0.6, nan], nan_ok=True)
     assert table["rte_constant_velocity"].notna().tolist() == [False] * 6 + [True]
     sequences = per_sequence_table(pd.DataFrame({"sequence": ["A", "B"], "group": ["g", "g"], "frames": [4, 3]}),
                                    scores)
-    assert list(sequences.columns) == ["sequence", "group", "frames", "simcol_l1_model", "rte_constant_velocity",
-                                       "rot_constant_velocity"]
+    assert list(sequences.columns)[:3] == ["sequence", "group", "frames"]
+    assert {"simcol_l1_model", "rte_constant_velocity", "rot_constant_velocity", "step_corr_refined"} <= \
+        set(sequences.columns)
     assert sequences["simcol_l1_model"].tolist() == [1.0, 3.0]

@@ -28,6 +28,8 @@ class FrameRecord:
         rgb: ``[3, H, W]`` float in [0, 1] at the stored size.
         depth_cm: ``H x W`` GT z-depth in cm, or ``None`` (edge frames from ``prev``/``next``, or no GT).
         pose: ``4 x 4`` GT ``T_world_cam`` or ``None``.
+        native_size: ``(H, W)`` of the dataset's frame.
+        K: ``3 x 3`` pixel intrinsics at the stored size.
         after_gap: frames are missing between the previous frame of the sequence and this one.
     """
 
@@ -38,6 +40,7 @@ class FrameRecord:
     depth_cm: Optional[np.ndarray]
     pose: Optional[np.ndarray]
     native_size: tuple[int, int]
+    K: np.ndarray
     after_gap: bool = False
 
 
@@ -106,4 +109,5 @@ def _record(sample: dict, which: str) -> FrameRecord:
         sequence=meta["sequence"], group=meta.get("group", ""), frame=int(meta["frame_ids"][which]),
         rgb=sample[which], depth_cm=depth, pose=pose if pose is not None and np.isfinite(pose).all() else None,
         native_size=(int(meta["native_size"][0]), int(meta["native_size"][1])),
+        K=np.array(meta["K"], dtype=np.float64),
     )

@@ -44,6 +44,7 @@ from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig, Precision
 from endoflow.evaluation import metrics, plots
 from endoflow.evaluation.baselines import baseline_depths, baseline_relative_poses
+from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings, tracker_settings
 from endoflow.evaluation.scores import (
     DEPTH_METHODS,
     POSE_METHODS,
@@ -84,6 +85,8 @@ class SequenceResult:
     depth_gt: list[np.ndarray] = field(default_factory=list)
     # per frame (as ``frames``), the paper protocol's median scaling of the model's depth; None without GT depth
     depth_ratios: list[Optional[float]] = field(default_factory=list)
+    # per frame, T_world_cam of the refined path (endoflow.geometry.direct_alignment), from an identity first pose
+    refined: list[np.ndarray] = field(default_factory=list)
 
 
 # ------------------------------------------------------------------------------------------ selection
@@ -141,8 +144,11 @@ class SequenceEvaluator:
     per-image depth errors go straight into ``scores``, rows of :mod:`endoflow.evaluation.scores`' table."""
 
     def __init__(self, model: torch.nn.Module, baselines: TrainingBaselines, predictions_dir: Path,
-                 device: torch.device, precision: Precision, max_examples: int) -> None:
+                 device: torch.device, precision: Precision, max_examples: int,
+                 refine: Optional[TrackerSettings] = None) -> None:
         self.model = model
+        self.refine = refine
+        self.tracker: Optional[KeyframeTracker] = None
         self.max_examples = max_examples
         self.baselines = baselines
         self.predictions_dir = predictions_dir
@@ -164,6 +170,7 @@ class SequenceEvaluator:
         depth = depth[:, 0].float().cpu().numpy()
         earlier = [self._carry] + batch[:-1] if self._carry is not None else batch[:-1]
         later = batch if self._carry is not None else batch[1:]
+        relative = np.zeros((0, 4, 4))
         if later:
             source, target = self._images(earlier), self._images(later)
             # T_earlier_later = inv(P_earlier) @ P_later: the challenge's relative pose
@@ -174,10 +181,27 @@ class SequenceEvaluator:
                 if not second.after_gap:  # no challenge pose across missing frames; never scored either
                     self._write_pose(first, second, pose)
                 result.predicted_relative.append(pose)
+        if self.refine is not None:
+            # the step into each frame of the batch; the sequence's first frame has none
+            steps = [None] * (len(batch) - len(relative)) + list(relative)
+            self._track(result, batch, rgb, depth, steps)
         for frame, prediction in zip(batch, depth):
             self._add_frame(result, frame, prediction)
         self._carry = batch[-1]
         self.frames_done += len(batch)
+
+    def _track(self, result: SequenceResult, batch: list[FrameRecord], rgb: torch.Tensor, depth: np.ndarray,
+               steps: list[Optional[np.ndarray]]) -> None:
+        """Each frame's refined pose, aligned to the tracker's keyframe from the pose network's step; the tracker
+        starts anew with each sequence and after missing frames."""
+        images = rgb.float().cpu()
+        for frame, image, prediction, step in zip(batch, images, depth, steps):
+            if step is None or frame.after_gap:
+                self.tracker = self.tracker or KeyframeTracker(torch.from_numpy(frame.K), self.refine)
+                self.tracker.restart()
+            start = np.eye(4) if step is None else result.refined[-1] @ step
+            result.refined.append(self.tracker.track(image, torch.from_numpy(prediction)[None],
+                                                     torch.from_numpy(start)).numpy())
 
     def _images(self, frames: list[FrameRecord]) -> torch.Tensor:
         return images_to_device(torch.stack([f.rgb for f in frames]), self.device, self.precision)
@@ -277,6 +301,7 @@ def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> tu
     start, stop = run
     gt_poses = np.stack(seq.poses[start:stop])
     predicted = {"model": np.stack(seq.predicted_relative[start:stop - 1]),
+                 **({"refined": metrics.relative_poses(np.stack(seq.refined[start:stop]))} if seq.refined else {}),
                  **baseline_relative_poses(training, stop - start - 1)}
     trajectory = {"gt": gt_poses[:, :3, 3], "frames": seq.frames[start:stop]}
     rows: list[dict] = []
@@ -332,8 +357,9 @@ def evaluate_test_set(params: Params, name: str, urls: list[str], model_path: st
     started = time.perf_counter()
     earlier = marked_output(f"the predictions of test set {name}", EVALUATION_FILE, test_set=name)
     with staged_directory(out_predictions, earlier) as predictions_dir:
+        refine = tracker_settings(params.refine) if params.refine.enabled else None
         evaluator = SequenceEvaluator(model, record.baselines, predictions_dir, device, params.eval.precision,
-                                      params.eval.depth_examples)
+                                      params.eval.depth_examples, refine)
         frames = sequence_frames(urls, lambda meta: belongs_to(meta, test_set),
                                  params.eval.max_frames_per_sequence)
         for batch in batches_within_sequences(frames, params.eval.batch_size):

@@ -18,7 +18,7 @@ from endoflow.evaluation import metrics
 from endoflow.evaluation.baselines import DEPTH_BASELINES, POSE_BASELINES
 
 DEPTH_METHODS = ("model", *DEPTH_BASELINES)
-POSE_METHODS = ("model", *POSE_BASELINES)
+POSE_METHODS = ("model", "refined", *POSE_BASELINES)  # refined: the model's path refined (params refine.*)
 SCORE_COLUMNS = ("sequence", "frame", "method", "protocol", "metric", "value")
 # each protocol's methods and figures, in the order evaluation.json lists them
 PROTOCOL_FIGURES = {
@@ -86,15 +86,16 @@ def per_sequence_table(sequences: pd.DataFrame, scores: pd.DataFrame) -> pd.Data
 
 
 def _with_columns(table: pd.DataFrame, rows: pd.DataFrame, keys: list[str], layout: tuple) -> pd.DataFrame:
-    """``table`` with the figures of ``rows`` that ``layout`` names as columns, joined on ``keys``."""
+    """``table`` with every column ``layout`` names (the figures of ``rows``, joined on ``keys``; empty where
+    ``rows`` has none)."""
     names = {(protocol, metric, method): f"{prefix}_{method}"
              for methods, figures in layout for method in methods for protocol, metric, prefix in figures}
     column = pd.Series([names.get(key) for key in zip(rows["protocol"], rows["metric"], rows["method"])],
                        index=rows.index, dtype=object)
     rows = rows.assign(column=column).dropna(subset=["column"])
-    if rows.empty:
-        return table.copy()
-    wide = rows.pivot(index=keys, columns="column", values="value")
-    wide = wide[[name for name in names.values() if name in wide.columns]].reset_index()
+    wide = rows.pivot(index=keys, columns="column", values="value") if not rows.empty else pd.DataFrame()
+    # every column of the layout, empty where no method has that figure: the tables DVC charts keep one schema
+    wide = wide.reindex(columns=list(names.values())).reset_index() if not rows.empty else \
+        pd.DataFrame(columns=[*keys, *names.values()])
     wide.columns.name = None
-    return table.merge(wide, how="left", on=keys)
+    return table.merge(wide.astype({name: "float64" for name in names.values()}), how="left", on=keys)

@@ -20,6 +20,8 @@ MOTION_COLUMNS = (("step_corr", "step corr"), ("forward_corr", "forward corr"), 
 SCALE_COLUMNS = (("path_over_depth", "path / depth scale"), ("depth_drift", "depth scale drift"))
 BASELINE_LABELS = {"constant_depth": "baseline: constant depth", "mean_depth_map": "baseline: mean depth map",
                    "constant_velocity": "baseline: constant velocity"}
+# a run's own methods, a row each per run: (method, suffix of the run's label)
+RUN_METHODS = (("model", ""), ("refined", ", path refined"))
 # (title, protocol key of the evaluation JSON, columns), in the order the tables are shown
 PROTOCOL_TABLES = (
     ("Depth, paper protocol (per-image median scaling, capped at 20 cm)", "depth_paper", PAPER_COLUMNS),
@@ -50,17 +52,18 @@ def number_cell(value: Any) -> str:
 
 def protocol_table(labelled: Iterable[tuple[str, Optional[dict]]], columns: tuple[tuple[str, str], ...],
                    label_header: str = "run") -> Optional[str]:
-    """One protocol's table from ``(label, {method: figures} or None)`` per run: every run's model, then the first
-    run's baselines; ``None`` when no run has this protocol."""
+    """One protocol's table from ``(label, {method: figures} or None)`` per run: every run's model (and its refined
+    path, where it has one), then the first run's baselines; ``None`` when no run has this protocol."""
     rows = []
     baselines: dict[str, dict] = {}
+    own = dict(RUN_METHODS)
     for label, methods in labelled:
         if not methods:
             continue
-        if "model" in methods:
-            rows.append([label] + [number_cell(methods["model"].get(key)) for key, _ in columns])
+        rows += [[label + suffix] + [number_cell(methods[method].get(key)) for key, _ in columns]
+                 for method, suffix in RUN_METHODS if method in methods]
         for method, values in methods.items():
-            if method != "model":
+            if method not in own:
                 baselines.setdefault(method, values)
     if not rows:
         return None

@@ -43,15 +43,16 @@ from endoflow.data.imageio import read_png16
 from endoflow.data.frame_encoding import resize_depth, resize_rgb
 from endoflow.data.trajectory_files import read_tum
 from endoflow.devices import use_cpu_threads
+from endoflow.geometry.direct_alignment import tracker_settings
 from endoflow.io import write_bytes, write_csv, write_json
 from endoflow.models.model_file import TrainingBaselines, load_model_file
 from endoflow.reconstruction.alignment import Alignment, align_trajectory, trajectories
 from endoflow.reconstruction.frames import DatasetFrames, FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import TSDFVolume, read_ply_vertices
-from endoflow.reconstruction.reconstruct import ReconstructOptions, log_reconstruction, reconstruct
+from endoflow.reconstruction.reconstruct import NETWORK_PATH_FILE, ReconstructOptions, log_reconstruction, reconstruct
 
 SURFACE_ROWS = ("ground_truth", "model", "model_depth_gt_path", "constant_depth", "constant_velocity", "trivial")
-PATH_ROWS = ("model", "constant_velocity")
+PATH_ROWS = ("model", "network", "constant_velocity")  # network: the pose network's own chain, where refined
 COMPLETE_WITHIN_VOXELS = 2.0  # completeness_ratio: ground-truth points this many voxels from the mesh at most
 GT_POINT_SPACING_VOXELS = 0.5  # the ground-truth surface keeps one point per half voxel
 # Distances are capped here: a vertex this far off is simply wrong, and the search stops there.
@@ -105,6 +106,9 @@ def measure_reconstruction(source: FrameSource, out_dir: Path, baselines: Traini
         raise ValueError(f"{out_dir}: trajectory.tum has {len(model_poses)} poses for {len(gt_poses)} frames of "
                          f"{source.description}")
     paths = {"model": (model_poses, True), "constant_velocity": (np.stack(velocity_poses), False)}
+    # the pose network's own chain: beside a refined path, its own file; else the path itself
+    network = out_dir / NETWORK_PATH_FILE
+    paths["network"] = (read_tum(network)[1] if network.is_file() else model_poses, True)
     path_results = {row: path_errors(gt_poses, poses, with_scale) for row, (poses, with_scale) in paths.items()}
     alignments = {"model": path_results["model"].pop("alignment"),
                   "constant_velocity": path_results["constant_velocity"].pop("alignment")}
@@ -243,7 +247,8 @@ def run_reconstruction(params: Params, name: str, project_root: str | Path = "."
     source = DatasetFrames(root / getattr(params.data, item.dataset).root, item.sequence, params)
     out_dir = root / cfg.out / name
     options = ReconstructOptions(FrameRange(item.start, item.stop, item.stride), cfg.size, 1.0, cfg.voxel_cm,
-                                 cfg.trunc_cm, device=cfg.device)
+                                 cfg.trunc_cm, device=cfg.device,
+                                 refine=tracker_settings(params.refine) if params.refine.enabled else None)
     reconstruct(source, source.K, model_path, out_dir, options)
     result = measure_reconstruction(source, out_dir, record.baselines)
     write_json(out_dir / MEASUREMENT_FILE, metrics_summary(result))

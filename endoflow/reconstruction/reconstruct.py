@@ -38,6 +38,7 @@ from endoflow.config import ModelConfig, Params
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.errors import DataFormatError
+from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings
 from endoflow.geometry.pose import chain_step
 from endoflow.io import marked_output, staged_directory, write_bytes, write_json
 from endoflow.models.endoflow_model import load_trained_model
@@ -52,6 +53,7 @@ from endoflow.reconstruction.recording import RECORDING_FILE, Recording
 if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for it
     from endoflow.tracking import RunHandle
 
+NETWORK_PATH_FILE = "trajectory_network.tum"  # the pose network's own chain, beside a refined trajectory.tum
 # What MLflow gets of a reconstruction: what a person opens first, the path and the surface (not the depth maps).
 LOGGED_OUTPUTS = ("sheet.png", "video.mp4", RECORDING_FILE, "reconstruction.json", "trajectory.tum",
                   "trajectory.kitti", "trajectory.kitti.json", "mesh.ply")
@@ -71,7 +73,8 @@ class ReconstructOptions:
     ``voxel_cm``/``trunc_cm``: TSDF voxel and truncation (None: from the model's depth range and ``size``);
     ``npy``: also write float32 depth; ``fuse``: build the surface; ``device``: ``auto``, ``cpu`` or ``cuda``;
     ``force``: replace an output folder that holds something other than an earlier reconstruction; ``crop``: the
-    region of the frames to use (None: all of it; see :mod:`endoflow.reconstruction.crop`)."""
+    region of the frames to use (None: all of it; see :mod:`endoflow.reconstruction.crop`); ``refine``: the
+    tracker that refines the pose network's path against keyframes (None: the network's chain as it is)."""
 
     frames: FrameRange = field(default_factory=FrameRange)
     size: Optional[int] = None
@@ -83,6 +86,7 @@ class ReconstructOptions:
     device: str = "auto"
     force: bool = False
     crop: Optional[Crop] = None
+    refine: Optional[TrackerSettings] = None
 
     def __post_init__(self) -> None:
         if self.size is not None and (self.size < NETWORK_STRIDE or self.size % NETWORK_STRIDE):
@@ -110,6 +114,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     voxel = options.voxel_cm or default_voxel_cm(K, record.params.model.max_depth * options.scale, size)
     volume = TSDFVolume(voxel, options.trunc_cm or 4 * voxel) if options.fuse else None
     path = CameraPath()
+    tracker = KeyframeTracker(torch.from_numpy(K), options.refine) if options.refine is not None else None
     progress = Progress(source_frame_count(source, options.frames), "frames")
     sampler = FrameSampler()
     with staged_directory(out_dir, EARLIER_RECONSTRUCTION, options.force, (source.location, model_path),
@@ -124,7 +129,11 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
                 image = images_to_device(torch.from_numpy(rgb).permute(2, 0, 1)[None].contiguous(), device,
                                          "float32")
                 depth, T_cur_prev = predict_frame(model, image, previous, options.scale, model_path, frame.index)
-                pose = path.add(frame, T_cur_prev, options.scale, depth, size)
+                network_pose = path.network_step(T_cur_prev, options.scale)
+                pose = network_pose if tracker is None else tracker.track(
+                    torch.from_numpy(rgb).permute(2, 0, 1).double() / 255, torch.from_numpy(depth)[None],
+                    torch.from_numpy(path.step_from_last(T_cur_prev, options.scale))).numpy()
+                path.add(frame, pose, network_pose, depth, size)
                 shown = shown or preview_range(depth, record.params.model, options.scale)
                 preview = write_depth(stage, frame.index, depth, unit, options.npy, shown)
                 video.add(rgb, preview)
@@ -154,6 +163,8 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
             "tsdf": {"voxel_cm": voxel, "trunc_cm": volume.trunc_cm} if volume is not None else None,
             "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
                      "blocks": len(volume.blocks)} if mesh is not None else None,
+            "path": {"refined": tracker is not None,
+                     **({"keyframes": tracker.keyframes} if tracker is not None else {})},
             **path.ground_truth_scale(),
         }
         write_json(stage / "reconstruction.json", summary)
@@ -198,9 +209,11 @@ def default_voxel_cm(K: np.ndarray, max_depth_cm: float, size: int) -> float:
 
 @dataclass
 class CameraPath:
-    """The chained camera-to-world poses, their timestamps and frame indices; with ground truth where known."""
+    """The camera-to-world poses (refined or the network's), the network's own chain, their timestamps and frame
+    indices; with ground truth where known."""
 
     poses: list[np.ndarray] = field(default_factory=list)
+    network_poses: list[np.ndarray] = field(default_factory=list)
     timestamps: list[float] = field(default_factory=list)
     indices: list[int] = field(default_factory=list)
     gt_poses: list[Optional[np.ndarray]] = field(default_factory=list)
@@ -210,16 +223,27 @@ class CameraPath:
     def count(self) -> int:
         return len(self.poses)
 
-    def add(self, frame: InputFrame, T_cur_prev: Optional[np.ndarray], scale: float, depth: np.ndarray,
-            size: int) -> np.ndarray:
-        """Append the frame's pose (identity for the first) and return it."""
+    def network_step(self, T_cur_prev: Optional[np.ndarray], scale: float) -> np.ndarray:
+        """The network's chain one step on (identity for the first frame)."""
+        return self._chained(self.network_poses, T_cur_prev, scale)
+
+    def step_from_last(self, T_cur_prev: Optional[np.ndarray], scale: float) -> np.ndarray:
+        """The network's step from the last pose of the path (identity for the first frame)."""
+        return self._chained(self.poses, T_cur_prev, scale)
+
+    @staticmethod
+    def _chained(poses: list[np.ndarray], T_cur_prev: Optional[np.ndarray], scale: float) -> np.ndarray:
         if T_cur_prev is None:
-            pose = np.eye(4)
-        else:
-            step = np.array(T_cur_prev)
-            step[:3, 3] *= scale
-            pose = chain_step(self.poses[-1], step)
+            return np.eye(4)
+        step = np.array(T_cur_prev)
+        step[:3, 3] *= scale
+        return chain_step(poses[-1], step)
+
+    def add(self, frame: InputFrame, pose: np.ndarray, network_pose: np.ndarray, depth: np.ndarray,
+            size: int) -> None:
+        """Append the frame's pose and the network's."""
         self.poses.append(pose)
+        self.network_poses.append(network_pose)
         self.timestamps.append(frame.timestamp)
         self.indices.append(frame.index)
         self.gt_poses.append(frame.T_world_cam)
@@ -228,7 +252,6 @@ class CameraPath:
             valid = gt > 0
             if valid.any():
                 self.depth_ratios.append(float(np.median(gt[valid]) / np.median(depth[valid])))
-        return pose
 
     def write(self, stage: Path) -> None:
         from endoflow.data.trajectory_files import write_kitti, write_simcol_relative_poses, write_tum
@@ -238,6 +261,8 @@ class CameraPath:
         write_kitti(stage / "trajectory.kitti", poses)
         if len(poses) > 1:
             write_simcol_relative_poses(stage / "simcol", self.indices, poses)
+        if not np.array_equal(poses, np.stack(self.network_poses)):
+            write_tum(stage / NETWORK_PATH_FILE, np.array(self.timestamps), np.stack(self.network_poses))
 
     def ground_truth_scale(self) -> dict:
         """The factor that brings the model's depth to the ground truth's (median over frames of the per-frame

@@ -1,0 +1,281 @@
+"""Direct photometric alignment of a frame to a keyframe with known depth (the tracking of DSO and of
+Endo-Depth-and-Motion, reduced to one keyframe): the rigid motion and an affine brightness change that make the
+frame, warped into the keyframe with the keyframe's depth, look like the keyframe.
+
+Residual per keyframe pixel and colour channel: ``r = exp(a) * I_frame(w(p)) + b - I_key(p)``, where ``w`` moves
+the keyframe point at ``p`` (its depth ``d``) into the frame by ``T_frame_key`` and projects it. Gauss-Newton with
+Levenberg-Marquardt damping on the 8 parameters (a left increment ``(omega, t)`` of the pose, gain ``a``, offset
+``b``), Huber weights, coarse to fine over an image pyramid. The light sits at the lens, so a point seen from
+further away is darker: the frame's brightness is brought to the keyframe's distance (``light_falloff``). Pixels
+take part where the keyframe has depth, lands inside the frame in front of its camera, and is, in both images,
+neither saturated (a specular highlight, which moves with the light) nor black (the dark border of an endoscope's
+field of view). A step is kept only where it lowers the cost
+over the pixels that take part both before and after it (and keeps at least half of them), so the result is
+never worse than the start. See docs/reconstruction.md, "The path refined".
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from endoflow.config import RefineConfig
+from endoflow.geometry.camera import backproject, intrinsics_inverse, scale_intrinsics
+from endoflow.geometry.pose import pose_vec_to_matrix
+from endoflow.shapes import check_shape
+
+SATURATED = 0.98  # a keyframe pixel with a channel above this is a highlight
+BLACK = 0.02  # a keyframe pixel with every channel below this is outside the field of view
+KEPT_SHARE = 0.5  # a step that leaves fewer than this share of the pixels taking part is refused
+
+
+@dataclass(frozen=True)
+class AlignmentSettings:
+    levels: int = 3  # pyramid levels, each half the size of the one below
+    iterations: int = 12  # Gauss-Newton steps per level at most
+    huber: float = 0.04  # residual (intensity in [0, 1]) beyond which a pixel's weight falls as 1 / |r|
+    min_pixels: int = 64  # fewer valid pixels at a level: that level is skipped
+    # the light sits at the lens: a point's brightness goes as distance^-light_falloff (2 / display gamma: an
+    # inverse-square fall-off seen through gamma 2.2 is 0.91); 0: brightness does not depend on the distance
+    light_falloff: float = 0.91
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """The result: ``T_frame_key [4, 4]`` (float64), the brightness ``gain``/``offset``, the robust cost at the
+    start and at the end (finest level, same pixels), and the share of keyframe pixels that took part."""
+
+    T_frame_key: torch.Tensor
+    gain: float
+    offset: float
+    cost_start: float
+    cost_end: float
+    valid_share: float
+
+
+def align_to_keyframe(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb: torch.Tensor, K: torch.Tensor,
+                      T_frame_key: torch.Tensor, settings: AlignmentSettings = AlignmentSettings()) -> Alignment:
+    """Refine ``T_frame_key`` (maps keyframe-camera points into the frame's camera) from its start value.
+
+    Args:
+        key_rgb, frame_rgb: ``[3, H, W]`` images in [0, 1].
+        key_depth: ``[1, H, W]`` z-depth of the keyframe (0: unknown), the unit of the translation.
+        K: ``[3, 3]`` pixel intrinsics of both images.
+        T_frame_key: ``[4, 4]`` start.
+    """
+    sizes = check_shape("key_rgb", key_rgb, "3,H,W")
+    check_shape("frame_rgb", frame_rgb, "3,H,W", **sizes)
+    check_shape("key_depth", key_depth, "1,H,W", **sizes)
+    check_shape("K", K, "3,3")
+    check_shape("T_frame_key", T_frame_key, "4,4")
+    dtype = torch.float64
+    pyramid = _pyramid(key_rgb.to(dtype), key_depth.to(dtype), frame_rgb.to(dtype), K.to(dtype), settings.levels)
+    pose, brightness = T_frame_key.to(dtype).clone(), torch.zeros(2, dtype=dtype)
+    start, start_brightness = pose.clone(), brightness.clone()
+    for level in reversed(pyramid):
+        pose, brightness = _refine_level(level, pose, brightness, settings)
+    finest = pyramid[0]
+    cost_start, cost_end, both = _compare(finest, (start, start_brightness), (pose, brightness), settings)
+    if not cost_end <= cost_start:  # coarse levels can mislead: never hand back worse than the start
+        pose, brightness, cost_end = start, start_brightness, cost_start
+    return Alignment(pose, float(torch.exp(brightness[0])), float(brightness[1]), cost_start, cost_end,
+                     float(both.float().mean()))
+
+
+@dataclass(frozen=True)
+class _Level:
+    key_rgb: torch.Tensor  # [3, H, W]
+    points: torch.Tensor  # [3, N] keyframe-camera points of the pixels with depth
+    distance: torch.Tensor  # [N] their distance from the keyframe's camera (its light)
+    key_values: torch.Tensor  # [3, N] their colours
+    usable: torch.Tensor  # [N] bool: neither saturated nor black
+    frame: torch.Tensor  # [1, 9, H, W] the frame and its horizontal and vertical gradients
+    K: torch.Tensor
+
+
+def _pyramid(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb: torch.Tensor, K: torch.Tensor,
+             levels: int) -> list[_Level]:
+    pyramid = []
+    # well exposed at full resolution: a coarse pixel is only if all four below it are (a coarse pixel at the
+    # field of view's edge averages black in, and is no image of the scene)
+    key_good, frame_good = (_well_exposed(image)[None].to(image.dtype) for image in (key_rgb, frame_rgb))
+    for level in range(max(1, levels)):
+        if level:
+            key_rgb, frame_rgb = F.avg_pool2d(key_rgb, 2), F.avg_pool2d(frame_rgb, 2)
+            key_good, frame_good = (F.avg_pool2d(good, 2).eq(1).to(good.dtype) for good in (key_good, frame_good))
+            # average depth only over pixels that have it
+            known = F.avg_pool2d((key_depth > 0).to(key_depth.dtype), 2)
+            key_depth = F.avg_pool2d(key_depth, 2) / known.clamp(min=1e-9) * (known > 0.99)
+            K = scale_intrinsics(K, 0.5, 0.5)
+        if min(key_rgb.shape[-2:]) < 4:
+            break
+        points = backproject(key_depth[None], intrinsics_inverse(K)[None])[0]
+        usable = (key_good.reshape(-1) > 0) & (key_depth.reshape(-1) > 0)
+        gx = F.pad(frame_rgb[:, :, 2:] - frame_rgb[:, :, :-2], (1, 1, 0, 0)) / 2
+        gy = F.pad(frame_rgb[:, 2:, :] - frame_rgb[:, :-2, :], (0, 0, 1, 1)) / 2
+        distance = points.norm(dim=0).clamp(min=1e-9)
+        frame = torch.cat([frame_rgb, gx, gy, frame_good])[None]
+        pyramid.append(_Level(key_rgb, points, distance, key_rgb.reshape(3, -1), usable, frame, K))
+    return pyramid
+
+
+def _well_exposed(rgb: torch.Tensor) -> torch.Tensor:
+    """``[H, W]`` bool: neither saturated nor black. (Sampled bilinearly, a frame point takes part only where all
+    four pixels around it are.)"""
+    brightest = rgb.max(dim=0).values
+    return (brightest < SATURATED) & (brightest > BLACK)
+
+
+def _sample(level: _Level, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The frame (and its gradients) at the keyframe points moved by ``pose``: ``[9, N]``, the moved points
+    ``[3, N]``, the pixels ``[2, N]`` and which take part: land inside, one pixel from the border, in front, among
+    well-exposed frame pixels."""
+    moved = pose[:3, :3] @ level.points + pose[:3, 3:4]
+    z = moved[2]
+    projected = level.K @ moved
+    u, v = projected[0] / z.clamp(min=1e-9), projected[1] / z.clamp(min=1e-9)
+    height, width = level.frame.shape[-2:]
+    inside = (z > 1e-6) & (u >= 1) & (u <= width - 2) & (v >= 1) & (v <= height - 2)
+    grid = torch.stack([u * (2 / (width - 1)) - 1, v * (2 / (height - 1)) - 1], dim=-1)[None, None]
+    sampled = F.grid_sample(level.frame, grid, mode="bilinear", padding_mode="border", align_corners=True)[0, :, 0]
+    return sampled[:9], moved, torch.stack([u, v]), inside & (sampled[9] > 0.999)
+
+
+def _huber(residual: torch.Tensor, delta: float) -> torch.Tensor:
+    absolute = residual.abs()
+    return torch.where(absolute <= delta, 0.5 * residual**2, delta * (absolute - 0.5 * delta))
+
+
+def _lit(level: _Level, moved: torch.Tensor, falloff: float) -> torch.Tensor:
+    """``[N]`` factor that brings a frame pixel's brightness to the keyframe's light: (distance in the frame /
+    distance in the keyframe) ^ falloff."""
+    return (moved.norm(dim=0).clamp(min=1e-9) / level.distance) ** falloff
+
+
+def _costs(level: _Level, state: tuple[torch.Tensor, torch.Tensor], settings: AlignmentSettings
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel Huber cost ``[N]`` (summed over channels) at ``state`` (pose, brightness) and where the pixels take
+    part."""
+    pose, brightness = state
+    sampled, moved, _, inside = _sample(level, pose)
+    lit = _lit(level, moved, settings.light_falloff)
+    residual = torch.exp(brightness[0]) * lit * sampled[:3] + brightness[1] - level.key_values
+    return _huber(residual, settings.huber).sum(dim=0), level.usable & inside
+
+
+def _compare(level: _Level, before: tuple[torch.Tensor, torch.Tensor], after: tuple[torch.Tensor, torch.Tensor],
+             settings: AlignmentSettings) -> tuple[float, float, torch.Tensor]:
+    """Mean costs before and after over the pixels taking part in both, and those pixels."""
+    cost_before, part_before = _costs(level, before, settings)
+    cost_after, part_after = _costs(level, after, settings)
+    both = part_before & part_after
+    if not both.any() or int(both.sum()) < KEPT_SHARE * int(part_before.sum()):
+        return float(cost_before[part_before].mean()) if part_before.any() else 0.0, float("inf"), both
+    return float(cost_before[both].mean()), float(cost_after[both].mean()), both
+
+
+def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor,
+                  settings: AlignmentSettings) -> tuple[torch.Tensor, torch.Tensor]:
+    damping = 1e-3
+    for _ in range(settings.iterations):
+        sampled, moved, pixels, inside = _sample(level, pose)
+        mask = level.usable & inside
+        if int(mask.sum()) < settings.min_pixels:
+            break
+        residual, jacobian = _linearise(level, sampled, moved, pixels, brightness, mask, settings.light_falloff)
+        weights = torch.where(residual.abs() <= settings.huber, torch.ones_like(residual),
+                              settings.huber / residual.abs().clamp(min=1e-12))
+        hessian = jacobian.T @ (weights[:, None] * jacobian)
+        gradient = jacobian.T @ (weights * residual)
+        improved = False
+        while damping < 1e6:
+            step = -torch.linalg.solve(hessian + damping * torch.diag(hessian.diagonal().clamp(min=1e-12)), gradient)
+            candidate = (pose_vec_to_matrix(step[:6]) @ pose, brightness + step[6:])
+            before, after, _ = _compare(level, (pose, brightness), candidate, settings)
+            if after < before:
+                (pose, brightness), damping, improved = candidate, damping / 3, True
+                break
+            damping *= 4
+        if not improved or float(step[:6].abs().max()) < 1e-7:
+            break
+    return pose, brightness
+
+
+def _linearise(level: _Level, sampled: torch.Tensor, moved: torch.Tensor, pixels: torch.Tensor,
+               brightness: torch.Tensor, mask: torch.Tensor, falloff: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residuals ``[M]`` and their Jacobian ``[M, 8]`` in (omega, t, gain, offset), over the masked pixels' three
+    channels. A left increment moves a point ``X`` to ``X + omega x X + t``."""
+    lit = _lit(level, moved, falloff)[mask]
+    gain = torch.exp(brightness[0]) * lit
+    X = moved[:, mask]
+    u, v = pixels[0, mask], pixels[1, mask]
+    z = X[2]
+    K = level.K
+    du = (K[0][:, None] - u * K[2][:, None]) / z  # [3, M]: d u / d X
+    dv = (K[1][:, None] - v * K[2][:, None]) / z
+    values, gx, gy = sampled[0:3, mask], sampled[3:6, mask], sampled[6:9, mask]
+    # d image / d X per channel: [3 channels, 3 coordinates, M]; the light's factor grows with |X|
+    d_lit = falloff * X / X.square().sum(dim=0).clamp(min=1e-18)  # d log(lit) / d X
+    d_image = gain * (gx[:, None, :] * du[None] + gy[:, None, :] * dv[None] + values[:, None, :] * d_lit[None])
+    # d X / d omega = -[X]_x, so d image / d omega = X x (d image / d X)
+    d_omega = torch.cross(X[None].expand_as(d_image), d_image, dim=1)
+    jacobian = torch.cat([d_omega, d_image, (gain * values)[:, None, :], torch.ones_like(values)[:, None, :]], dim=1)
+    residual = gain * values + brightness[1] - level.key_values[:, mask]
+    return residual.reshape(-1), jacobian.permute(0, 2, 1).reshape(-1, 8)
+
+
+@dataclass(frozen=True)
+class TrackerSettings:
+    alignment: AlignmentSettings = AlignmentSettings()
+    keyframe_every: int = 6  # a new keyframe after this many frames at most
+    min_overlap: float = 0.5  # ... or once fewer of the keyframe's pixels than this share still take part
+
+
+def tracker_settings(cfg: RefineConfig) -> TrackerSettings:
+    """The tracker's settings from the ``refine`` params."""
+    alignment = AlignmentSettings(levels=cfg.levels, iterations=cfg.iterations, huber=cfg.huber,
+                                  light_falloff=cfg.light_falloff)
+    return TrackerSettings(alignment, keyframe_every=cfg.keyframe_every, min_overlap=cfg.min_overlap)
+
+
+class KeyframeTracker:
+    """Camera-to-world poses of a frame sequence, each aligned to the current keyframe (the last frame made one)
+    from a start the caller gives (the pose network's chain): :func:`align_to_keyframe`. Translations are in the
+    keyframes' depth unit, so the path takes the depth's scale."""
+
+    def __init__(self, K: torch.Tensor, settings: TrackerSettings = TrackerSettings()) -> None:
+        check_shape("K", K, "3,3")
+        self.K = K.to(torch.float64)
+        self.settings = settings
+        self.keyframe: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # rgb, depth, T_world_key
+        self.since_keyframe = 0
+        self.keyframes = 0  # made so far
+        self.last: Alignment | None = None
+
+    def track(self, rgb: torch.Tensor, depth: torch.Tensor, T_world_start: torch.Tensor) -> torch.Tensor:
+        """``T_world_frame [4, 4]`` (float64) of the next frame (``rgb [3, H, W]`` in [0, 1], its depth
+        ``[1, H, W]``), refined from ``T_world_start``; the first frame keeps its start and becomes a keyframe."""
+        check_shape("T_world_start", T_world_start, "4,4")
+        start = T_world_start.to(torch.float64)
+        if self.keyframe is None:
+            self._make_keyframe(rgb, depth, start)
+            return start
+        key_rgb, key_depth, T_world_key = self.keyframe
+        T_frame_key = torch.linalg.inv(start) @ T_world_key
+        self.last = align_to_keyframe(key_rgb, key_depth, rgb, self.K, T_frame_key, self.settings.alignment)
+        T_world_frame = T_world_key @ torch.linalg.inv(self.last.T_frame_key)
+        self.since_keyframe += 1
+        if self.since_keyframe >= self.settings.keyframe_every or self.last.valid_share < self.settings.min_overlap:
+            self._make_keyframe(rgb, depth, T_world_frame)
+        return T_world_frame
+
+    def restart(self) -> None:
+        """Forget the keyframe: the next frame starts anew (after missing frames)."""
+        self.keyframe, self.since_keyframe = None, 0
+
+    def _make_keyframe(self, rgb: torch.Tensor, depth: torch.Tensor, T_world_frame: torch.Tensor) -> None:
+        self.keyframe = (rgb.to(torch.float64), depth.to(torch.float64), T_world_frame)
+        self.since_keyframe = 0
+        self.keyframes += 1
