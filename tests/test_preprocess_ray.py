@@ -88,7 +88,7 @@ def test_the_stage_on_a_cluster_writes_the_local_engines_bytes_to_a_file_url(
     assert run.returncode == 0, run.stderr[-3000:]
     assert cluster.address in run.stderr  # the driver joined the cluster rather than starting a Ray of its own
     progress = [line for line in run.stdout.splitlines() if line.startswith("[preprocess] simcol: ")]
-    assert progress[-1].startswith("[preprocess] simcol: 12/12 shards written") and "done in" in progress[-1]
+    assert progress[-1].startswith("[preprocess] simcol: 12/12 shards |") and "done in" in progress[-1]
     summary = run.stdout.splitlines()[-2:]  # a summary a person reads, not a JSON dump
     assert re.fullmatch(r"\[preprocess\] simcol done: train \d+ samples in 4 shards, val \d+ samples in 4 shards, "
                         r"test \d+ samples in 4 shards; 0 shards kept .*frames/s\)", summary[0]), summary
@@ -127,6 +127,7 @@ def test_stopping_after_an_error_returns_only_when_every_running_task_has_ended(
     cluster: Cluster, tmp_path: Path
 ) -> None:
     def write_after_a_while(path: str) -> None:
+        Path(f"{path}.started").write_text("started")
         try:
             time.sleep(3)
         finally:
@@ -137,7 +138,10 @@ def test_stopping_after_an_error_returns_only_when_every_running_task_has_ended(
         task = ray.remote(num_cpus=1)(write_after_a_while)
         markers = [tmp_path / f"task-{index}" for index in range(2)]
         pending = [task.remote(str(marker)) for marker in markers]
-        time.sleep(1)  # both running, one per node
+        # both running, one per node (a loaded machine takes a while to start a worker)
+        deadline = time.monotonic() + 60
+        while not all(Path(f"{marker}.started").exists() for marker in markers) and time.monotonic() < deadline:
+            time.sleep(0.05)
         stop_tasks(pending)
         assert all(marker.exists() for marker in markers)
     finally:
