@@ -1,31 +1,12 @@
 """Evaluate a trained model on one test set, with trivial baselines on the same frames in the same run.
 
-For test set ``name`` (``params.eval.test_sets[name]``) the test shards are read in order, sequence by
-sequence, by :mod:`endoflow.data.sequences`. Every frame of a sequence is evaluated: the shards' target frames
-(``cur``, with GT depth) plus the first sample's ``prev`` and the last sample's ``next`` when they are the
-adjacent frames, so the predictions cover the whole sequence as the SimCol3D challenge expects. Per sequence:
-
-- depth (frames with GT depth): the ``paper`` and ``simcol`` protocols of :mod:`endoflow.evaluation.metrics`
-  for the model and two baselines: ``constant_depth`` (the training set's mean GT depth everywhere) and
-  ``mean_depth_map`` (the training set's per-pixel mean GT depth map);
-- pose (consecutive frames with GT pose; the longest such run when some are missing): the ``simcol`` and
-  ``endoslam`` protocols for the model and ``constant_velocity`` (every step is the training set's mean
-  relative pose of one frame, whatever ``preprocess.neighbour_offset`` the training pairs had).
-
-The networks run on ``eval.device`` under ``eval.precision`` (:mod:`endoflow.devices`); their depth and pose
-leave them as float32 (float64 for poses), and everything after (challenge files, metrics) is computed from
-those. Metrics are computed at the stored shard size. The protocols aggregate as they are defined: the paper's
-depth errors are averaged over all images of the test set; the challenge's depth and pose figures are
-computed per sequence and then averaged over the sequences.
-
-Outputs: ``<eval.metrics>/<name>.json``, the headline (:mod:`endoflow.evaluation.results`); ``<eval.plots>/<name>/``
-with PNG figures (``trajectory_<seq>.png``, ``depth_examples.png``, ``errors_per_frame.png``);
-``<eval.predictions>/<name>/`` with every figure (``evaluation.json``), the tables ``dvc plots`` charts
-(``per_frame.csv``: ``index``, ``sequence``, ``frame``, ``abs_rel_<method>``, ``rmse_<method>``,
-``simcol_l1_<method>``, ``rte_<method>``, ``rot_<method>``; ``per_sequence.csv``; ``trajectory.csv``: ``gt_x``
-... ``model_z``, ``constant_velocity_z``) and the predictions in the challenge's layout
-(``<group>_Test/Frames_<sequence>_OP/depth/FrameBuffer_NNNN.npy``: float16 ``depth / 20`` in [0, 1] at the native
-(square) size; ``.../pose/FrameBuffer_NNNN_to_FrameBuffer_MMMM.txt``: the 16 numbers of ``inv(P_i) @ P_{i+1}``, row-major).
+Every frame of each test sequence, in order (:mod:`endoflow.data.sequences`), goes through the networks on
+``eval.device`` under ``eval.precision``; with ``refine.enabled`` the pose network's path is also refined against
+keyframes (:mod:`endoflow.geometry.direct_alignment`) and scored as the method ``refined``. Depth is scored in the
+paper's and SimCol3D's protocols beside ``constant_depth`` and ``mean_depth_map``, pose in SimCol3D's, EndoSLAM's
+and the motion protocol beside ``constant_velocity``, and the model's scale consistency
+(:mod:`endoflow.evaluation.metrics`, :mod:`endoflow.evaluation.baselines`); every figure goes into one long table
+(:mod:`endoflow.evaluation.scores`). What is written, with units: docs/outputs.md, "evaluate@<test set>".
 """
 
 from __future__ import annotations

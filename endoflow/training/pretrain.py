@@ -1,39 +1,12 @@
-"""Generative pretraining of the latent bank on depth maps (paper section 3.1.2): WGAN-GP, progressive growing.
+"""Generative pretraining of the latent bank on depth maps (paper section 3.1.2): WGAN-GP, progressive growing,
+an exponential moving average of the generator saved (docs/method.md, "Generative latent bank").
 
-Data: every ``depth.png`` of the SceneNet shards (``<shards_dir>/{train,val}-*.tar``; z-depth in cm =
-value * ``meta.depth_unit``, 0 = unknown). Training uses the train split; the held-out maps for the
-sliced Wasserstein distance are the val split (or, when a dataset has no val shards, the last
-``latent_bank.holdout_fraction`` of the train maps, which are then not trained on).
-
-Depth normalisation (what the generator learns to produce, in [-1, 1]): centred log-depth,
-``x = clip((log d - mean log d) / latent_bank.depth_log_range, -1, 1)`` with the mean over the map's known
-pixels; unknown pixels get 0 (the map's geometric-mean depth). Centring makes the prior scale-free: a
-monocular depth network only knows depth up to scale, and indoor scenes (metres) must inform colon scenes
-(centimetres). Maps are normalised at the stored size, then area-resized to each training resolution.
-
-Training: for each resolution from ``start_resolution`` to ``resolution``, ``steps_per_stage`` generator
-steps, each after ``n_critic`` critic steps (each one number, or one per resolution); a new resolution fades in
-over the first ``fade_fraction`` of its stage (generator, critic and the real maps alike, as ProGAN). Losses
-from :mod:`endoflow.losses.gan` (WGAN-GP, ``gp_gamma``) plus ProGAN's small drift penalty on real scores; Adam
-``betas``, fixed ``lr``. The synthesis convolutions start at ``conv_init_scale`` times PyTorch's default
-scale (they are scale-free, so the fresh generator is unchanged but they learn faster at the fixed ``lr``;
-see :class:`endoflow.models.latent_bank.InitScaled`). The saved generator is an exponential moving average
-of the trained weights (``ema_decay``, warmed up).
-
-Device and precision: networks, maps, latents, the gradient penalty and the SWD live on ``latent_bank.device``;
-the networks' forward passes run under ``latent_bank.precision`` (:mod:`endoflow.devices`), scores and maps
-leave them as float32. Every random draw but the gradient penalty's interpolation weights comes from a seeded
-CPU generator and is moved to the device, so batches and latents are the same on any device (on the CPU the
-numbers are exactly those of a CPU-only run). The bank file holds CPU tensors.
-
-Progress: a line every few seconds (stage and resolution, steps, losses, steps/s, time left for the whole
-pretraining) and a summary at the end, on stdout.
-
-Outputs: ``out_path`` (``{"format", "spec", "state_dict", "normalisation"}``, loadable with
-``torch.load(weights_only=True)`` and :func:`endoflow.models.latent_bank.load_generator`), ``metrics_path``
-(:func:`dvc_metrics`), sample grids under ``plots_dir`` and an MLflow run in ``tracking.latent_bank_experiment``
-with the same params, every figure (``swd_untrained``, ``swd_final``, ``swd_real_reference`` (train vs held-out
-real: the floor), per-level values, steps, seconds) and files.
+It learns from the ``depth.png`` of the SceneNet shards' train split, as centred log-depth in [-1, 1] (scale-free:
+indoor metres inform colon centimetres), and measures a sliced Wasserstein distance to the val split (or to the
+last ``latent_bank.holdout_fraction`` of the train maps, left out of training, where there is no val split).
+Every random draw but the gradient penalty's interpolation weights comes from a seeded CPU generator, so batches
+and latents are the same on any device. Outputs (the bank file, metrics, sample grids, the MLflow run):
+docs/outputs.md, "pretrain_latent_bank".
 """
 
 from __future__ import annotations

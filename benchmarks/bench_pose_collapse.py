@@ -1,0 +1,129 @@
+"""Why a trained pose network answers nearly one step for every pair: what it predicts against the truth, and what
+its training loss can tell it.
+
+    python benchmarks/bench_pose_collapse.py --model models/endoflow.pt --shards data/shards/simcol
+                                             [--split val] [--samples 240] [--threads 2]
+
+Over the split's (cur, next) pairs, with the shards' exact depth and poses, prints:
+
+- the spread of the predicted step length against the true one (standard deviations, correlation), and per pose
+  component the spread of the prediction, of the truth and of the VAE's sampling noise (``exp(logvar / 2)``);
+- how far the true motion moves the image (median and 90th percentile pixel displacement, exact depth);
+- what auto-masking leaves: the share of pixels whose unwarped neighbour already matches better than the exact
+  warp (exact depth and pose), which then give no gradient;
+- the training loss (the default objective's photometric term for the pair, the model's depth) at the true pose,
+  at the network's, at the training set's mean step (constant velocity) and at the true pose with its translation
+  scaled by 0.5 ... 1.5: how much lower the truth is than one step for all, the signal that would make the
+  network follow the motion.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from endoflow.config import LossConfig
+from endoflow.data.loader import list_shards, triplet_dataset
+from endoflow.devices import use_cpu_threads
+from endoflow.geometry.pose import invert_pose, matrix_to_pose_vec, mean_step, pose_vec_to_matrix
+from endoflow.geometry.warp import project_target_pixels, warp_frame
+from endoflow.losses.photometric import identity_error, reprojection_loss
+from endoflow.models.endoflow_model import load_trained_model
+
+SCALES = (0.5, 0.75, 1.0, 1.25, 1.5)
+
+
+def pairs(shards: str, split: str, count: int) -> list[dict]:
+    """Up to ``count`` samples of ``split`` with poses and depth, spread over the split (every k-th)."""
+    samples = [s for s in triplet_dataset(list_shards(shards, split))
+               if s["meta"]["T_world_cam"]["cur"] is not None and s["meta"]["T_world_cam"]["next"] is not None]
+    step = max(1, len(samples) // count)
+    return samples[::step][:count]
+
+
+def loss_at(cur: torch.Tensor, nxt: torch.Tensor, depth: torch.Tensor, T_next_cur: torch.Tensor, K: torch.Tensor,
+            cfg: LossConfig) -> torch.Tensor:
+    """Per-pair photometric loss ``[B]`` of ``cur`` rebuilt from ``nxt`` (auto-masked as in training)."""
+    warped = warp_frame(nxt, depth, T_next_cur, K)[0]
+    _, per_pixel, _ = reprojection_loss([warped], cur, [nxt], cfg, identity_error(cur, [nxt], cfg))
+    return per_pixel.mean(dim=(1, 2, 3))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", default="models/endoflow.pt")
+    parser.add_argument("--shards", default="data/shards/simcol")
+    parser.add_argument("--split", default="val")
+    parser.add_argument("--samples", type=int, default=240)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    use_cpu_threads(args.threads)
+    torch.manual_seed(0)
+    began = time.perf_counter()
+    model, record = load_trained_model(args.model, torch.device("cpu"))
+    model.eval()
+    samples = pairs(args.shards, args.split, args.samples)
+    cur = torch.stack([s["cur"] for s in samples]).float()
+    nxt = torch.stack([s["next"] for s in samples]).float()
+    if cur.max() > 1:
+        cur, nxt = cur / 255, nxt / 255
+    K = torch.stack([torch.as_tensor(s["meta"]["K"], dtype=torch.float32) for s in samples])
+    gt_depth = torch.stack([s["depth"] for s in samples]).float()
+    world = {name: torch.tensor(np.stack([s["meta"]["T_world_cam"][name] for s in samples]), dtype=torch.float32)
+             for name in ("cur", "next")}
+    T_next_cur = invert_pose(world["next"]) @ world["cur"]  # the forward motion the network predicts
+    truth = matrix_to_pose_vec(T_next_cur.double()).numpy()
+    with torch.no_grad():
+        _, mean, logvar = model.forward_motion(cur, nxt, sample=False)
+        depth = model.predict_depth(cur)
+    predicted = mean.double().numpy()
+    true_step, pred_step = np.linalg.norm(truth[:, 3:], axis=1), np.linalg.norm(predicted[:, 3:], axis=1)
+    print(f"{len(samples)} {args.split} pairs of {args.shards}; model {args.model} (trained {record.epoch} epochs)")
+    print(f"step length: true {true_step.mean() * 10:.3f} ± {true_step.std() * 10:.3f} mm, predicted "
+          f"{pred_step.mean() * 10:.3f} ± {pred_step.std() * 10:.3f} mm (model scale); spread ratio "
+          f"{pred_step.std() / pred_step.mean() / (true_step.std() / true_step.mean()):.2f} (coefficients of "
+          f"variation); correlation {np.corrcoef(true_step, pred_step)[0, 1]:.3f}")
+    noise = np.exp(0.5 * logvar.double().numpy()) if logvar is not None else np.zeros_like(predicted)
+    names = ("rx", "ry", "rz", "tx", "ty", "tz")
+    print("per component (rad, cm): std of truth / std of prediction / median VAE noise / correlation")
+    for i, name in enumerate(names):
+        correlation = np.corrcoef(truth[:, i], predicted[:, i])[0, 1] if predicted[:, i].std() > 0 else 0.0
+        print(f"  {name}: {truth[:, i].std():.2e} / {predicted[:, i].std():.2e} / {np.median(noise[:, i]):.2e} / "
+              f"{correlation:+.3f}")
+    pixels, z = project_target_pixels(gt_depth, T_next_cur, K)
+    height, width = cur.shape[-2:]
+    grid = torch.stack(torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")[::-1]).reshape(2, -1)
+    moved = (pixels - grid[None]).norm(dim=1)[gt_depth.reshape(len(samples), -1) > 0].numpy()
+    print(f"image motion of the true step (exact depth): median {np.median(moved):.2f} px, 90th percentile "
+          f"{np.percentile(moved, 90):.2f} px at {width} px")
+    cfg = LossConfig(**{**dict(record.params.loss), "min_reprojection": False})
+    warped = warp_frame(nxt, gt_depth, T_next_cur, K)[0]
+    _, _, kept = reprojection_loss([warped], cur, [nxt], cfg, identity_error(cur, [nxt], cfg))
+    print(f"auto-masking at the exact pose and depth leaves {kept.float().mean():.1%} of pixels to the warp "
+          f"(the rest match better unwarped and give no gradient)")
+    constant = torch.from_numpy(np.linalg.inv(record.baselines.mean_relative_pose)).float().expand_as(T_next_cur)
+    with torch.no_grad():
+        at = {"truth": loss_at(cur, nxt, depth, T_next_cur, K, cfg),
+              "network": loss_at(cur, nxt, depth, pose_vec_to_matrix(mean.float()), K, cfg),
+              "constant velocity": loss_at(cur, nxt, depth, constant, K, cfg)}
+        scaled = {}
+        for scale in SCALES:
+            T = T_next_cur.clone()
+            T[:, :3, 3] *= scale
+            scaled[scale] = loss_at(cur, nxt, depth, T, K, cfg).mean().item()
+    base = at["truth"].mean().item()
+    print("photometric loss with the model's depth (mean over pairs): " + ", ".join(
+        f"{name} {values.mean().item():.5f} ({values.mean().item() / base - 1:+.2%})" for name, values in at.items()))
+    print(f"  pairs where the truth beats constant velocity: {(at['truth'] < at['constant velocity']).float().mean():.1%}"
+          f"; the network beats it: {(at['network'] < at['constant velocity']).float().mean():.1%}")
+    print("  true pose with its translation scaled: " + ", ".join(
+        f"x{scale:g} {value / base - 1:+.2%}" for scale, value in scaled.items()))
+    steps = mean_step(T_next_cur.double().numpy())
+    print(f"the split's mean step {np.linalg.norm(steps[:3, 3]) * 10:.3f} mm; {time.perf_counter() - began:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
