@@ -334,6 +334,9 @@ class TrainConfig(Section):
     epochs: Count = setting(10, "training epochs", training=False)
     batch_size: Count = setting(12, "samples per step per worker")
     lr: Number = setting(2e-4, "learning rate", gt=0)
+    time_reversal: Number = setting(0.0, "share of training triplets played backwards (prev and next swapped), so "
+                                         "that a pose network cannot answer one forward step for every pair",
+                                    ge=0, le=1)
     weight_decay: Number = setting(1e-3, "weight decay", ge=0)
     # adam adds the decay to the gradient (L2), which Adam's normalisation inflates wherever the photometric
     # gradient is small; on the default data it stalls learning.

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional
 
-from endoflow.config import LossConfig, ModelConfig, PreprocessConfig, flatten_params
+from endoflow.config import LossConfig, ModelConfig, PreprocessConfig, TrainConfig, flatten_params
 from endoflow.evaluation.results import EVALUATION_FILE, HEADLINE, evaluation_path
 from endoflow.evaluation.summary import PROTOCOL_TABLES, markdown_table, number_cell, protocol_table
 
@@ -63,6 +63,7 @@ STUDY_SETTINGS = (
     StudySetting("preprocess.train_offsets", PreprocessConfig().train_offsets,
                  lambda value: "offsets " + "/".join(str(offset) for offset in value)),
     StudySetting("loss.geometry_weight", LossConfig().geometry_weight, lambda value: f"geometry {value:g}"),
+    StudySetting("train.time_reversal", TrainConfig().time_reversal, lambda value: f"reversed {value:g}"),
 )
 _HEADLINE_PROTOCOL = {metric: protocol for _, protocol, _, metric in HEADLINE}  # by the evaluation JSON's name
 # the seed statistics' figures: column title, protocol of the evaluation JSON (the headline figures' own, the

@@ -203,7 +203,7 @@ def test_the_sweep_queues_every_configuration_with_every_seed_naming_each_switch
     assert len(commands) == 12
     # the studies' settings too, at their defaults: the ablation does not inherit the workspace's
     defaults = ["-S", "model.pose_sample=true", "-S", "loss.kl_weight=1e-05", "-S", "preprocess.train_offsets=null",
-                "-S", "loss.geometry_weight=0.0"]
+                "-S", "loss.geometry_weight=0.0", "-S", "train.time_reversal=0.0"]
     assert commands[0] == ["exp", "run", "--queue", "-n", "full-seed0", "-S", "model.latent_bank=true",
                            "-S", "model.pose_vae=true", *defaults, "-S", "seed=0", "evaluate"]
     assert commands[-1] == ["exp", "run", "--queue", "-n", "neither-seed2", "-S", "model.latent_bank=false",
@@ -227,7 +227,8 @@ def test_the_vae_study_queues_the_full_model_without_sampling_and_with_beta_over
     assert commands[0] == ["exp", "run", "--queue", "-n", "vae-mean-warp-seed0", "-S", "model.latent_bank=true",
                            "-S", "model.pose_vae=true", "-S", "model.pose_sample=false",
                            "-S", "loss.kl_weight=1e-05", "-S", "preprocess.train_offsets=null",
-                           "-S", "loss.geometry_weight=0.0", "-S", "seed=0", "evaluate"]
+                           "-S", "loss.geometry_weight=0.0", "-S", "train.time_reversal=0.0", "-S", "seed=0",
+                           "evaluate"]
     betas = [next(word for word in command if word.startswith("loss.kl_weight=")) for command in commands[:4]]
     assert betas == ["loss.kl_weight=1e-05", "loss.kl_weight=0.0", "loss.kl_weight=0.0001", "loss.kl_weight=0.001"]
     with pytest.raises(ValueError, match="study"):
@@ -238,12 +239,15 @@ def test_the_motion_study_queues_the_full_model_with_mixed_offsets_the_depth_con
     from endoflow.sweep import sweep_commands
 
     commands = sweep_commands([0], study="motion")
-    changed = [[word for word in command if word.startswith(("preprocess.train_offsets", "loss.geometry_weight"))]
+    changed = [[word for word in command if word.startswith(("preprocess.train_offsets", "loss.geometry_weight",
+                                                             "train.time_reversal"))]
                for command in commands]
-    assert changed == [["preprocess.train_offsets=null", "loss.geometry_weight=0.0"],
-                       ["preprocess.train_offsets=[1,2,3]", "loss.geometry_weight=0.0"],
-                       ["preprocess.train_offsets=null", "loss.geometry_weight=0.5"],
-                       ["preprocess.train_offsets=[1,2,3]", "loss.geometry_weight=0.5"]]
+    assert changed == [["preprocess.train_offsets=null", "loss.geometry_weight=0.0", "train.time_reversal=0.0"],
+                       ["preprocess.train_offsets=[1,2,3]", "loss.geometry_weight=0.0", "train.time_reversal=0.0"],
+                       ["preprocess.train_offsets=null", "loss.geometry_weight=0.5", "train.time_reversal=0.0"],
+                       ["preprocess.train_offsets=[1,2,3]", "loss.geometry_weight=0.5", "train.time_reversal=0.0"],
+                       ["preprocess.train_offsets=null", "loss.geometry_weight=0.0", "train.time_reversal=0.5"],
+                       ["preprocess.train_offsets=[1,2,3]", "loss.geometry_weight=0.5", "train.time_reversal=0.5"]]
 
 
 @pytest.mark.parametrize("study", ["ablation", "vae", "motion"])
@@ -297,6 +301,7 @@ def test_motion_study_runs_are_named_by_their_offsets_and_consistency_weight_wit
     assert run(False, preprocess={"train_offsets": [1, 2]}, loss={"geometry_weight": 0.5}).configuration == \
         "no-vae, offsets 1/2, geometry 0.5"
     assert run(True, preprocess={"train_offsets": None}, loss={"geometry_weight": 0.0}).configuration == "full"
+    assert run(True, train={"time_reversal": "0.5"}).configuration == "full, reversed 0.5"
 
 
 def test_vae_study_rows_follow_the_four_configurations_and_are_compared_with_the_full_model():

@@ -169,3 +169,34 @@ def test_logged_losses_name_each_terms_share_of_the_total_and_its_unweighted_val
     assert sum(weighted) == pytest.approx(logged["loss/total"])
     assert logged["loss/weighted/kl"] == pytest.approx(5e-4) and logged["loss/unweighted/kl"] == 50.0
     assert "loss/unweighted/photometric" not in logged  # weight 1: the same number twice would only confuse
+
+
+def test_playing_triplets_backwards_swaps_their_neighbours_at_the_given_share():
+    from endoflow.training.loop import played_backwards
+
+    batch = simcol_triplets(size=32)
+    assert played_backwards(batch, 0.0) is batch
+    backwards = played_backwards(batch, 1.0)
+    assert torch.equal(backwards["prev"], batch["next"]) and torch.equal(backwards["next"], batch["prev"])
+    assert torch.equal(backwards["cur"], batch["cur"]) and torch.equal(backwards["K"], batch["K"])
+    torch.manual_seed(3)
+    some = played_backwards(batch, 0.5)
+    swapped = [torch.equal(some["prev"][i], batch["next"][i]) for i in range(len(batch["cur"]))]
+    assert 0 < sum(swapped) < len(swapped)
+    torch.manual_seed(3)  # the global generator decides: a resumed run, its state restored, swaps the same ones
+    again = played_backwards(batch, 0.5)
+    assert torch.equal(again["prev"], some["prev"]) and torch.equal(again["next"], some["next"])
+
+
+def test_a_triplet_played_backwards_is_explained_by_the_reversed_motion():
+    """The exact poses of a reversed triplet are the forward ones swapped: the loss is the same, while the forward
+    poses no longer fit it (the pose network has to see which way the camera went)."""
+    from endoflow.training.loop import played_backwards
+
+    batch = simcol_triplets()
+    cfg = LossConfig(automask=False)
+    forward = loss_with(batch, batch["depth"], batch["T_prev_cur"], batch["T_next_cur"], cfg)
+    backwards = played_backwards(batch, 1.0)
+    swapped = loss_with(backwards, batch["depth"], batch["T_next_cur"], batch["T_prev_cur"], cfg)
+    assert swapped == pytest.approx(forward, rel=1e-6)
+    assert loss_with(backwards, batch["depth"], batch["T_prev_cur"], batch["T_next_cur"], cfg) > 1.5 * forward

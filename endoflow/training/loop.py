@@ -204,7 +204,7 @@ def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[st
         if step >= total_steps:
             break
         keys.extend(batch["key"])
-        inputs = batch_to_device(batch, ctx.device, cfg.precision)
+        inputs = played_backwards(batch_to_device(batch, ctx.device, cfg.precision), cfg.time_reversal)
         with autocast(ctx.device, cfg.precision):
             out = ctx.module(inputs)
         reduced = mean_over_ranks(torch.stack([out[k].detach().float() for k in logged]), ctx.world)
@@ -223,6 +223,19 @@ def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[st
         ctx.logger.step(state.global_step, epoch, step, total_steps, dict(zip(logged, reduced.tolist())),
                         samples=(step + 1) * samples_per_step, epoch_progress=epoch_progress)
     return {"keys": keys, "mean_loss": float(np.mean(losses)) if losses else math.nan}
+
+
+def played_backwards(batch: dict, share: float) -> dict:
+    """``batch`` with each triplet, at chance ``share``, played backwards in time (``prev`` and ``next`` swapped).
+
+    A camera that mostly advances teaches a pose network one forward step; played backwards, a triplet withdraws,
+    so no single answer fits both and the network must read the direction from the frames. The draws come from
+    torch's global generator, which checkpoints restore: a resumed run reverses the same triplets."""
+    if share <= 0:
+        return batch
+    flip = (torch.rand(batch["cur"].shape[0]) < share).to(batch["cur"].device)[:, None, None, None]
+    return {**batch, "prev": torch.where(flip, batch["next"], batch["prev"]),
+            "next": torch.where(flip, batch["prev"], batch["next"])}
 
 
 def improves_on(val: dict[str, float], best: Optional[BestEpoch]) -> bool:
