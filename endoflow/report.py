@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional
 
-from endoflow.config import LossConfig, ModelConfig, PreprocessConfig, TrainConfig, flatten_params
+from endoflow.config import LossConfig, ModelConfig, Params, PreprocessConfig, TrainConfig, flatten_params
 from endoflow.evaluation.results import EVALUATION_FILE, HEADLINE, evaluation_path
 from endoflow.evaluation.summary import PROTOCOL_TABLES, markdown_table, number_cell, protocol_table
 
@@ -134,6 +134,11 @@ class RunResults:
         switches = [f"{text} {'on' if model[key] else 'off'}" for key, text in
                     (("latent_bank", "bank"), ("pose_vae", "VAE")) if key in model]
         return f"{self.name} ({', '.join(switches)})" if switches else self.name
+
+
+@functools.lru_cache(maxsize=1)
+def _default_flat_params() -> dict[str, Any]:
+    return flatten_params(Params())
 
 
 def _sortable(value: Any, default: Any) -> Any:
@@ -287,8 +292,10 @@ def runs_by_configuration(runs: list[RunResults]) -> dict[str, list[RunResults]]
 
 
 def _differing_params(first: dict, second: dict) -> list[str]:
-    """Dotted keys whose values differ, compared as text (DVC's params give ``1e-05`` as a string)."""
-    flat_first, flat_second = flatten_params(first), flatten_params(second)
+    """Dotted keys whose values differ, compared as text (DVC's params give ``1e-05`` as a string); a key one run's
+    params lack reads as its default (a run of a commit from before the key existed)."""
+    defaults = _default_flat_params()
+    flat_first, flat_second = {**defaults, **flatten_params(first)}, {**defaults, **flatten_params(second)}
     return sorted(key for key in flat_first.keys() | flat_second.keys()
                   if str(flat_first.get(key)) != str(flat_second.get(key)))
 

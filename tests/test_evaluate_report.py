@@ -344,6 +344,8 @@ def test_a_run_with_the_configuration_and_seed_of_another_but_other_params_is_le
     other.params["preprocess"] = {"neighbour_offset": 4}
     same = study_run("workspace", 0, 0.10)
     same.params["loss"]["kl_weight"] = "1e-05"  # as DVC's params read back: the same value
+    # a key of a later commit, at its default: the run of the earlier commit lacks it and is the same
+    same.params["train"] = {"time_reversal": 0.0}
     groups = runs_by_configuration([full, same, other, study_run("full-s1", 1, 0.12)])
     assert [run.name for run in groups["full"]] == ["full-s0", "full-s1"]
     error = capsys.readouterr().err
