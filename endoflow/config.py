@@ -475,8 +475,10 @@ class RefineConfig(Section):
     levels: Count = setting(3, "image pyramid levels, coarse to fine")
     iterations: Count = setting(12, "Gauss-Newton steps per level at most")
     huber: Number = setting(0.04, "residual beyond which a pixel counts less (intensity in [0, 1])", gt=0)
-    light_falloff: Number = setting(0.91, "the light sits at the lens: brightness goes as distance^-this (an "
-                                          "inverse-square fall-off through display gamma 2.2); 0: no fall-off", ge=0)
+    # 0.91 (an inverse-square fall-off through display gamma 2.2) is right with exact depth; with the model's depth
+    # the fall-off model added error: 0 gave ROT 0.120 against 0.153 deg (base model, S5, B5, S10; docs/results.md)
+    light_falloff: Number = setting(0.0, "the light sits at the lens: model brightness as distance^-this; 0: no "
+                                         "fall-off", ge=0)
     keyframe_every: Count = setting(6, "a new keyframe after this many frames at most", unit="frames")
     min_overlap: Number = setting(0.5, "... or once a smaller share of the keyframe's pixels still takes part",
                                   ge=0, le=1)

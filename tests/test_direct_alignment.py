@@ -24,6 +24,8 @@ from endoflow.synth.writers import plan_jobs, simcol_intrinsics, tube_sequence
 
 SIZE = 64
 FRAMES = 40
+# exact depth: the light's fall-off with distance (inverse-square through the renderer's gamma 2.2) holds
+EXACT = AlignmentSettings(light_falloff=0.91)
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +55,7 @@ def test_a_known_motion_is_recovered_from_a_start_a_frames_motion_off(rendered: 
     nudge = pose_vec_to_matrix(torch.tensor([0.004, -0.003, 0.002, 0.08, -0.06, 0.08], dtype=torch.float64))
     start = nudge.numpy() @ truth
     result = align_to_keyframe(rendered["rgb"][0], rendered["depth"][0], rendered["rgb"][gap], rendered["K"],
-                               torch.from_numpy(start))
+                               torch.from_numpy(start), EXACT)
     rotation, translation = errors(result.T_frame_key.numpy(), truth)
     # from 0.3 degree and 0.13 cm; the rest is the renderer's light, which the fall-off model takes only in part
     assert rotation < 0.1 and translation < 0.01
@@ -65,7 +67,7 @@ def test_a_change_of_brightness_is_taken_up_by_the_gain_and_offset(rendered: dic
     truth = relative_pose(rendered["poses"][2], rendered["poses"][0])
     brighter = (rendered["rgb"][2] * 1.2 + 0.03).clamp(0, 1)  # the light moves with the camera
     result = align_to_keyframe(rendered["rgb"][0], rendered["depth"][0], brighter, rendered["K"],
-                               torch.eye(4, dtype=torch.float64))
+                               torch.eye(4, dtype=torch.float64), EXACT)
     rotation, translation = errors(result.T_frame_key.numpy(), truth)
     assert rotation < 0.1 and translation < 0.1 * np.linalg.norm(truth[:3, 3])
     # frame = key / 1.2 - 0.025 in the key's terms
@@ -81,7 +83,8 @@ def test_a_black_field_of_view_border_does_not_hold_the_camera_still(rendered: d
     motion = np.linalg.norm(truth[:3, 3])
 
     def translation_error() -> float:
-        result = align_to_keyframe(key, rendered["depth"][0], frame, rendered["K"], torch.eye(4, dtype=torch.float64))
+        result = align_to_keyframe(key, rendered["depth"][0], frame, rendered["K"], torch.eye(4, dtype=torch.float64),
+                                   EXACT)
         return errors(result.T_frame_key.numpy(), truth)[1]
 
     assert translation_error() < 0.1 * motion
@@ -93,7 +96,7 @@ def test_the_result_is_never_worse_than_the_start_even_on_images_that_do_not_mat
     noise = torch.rand(3, SIZE, SIZE, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     truth = relative_pose(rendered["poses"][1], rendered["poses"][0])
     result = align_to_keyframe(rendered["rgb"][0], rendered["depth"][0], noise, rendered["K"],
-                               torch.from_numpy(truth))
+                               torch.from_numpy(truth), EXACT)
     assert result.cost_end <= result.cost_start
 
 
@@ -101,7 +104,7 @@ def test_tracking_a_sequence_follows_the_camera_where_constant_velocity_cannot(r
     poses = rendered["poses"]
     steps = relative_pose(poses[:-1], poses[1:])
     constant = mean_step(steps)  # the sequence's own mean step: the best any constant step can do
-    tracker = KeyframeTracker(rendered["K"], TrackerSettings(AlignmentSettings(), keyframe_every=6))
+    tracker = KeyframeTracker(rendered["K"], TrackerSettings(EXACT, keyframe_every=6))
     tracked = [tracker.track(rendered["rgb"][0], rendered["depth"][0], torch.from_numpy(poses[0]))]
     for rgb, depth in zip(rendered["rgb"][1:], rendered["depth"][1:]):
         tracked.append(tracker.track(rgb, depth, tracked[-1] @ torch.from_numpy(constant)))
@@ -111,3 +114,12 @@ def test_tracking_a_sequence_follows_the_camera_where_constant_velocity_cannot(r
     assert ours["rte"] < 0.25 * start["rte"]
     assert ours["scale"] == pytest.approx(1.0, abs=0.05)  # exact depth: the path comes out in cm
     assert metrics.motion_agreement(poses, tracked_steps)["step_corr"] > 0.9
+
+
+def test_modelling_the_lights_fall_off_takes_out_most_of_the_rotation_bias_with_exact_depth(rendered: dict):
+    truth = relative_pose(rendered["poses"][3], rendered["poses"][0])
+    error = {falloff: errors(align_to_keyframe(rendered["rgb"][0], rendered["depth"][0], rendered["rgb"][3],
+                                               rendered["K"], torch.from_numpy(truth),
+                                               AlignmentSettings(light_falloff=falloff)).T_frame_key.numpy(), truth)[0]
+             for falloff in (0.0, 0.91)}
+    assert error[0.91] < 0.5 * error[0.0]

@@ -274,7 +274,8 @@ def depth_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> l
 
 def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> tuple[list[dict], Optional[dict]]:
     """The challenge's, EndoSLAM's and the motion protocols over the longest run of one sequence's posed frames, for
-    the model and constant velocity, and the model's scale consistency where the run has GT depth: the sequence's
+    the model and constant velocity, and the scale consistency of the model's paths where the run has GT depth: the
+    sequence's
     figures, each frame's RTE and ROT, and the trajectories."""
     run = longest_posed_run(seq.poses, seq.gaps)
     if run is None:
@@ -299,9 +300,10 @@ def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> tu
                                {"rte": result["per_frame"]["rte"][i], "rot": result["per_frame"]["rot"][i]})
         trajectory[method] = result["trajectory"][:, :3, 3]
     ratios = [ratio for ratio in seq.depth_ratios[start:stop] if ratio is not None]
-    if ratios:
-        rows += score_rows(seq.name, None, "model", "scale",
-                           metrics.scale_consistency(gt_poses, predicted["model"], ratios))
+    for method in ("model", "refined") if ratios else ():
+        if method in predicted:
+            rows += score_rows(seq.name, None, method, "scale",
+                               metrics.scale_consistency(gt_poses, predicted[method], ratios))
     return rows, trajectory
 
 

@@ -27,7 +27,7 @@ PROTOCOL_FIGURES = {
     "pose_simcol": (POSE_METHODS, metrics.SIMCOL_POSE_KEYS),
     "pose_endoslam": (POSE_METHODS, metrics.ENDOSLAM_POSE_KEYS),
     "pose_motion": (POSE_METHODS, metrics.MOTION_KEYS),
-    "scale": (("model",), metrics.SCALE_KEYS),
+    "scale": (("model", "refined"), metrics.SCALE_KEYS),
 }
 AVERAGED_OVER_IMAGES = ("depth_paper",)
 # the columns of per_frame.csv and per_sequence.csv: (methods, (protocol, metric, column prefix)...), in order;

@@ -39,7 +39,7 @@ class AlignmentSettings:
     min_pixels: int = 64  # fewer valid pixels at a level: that level is skipped
     # the light sits at the lens: a point's brightness goes as distance^-light_falloff (2 / display gamma: an
     # inverse-square fall-off seen through gamma 2.2 is 0.91); 0: brightness does not depend on the distance
-    light_falloff: float = 0.91
+    light_falloff: float = 0.0
 
 
 @dataclass(frozen=True)
