@@ -274,9 +274,8 @@ def depth_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> l
 
 def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> tuple[list[dict], Optional[dict]]:
     """The challenge's, EndoSLAM's and the motion protocols over the longest run of one sequence's posed frames, for
-    the model and constant velocity, and the scale consistency of the model's paths where the run has GT depth: the
-    sequence's
-    figures, each frame's RTE and ROT, and the trajectories."""
+    the model (its network's and its refined path) and constant velocity, and the scale consistency of the model's
+    paths where the run has GT depth: the sequence's figures, each frame's RTE and ROT, and the trajectories."""
     run = longest_posed_run(seq.poses, seq.gaps)
     if run is None:
         return [], None
