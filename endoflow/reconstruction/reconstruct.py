@@ -39,8 +39,10 @@ from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_dep
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.errors import DataFormatError
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings
-from endoflow.geometry.pose import chain_step
+from endoflow.geometry.pose import chain_step, invert_pose, relative_pose
+from endoflow.geometry.warp import warp_frame
 from endoflow.io import marked_output, staged_directory, write_bytes, write_json
+from endoflow.losses.photometric import photometric_error
 from endoflow.models.endoflow_model import load_trained_model
 from endoflow.progress import Progress, format_duration
 from endoflow.reconstruction.alignment import ground_truth_in_path_world
@@ -115,6 +117,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     volume = TSDFVolume(voxel, options.trunc_cm or 4 * voxel) if options.fuse else None
     path = CameraPath()
     tracker = KeyframeTracker(torch.from_numpy(K), options.refine) if options.refine is not None else None
+    explained = PathPhotometry(K, np.asarray(record.baselines.mean_relative_pose, np.float64))
     progress = Progress(source_frame_count(source, options.frames), "frames")
     sampler = FrameSampler()
     with staged_directory(out_dir, EARLIER_RECONSTRUCTION, options.force, (source.location, model_path),
@@ -134,6 +137,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
                     torch.from_numpy(rgb).permute(2, 0, 1).double() / 255, torch.from_numpy(depth)[None],
                     torch.from_numpy(path.step_from_last(T_cur_prev, options.scale))).numpy()
                 path.add(frame, pose, network_pose, depth, size)
+                explained.add(rgb, depth, path)
                 shown = shown or preview_range(depth, record.params.model, options.scale)
                 preview = write_depth(stage, frame.index, depth, unit, options.npy, shown)
                 video.add(rgb, preview)
@@ -164,7 +168,8 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
             "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
                      "blocks": len(volume.blocks)} if mesh is not None else None,
             "path": {"refined": tracker is not None,
-                     **({"keyframes": tracker.keyframes} if tracker is not None else {})},
+                     **({"keyframes": tracker.keyframes} if tracker is not None else {}),
+                     "photometric_error": explained.means()},
             **path.ground_truth_scale(),
         }
         write_json(stage / "reconstruction.json", summary)
@@ -175,6 +180,42 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     print(f"[reconstruct] {path.count} frames in {format_duration(seconds)} ({path.count / seconds:.1f} frames/s) "
           f"-> {out_dir}", file=sys.stderr)
     return summary
+
+
+class PathPhotometry:
+    """How well each path explains the frames, without ground truth: the SSIM + L1 error (Monodepth2's, images in
+    [0, 1]) of each frame warped into the previous one with the previous frame's depth and the path's step, over
+    the pixels that land inside, averaged over frames; for the path written, the pose network's own chain and a
+    constant step (the training set's mean). Lower is better; the refined path is fitted to a like error (against
+    keyframes), so it is favoured."""
+
+    def __init__(self, K: np.ndarray, constant_step: np.ndarray) -> None:
+        self.K = torch.from_numpy(K).float()[None]
+        self.T_prev_cur_constant = torch.from_numpy(constant_step).float()[None]  # T_cur_next: prev-from-cur
+        self.previous: Optional[tuple[torch.Tensor, torch.Tensor]] = None
+        self.errors: dict[str, list[float]] = {"path": [], "network": [], "constant_velocity": []}
+
+    def add(self, rgb: np.ndarray, depth: np.ndarray, path: "CameraPath") -> None:
+        image = torch.from_numpy(rgb).permute(2, 0, 1).float()[None] / 255
+        if self.previous is not None:
+            prev_image, prev_depth = self.previous
+            steps = {"path": relative_pose(path.poses[-2], path.poses[-1]),
+                     "network": relative_pose(path.network_poses[-2], path.network_poses[-1])}
+            for name, T_prev_cur in steps.items():
+                self.errors[name].append(self._error(prev_image, prev_depth, image, invert_pose(
+                    torch.from_numpy(T_prev_cur).float()[None])))
+            self.errors["constant_velocity"].append(self._error(prev_image, prev_depth, image,
+                                                                invert_pose(self.T_prev_cur_constant)))
+        self.previous = (image, torch.from_numpy(depth).float()[None, None])
+
+    def _error(self, target: torch.Tensor, depth: torch.Tensor, source: torch.Tensor, T_source_target: torch.Tensor
+               ) -> float:
+        warped, valid = warp_frame(source, depth, T_source_target, self.K)
+        error = photometric_error(warped, target, "ssim_l1")
+        return float((error * valid).sum() / valid.sum().clamp(min=1))
+
+    def means(self) -> dict[str, float]:
+        return {name: float(np.mean(values)) for name, values in self.errors.items() if values}
 
 
 def check_frame_range(source: FrameSource, frames: FrameRange) -> None:
