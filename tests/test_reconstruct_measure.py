@@ -21,9 +21,11 @@ from endoflow.reconstruction.frames import DatasetFrames, FrameRange, FolderFram
 from endoflow.reconstruction.fusion import TSDFVolume, write_ply
 from endoflow.reconstruction.measure import (
     DISTANCE_CAP_CM,
+    PATH_ROWS,
     back_project,
     format_measurement,
     measure_reconstruction,
+    metrics_summary,
     path_errors,
     surface_errors,
     SurfacePoints,
@@ -125,6 +127,14 @@ def test_the_floor_is_within_a_voxel_and_the_trivial_baselines_are_worse(measure
         assert result["surface"][row]["accuracy_median"] > 2 * floor["accuracy_median"], row
     assert result["path"]["constant_velocity"]["ate_rmse"] > 10 * result["path"]["model"]["ate_rmse"]
     assert result["path"]["constant_velocity"]["scale"] == 1.0  # metric: aligned without scale
+
+
+def test_every_path_row_is_measured_and_the_summary_is_plain_json(measured, tmp_path: Path) -> None:
+    result, _ = measured
+    assert set(result["path"]) == set(PATH_ROWS)
+    # without a refined path the network's own is the path itself
+    assert result["path"]["network"]["ate_rmse"] == result["path"]["model"]["ate_rmse"]
+    write_json(tmp_path / "measurement.json", metrics_summary(result))
 
 
 def test_the_measurement_reads_as_two_tables(measured) -> None:

@@ -110,8 +110,7 @@ def measure_reconstruction(source: FrameSource, out_dir: Path, baselines: Traini
     network = out_dir / NETWORK_PATH_FILE
     paths["network"] = (read_tum(network)[1] if network.is_file() else model_poses, True)
     path_results = {row: path_errors(gt_poses, poses, with_scale) for row, (poses, with_scale) in paths.items()}
-    alignments = {"model": path_results["model"].pop("alignment"),
-                  "constant_velocity": path_results["constant_velocity"].pop("alignment")}
+    alignments = {row: result.pop("alignment") for row, result in path_results.items()}
     alignments["trivial"] = alignments["constant_velocity"]
     identity = Alignment(np.eye(3), np.zeros(3), 1.0)
     meshes = {row: volume.extract_mesh().vertices for row, volume in volumes.items()}
