@@ -105,6 +105,7 @@ def test_ground_truth_in_another_frame_and_scale_measures_as_perfect(measured) -
     result, (_, _, s) = measured
     model = result["path"]["model"]
     assert model["scale"] == pytest.approx(s, rel=1e-6)
+    assert model["scale_over_depth"] == pytest.approx(1.0, rel=1e-6)  # depth and path at one scale
     assert model["ate_rmse"] < 1e-5 and model["rpe_trans"] < 1e-5 and model["rpe_rot"] < 1e-3
     assert result["frames"] == FRAMES and result["depth_scale"] == pytest.approx(s)
     floor, surface = result["surface"]["ground_truth"], result["surface"]["model"]

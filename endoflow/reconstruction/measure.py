@@ -110,6 +110,9 @@ def measure_reconstruction(source: FrameSource, out_dir: Path, baselines: Traini
     network = out_dir / NETWORK_PATH_FILE
     paths["network"] = (read_tum(network)[1] if network.is_file() else model_poses, True)
     path_results = {row: path_errors(gt_poses, poses, with_scale) for row, (poses, with_scale) in paths.items()}
+    for row in ("model", "network"):
+        # the path's scale over the depth's: 1 where a length measured in the map is a length in the depth's unit
+        path_results[row]["scale_over_depth"] = path_results[row]["scale"] / depth_scale
     alignments = {row: result.pop("alignment") for row, result in path_results.items()}
     alignments["trivial"] = alignments["constant_velocity"]
     identity = Alignment(np.eye(3), np.zeros(3), 1.0)
@@ -297,11 +300,13 @@ def format_measurement(name: str, result: dict) -> str:
     """Two small Markdown tables a person reads at the end of the stage: path and surface errors per row."""
     lines = [f"## {name}: {result['frames']} frames, voxel {result['voxel_cm']:.3g} cm, "
              f"{result['frames_per_second']:.1f} frames/s", "",
-             "| path | ATE RMSE cm | ATE median cm | RPE cm | RPE deg | scale |", "| --- | --- | --- | --- | --- | --- |"]
+             "| path | ATE RMSE cm | ATE median cm | RPE cm | RPE deg | scale | scale / depth's |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
     for row, figures in result["path"].items():
+        over_depth = f"{figures['scale_over_depth']:.3f}" if "scale_over_depth" in figures else "–"
         lines.append(f"| {row} | {figures['ate_rmse']:.4f} | {figures['ate_median']:.4f} | "
                      f"{figures.get('rpe_trans', float('nan')):.4f} | {figures.get('rpe_rot', float('nan')):.3f} | "
-                     f"{figures['scale']:.3f} |")
+                     f"{figures['scale']:.3f} | {over_depth} |")
     lines += ["", "| surface | accuracy mean / median cm | completeness mean / median cm | complete within "
                   f"{COMPLETE_WITHIN_VOXELS:g} voxels |", "| --- | --- | --- | --- |"]
     for row, figures in result["surface"].items():
