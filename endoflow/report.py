@@ -1,28 +1,12 @@
-"""Markdown tables like the paper's Tables 1-3 from the evaluation metrics of the workspace and experiments
-(one protocol's table as :mod:`endoflow.evaluation.summary` lays it out, which also prints the evaluate stage's
-summary of one test set).
+"""Markdown tables like the paper's Tables 1-3 from the evaluations of the workspace and of DVC's experiments and
+commits (``endoflow report``; each protocol's table as :mod:`endoflow.evaluation.summary` lays it out).
 
-Sources: the full evaluations (``<eval.predictions>/<test set>/evaluation.json``, see
-:mod:`endoflow.evaluation.results`) of the workspace and (unless disabled) of every finished DVC experiment and
-baseline commit that has them, listed through DVC's Python API and read at their revisions, so after
-
-    dvc exp run -S model.latent_bank=false
-    dvc exp run -S model.pose_vae=false
-    dvc exp run -S model.latent_bank=false -S model.pose_vae=false
-
-``endoflow report`` prints the four-way ablation. Each run is labelled with its name and its ablation
-switches (latent bank, pose VAE). The trivial baselines are shown once per test set, from the first run.
-
-With several seeds of a configuration (the sweep of README's "Seeds" section), a last section aggregates by
-configuration, per test set: mean and sample standard deviation over seeds of Abs Rel and the SimCol3D pose
-figures (:data:`SEED_METRICS`), and for each ablation its difference from the full model, marked where it
-exceeds the seed spread (both have at least two seeds and the two mean +- sd intervals do not overlap:
-``|mean_a - mean_full| > sd_a + sd_full``); then each configuration's pose against constant velocity, marked
-where the model is better by more than its spread (``mean + sd < constant velocity``). Runs with the same
-configuration and seed (the workspace and the experiment it came from) count once; one with other params (a
-run of another preset, say) is left out with a note on stderr. A configuration is the two
-switches plus the studies' settings where they differ from the defaults (:data:`STUDY_SETTINGS`: ``full,
-β=0.001``, ``full, mean warp``, ``full, offsets 1/2/3``); nothing else, so compare experiments of one preset.
+With several seeds of a configuration, a last section gives per test set the mean ± sample standard deviation
+over seeds (:data:`SEED_METRICS`), each configuration's difference from the full model (marked where it exceeds
+the seed spread: ``|mean_a - mean_full| > sd_a + sd_full``) and its pose against constant velocity. A
+configuration is the two ablation switches plus the studies' settings that differ from their defaults
+(:data:`STUDY_SETTINGS`); runs of one configuration and seed count once, and one with other params is left out
+with a note on stderr. How to run studies and read the report: docs/experiments.md.
 """
 
 from __future__ import annotations

@@ -1,26 +1,12 @@
 """``endoflow reconstruct``: depth per frame, the camera path and a fused surface from a trained model.
 
-Frames stream through the model one at a time: each frame's depth, and the pose between it and the previous
-selected frame, chained into camera-to-world poses from the identity at the first frame:
-``T_world_cur = T_world_prev @ inv(T_cur_prev)`` (``predict_pose(prev, cur)`` returns ``T_cur_prev``, mapping
-the previous frame's points into the current one). Depth and path share one scale, the model's (cm on the data it
-was trained on); ``scale`` multiplies both. Frames (or the region ``crop`` picks,
-:mod:`~endoflow.reconstruction.crop`) are centre-cropped to a square and resized as preprocessing does for
-training, and K follows (:func:`endoflow.data.frame_encoding.stored_intrinsics`).
-
-Everything is written into a staged folder that replaces ``out_dir`` only when the run completes, and only if
-``out_dir`` is new, empty or an earlier reconstruction (``--force``: any folder), never the input or a folder
-holding it or the model (:func:`endoflow.io.check_replaceable`):
-
-- ``depth/NNNNNN.png`` 16-bit z-depth in counts of ``depth/depth.json``'s ``unit_cm`` (0: unknown), with
-  ``.npy`` float32 cm on request; ``preview/NNNNNN.png`` colour-mapped inverse depth over one range for the
-  whole run, set by the first frame (:func:`preview_range`, in ``depth/depth.json``);
-- ``trajectory.tum``, ``trajectory.kitti`` and ``simcol/pose/`` (see :mod:`endoflow.data.trajectory_files`);
-- ``mesh.ply`` and ``points.ply`` (TSDF fusion, :mod:`endoflow.reconstruction.fusion`), in cm;
-- ``sheet.png`` (frames beside depth, the path from the top and the side, the fused surface) and ``video.mp4``
-  (frame | depth, streamed as frames come), see :mod:`endoflow.reconstruction.pictures`;
-- ``reconstruction.json``: its format (:data:`RECONSTRUCTION_FORMAT`), what ran (input, frames, size, K, scale,
-  speed) and, with ground truth, the scale that fits the model's depth to it.
+Frames stream through the model one at a time (centre-cropped and resized as preprocessing does, K following):
+each frame's depth and the pose network's step from the previous frame, chained into camera-to-world poses from
+the identity at the first frame (``T_world_cur = T_world_prev @ inv(T_cur_prev)``), then refined against
+keyframes with the depth (:mod:`endoflow.geometry.direct_alignment`, unless ``refine`` is None); the depth is
+fused along the path. The outputs go into a staged folder that replaces ``out_dir`` whole, only where it is new,
+empty or an earlier reconstruction (:func:`endoflow.io.check_replaceable`). What is written and what it means:
+docs/reconstruction.md.
 """
 
 from __future__ import annotations

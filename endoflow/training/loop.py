@@ -1,24 +1,11 @@
-"""The per-worker training loop that Ray Train runs on every rank (DDP).
+"""The per-worker training loop that Ray Train runs on every rank (DDP); it lives in the package because Ray
+workers unpickle it by module path, and its one input is a :class:`WorkerConfig`.
 
-It lives in the installed package because Ray workers unpickle it by module path. Its input is a
-:class:`WorkerConfig` (built by :mod:`endoflow.training.ray_trainer`; a frozen dataclass, so a misspelt field
-fails on the driver, not on a remote worker): the typed params, absolute paths or fsspec URLs of the shards
-and the latent bank, the MLflow tracking URI and run id, and ``resume_from``.
-
-Per epoch every rank trains on its own shards (:func:`endoflow.data.loader.rank_batches`: disjoint shards,
-the same number of batches on every rank, so no rank waits forever in an all-reduce). The losses are
-all-reduced every step: the mean is what gets logged, and a non-finite value stops every rank at the same
-step with :class:`NonFiniteLossError` before any weight is touched, leaving the last checkpoint as it was
-(non-finite weights after an epoch's last update stop it the same way). After each epoch rank 0's BatchNorm
-statistics are broadcast, the ranks validate disjoint parts of the val split (median-scaled Abs Rel and
-RMSE, the paper's protocol) and reduce the sums, and every rank reports a checkpoint through Ray:
-``state.pt`` from rank 0 and a ``rank-<r>.json`` audit from every rank (see
-:mod:`endoflow.training.checkpoint`). A restarted run continues after the newest complete checkpoint
-(Ray's restored one or the driver's ``resume_from``, whichever is newer), with every rank's random state
-restored, so a resumed run computes the same weights as an uninterrupted one.
-
-Only rank 0 writes to MLflow (SQLite allows one writer): losses every ``train.log_every`` steps, validation
-metrics every epoch, and depth beside GT for fixed val frames every epoch.
+Every rank trains on its own shards, the same number of batches each (:func:`endoflow.data.loader.rank_batches`),
+so no rank waits forever in an all-reduce; a non-finite loss stops every rank at the same step before any weight
+is touched. After each epoch the ranks validate disjoint parts of the val split and every rank reports a
+checkpoint (:mod:`endoflow.training.checkpoint`) with its random state, so a resumed run computes the same weights
+as an uninterrupted one. Only rank 0 writes to MLflow. docs/architecture.md and docs/cluster.md say more.
 """
 
 from __future__ import annotations
