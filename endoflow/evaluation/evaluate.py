@@ -25,7 +25,6 @@ from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig, Precision
 from endoflow.evaluation import metrics, plots
 from endoflow.evaluation.baselines import baseline_depths, baseline_relative_poses
-from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings, tracker_settings
 from endoflow.evaluation.scores import (
     DEPTH_METHODS,
     POSE_METHODS,
@@ -42,6 +41,7 @@ from endoflow.data.trajectory_files import write_simcol_relative_pose
 from endoflow.data.sequences import FrameRecord, sequence_frames
 from endoflow.data.shard_format import manifest_location, read_manifest
 from endoflow.devices import autocast, images_to_device, resolve_device, to_compute_layout, use_cpu_threads
+from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings, tracker_settings
 from endoflow.locations import absolute_location
 from endoflow.models.endoflow_model import load_trained_model
 from endoflow.models.mlflow_model import is_model_uri, local_model_file
