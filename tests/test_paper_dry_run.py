@@ -51,6 +51,7 @@ DRY_RUN_CUTS = {
     # 3 frames, the fewest that give a triplet (one sample per sequence)
     "synth.simcol.sequences": 5,
     "synth.simcol.frames": 3,
+    "synth.simcol.test_frames": 3,
     "synth.endoslam.frames": 3,  # the preset's 2 sequences stay: Colon and Small Intestine, one test set each
     "synth.scenenet.sequences": 2,  # 6 depth maps: 5 to train the bank on, 1 held out for the SWD
     "synth.scenenet.frames": 3,
