@@ -12,11 +12,14 @@ to it), except where it treats multi-node Ray as off (Windows and macOS: ``ray_c
 every interface while training runs: the rendezvous store (``TCPStore``) that torch opens in rank 0 binds all
 interfaces whatever address it is given, and Ray Train offers no way to hand it a bound socket.
 
-Joining a cluster (``ray.address`` set) ships this tree's ``endoflow`` package to every node through the job's
+Every job, local or on a cluster, ships this tree's ``endoflow`` package to its workers through the job's
 ``runtime_env`` (``py_modules``), then runs one small task on every live node that reports the endoflow it
 imports: its version and a SHA-256 of its source files. A node that differs from the driver stops the start
-with :class:`ClusterMismatchError` naming it. That happens when the driver's working directory also exists on
-a node with another endoflow checkout in it: Ray puts that directory first on its workers' ``sys.path``.
+with :class:`ClusterMismatchError` naming it. Without the shipping, a local Ray's workers import the installed
+endoflow: a queued DVC experiment, run in a copy of the project, trained with the workspace's loop, edited since
+(seen: a worker failed on a params field the copy did not have). On a cluster a node differs when the driver's
+working directory also exists there with another endoflow checkout in it: Ray puts that directory first on its
+workers' ``sys.path``.
 """
 
 from __future__ import annotations
@@ -89,22 +92,22 @@ def connect_ray(cfg: RayConfig) -> bool:
         with without_token_auth_notice():
             ray.init(address=cfg.address, log_to_driver=True, logging_level=logging.WARNING,
                      runtime_env=shipped_runtime_env())
-        try:
-            check_same_endoflow_on_every_node(endoflow_build())
-        except BaseException:
-            ray.shutdown()
-            raise
-        # Ray's own "Connecting to existing Ray cluster" line is INFO, below the level set above
-        nodes = [node for node in ray.nodes() if node.get("Alive")]
-        print(f"[ray] joined the cluster at {cfg.address}: {len(nodes)} nodes, "
-              f"{ray.cluster_resources().get('CPU', 0):g} CPUs", file=sys.stderr, flush=True)
     else:
         # "local": a new instance even where `ray start` left one running
         with multi_node_ray_off(), without_token_auth_notice():
             ray.init(address="local", num_cpus=cfg.num_cpus or os.cpu_count(), include_dashboard=False,
                      object_store_memory=cfg.object_store_mb * 2**20, log_to_driver=True,
-                     logging_level=logging.WARNING,
-                     runtime_env={"worker_process_setup_hook": "endoflow.ray_runtime.quiet_worker_logs"})
+                     logging_level=logging.WARNING, runtime_env=shipped_runtime_env())
+    try:
+        check_same_endoflow_on_every_node(endoflow_build())
+    except BaseException:
+        ray.shutdown()
+        raise
+    if cfg.address:
+        # Ray's own "Connecting to existing Ray cluster" line is INFO, below the level set above
+        nodes = [node for node in ray.nodes() if node.get("Alive")]
+        print(f"[ray] joined the cluster at {cfg.address}: {len(nodes)} nodes, "
+              f"{ray.cluster_resources().get('CPU', 0):g} CPUs", file=sys.stderr, flush=True)
     return True
 
 
@@ -207,8 +210,8 @@ def quiet_worker_logs() -> None:
 
 
 def shipped_runtime_env() -> dict[str, Any]:
-    """The job's ``runtime_env`` on a cluster: this tree's endoflow package on every node (Ray uploads it once
-    per content, without bytecode caches), and the worker log setup."""
+    """The job's ``runtime_env``: this tree's endoflow package on every node (Ray uploads it once per content,
+    without bytecode caches), and the worker log setup."""
     return {"py_modules": [str(package_folder())], "excludes": ["__pycache__"],
             "worker_process_setup_hook": "endoflow.ray_runtime.quiet_worker_logs"}
 
@@ -265,7 +268,7 @@ def check_same_endoflow_on_every_node(expected: EndoflowBuild) -> None:
             problems.append(f"{name} imports {found}")
     if problems:
         raise ClusterMismatchError(
-            f"the Ray cluster at ray.address runs another endoflow than this driver's {expected}: "
+            f"the Ray workers import another endoflow than this driver's {expected}: "
             + "; ".join(problems)
             + ". Every node must import the driver's endoflow: its workers get this tree's package through "
               "runtime_env py_modules, unless the driver's working directory holds another endoflow on that node "

@@ -204,3 +204,29 @@ def test_fingerprint_ignores_the_epoch_count_but_not_what_training_computes(tmp_
     (tmp_path / "manifest.parquet").write_bytes(b"other data")
     params.train = params.train.replace(lr=params.train.lr / 2)
     assert training_fingerprint(params, str(tmp_path), None) != base
+
+
+def test_a_local_rays_workers_import_the_drivers_endoflow_not_the_installed_one(tmp_path: Path):
+    """A queued DVC experiment runs its stages in a copy of the project: the workers must train with the copy's
+    code, not with the installed (editable) package the workspace holds, which may have changed since."""
+    import shutil
+
+    project = Path(__file__).resolve().parents[1]
+    copy = tmp_path / "copy"
+    shutil.copytree(project / "endoflow", copy / "endoflow", ignore=shutil.ignore_patterns("__pycache__"))
+    (copy / "endoflow" / "only_in_the_copy.py").write_text("WHERE = 'the copy'\n")
+    script = (
+        "import ray\n"
+        "from endoflow.config import RayConfig\n"
+        "from endoflow.ray_runtime import connect_ray\n"
+        "connect_ray(RayConfig(num_cpus=1))\n"
+        "def where():\n"
+        "    from endoflow.only_in_the_copy import WHERE\n"
+        "    return WHERE\n"
+        "print(ray.get(ray.remote(num_cpus=1)(where).remote()))\n"
+    )
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    run = subprocess.run([sys.executable, "-c", script], cwd=copy, capture_output=True, text=True, timeout=300,
+                         env=env)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.strip().splitlines()[-1] == "the copy"

@@ -122,7 +122,7 @@ def test_two_workers_run_on_two_nodes_with_identical_weights_and_disjoint_sample
 def test_a_driver_with_another_endoflow_is_refused_naming_every_node(cluster, monkeypatch):
     tree_version = endoflow.__version__
     monkeypatch.setattr(endoflow, "__version__", "0.0.0-elsewhere")  # the workers import the tree's version
-    with pytest.raises(ClusterMismatchError, match=r"the Ray cluster at ray\.address runs another endoflow than "
+    with pytest.raises(ClusterMismatchError, match=r"the Ray workers import another endoflow than "
                                                    r"this driver's endoflow 0\.0\.0-elsewhere") as refused:
         connect_ray(RayConfig(address=cluster.address))
     for node in [cluster.head_node, *cluster.worker_nodes]:
