@@ -51,15 +51,19 @@ STUDY_SETTINGS = (
 )
 _HEADLINE_PROTOCOL = {metric: protocol for _, protocol, _, metric in HEADLINE}  # by the evaluation JSON's name
 # the seed statistics' figures: column title, protocol of the evaluation JSON (the headline figures' own, the
-# ATEs beside RTE's), and the trivial baseline in it
-SEED_METRICS = {"abs_rel": ("Abs Rel", _HEADLINE_PROTOCOL["abs_rel"], "constant_depth"),
-                "rte": ("RTE (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity"),
-                "rot": ("ROT (°)", _HEADLINE_PROTOCOL["rot"], "constant_velocity"),
-                "ate": ("ATE (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity"),
-                "ate_local": ("ATE local (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity"),
-                "step_corr": ("step corr (↑)", "pose_motion", "constant_velocity"),
-                "path_over_depth": ("path / depth scale (1)", "scale", "model")}
-POSE_TARGET_METRICS = ("rte", "rot", "ate", "ate_local")
+# ATEs beside RTE's), the trivial baseline in it (None: the figure has none), and the method whose figure it is
+# with its metric's key (the model's own, or its path refined against keyframes)
+SEED_METRICS = {"abs_rel": ("Abs Rel", _HEADLINE_PROTOCOL["abs_rel"], "constant_depth", ("model", "abs_rel")),
+                "rte": ("RTE (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity", ("model", "rte")),
+                "rot": ("ROT (°)", _HEADLINE_PROTOCOL["rot"], "constant_velocity", ("model", "rot")),
+                "ate": ("ATE (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity", ("model", "ate")),
+                "ate_local": ("ATE local (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity", ("model", "ate_local")),
+                "step_corr": ("step corr (↑)", "pose_motion", "constant_velocity", ("model", "step_corr")),
+                "path_over_depth": ("path / depth scale (1)", "scale", None, ("model", "path_over_depth")),
+                "depth_drift": ("depth scale drift (1)", "scale", None, ("model", "depth_drift")),
+                "refined_rte": ("refined RTE (cm)", "pose_simcol", "constant_velocity", ("refined", "rte")),
+                "refined_rot": ("refined ROT (°)", "pose_simcol", "constant_velocity", ("refined", "rot"))}
+POSE_TARGET_METRICS = ("rte", "rot", "ate", "ate_local", "refined_rte", "refined_rot")
 
 
 @dataclass
@@ -286,16 +290,19 @@ def _differing_params(first: dict, second: dict) -> list[str]:
 
 def seed_samples(runs: list[RunResults], test_set: str, metric: str) -> list[float]:
     """The model's ``metric`` (a key of :data:`SEED_METRICS`) on ``test_set`` in each run that has it."""
-    protocol = SEED_METRICS[metric][1]
-    values = [run.test_sets.get(test_set, {}).get(protocol, {}).get("model", {}).get(metric) for run in runs]
+    _, protocol, _, (method, key) = SEED_METRICS[metric]
+    values = [run.test_sets.get(test_set, {}).get(protocol, {}).get(method, {}).get(key) for run in runs]
     return [float(value) for value in values if isinstance(value, (int, float))]
 
 
 def trivial_baseline(runs: list[RunResults], test_set: str, metric: str) -> Optional[float]:
-    """The figure's trivial baseline (the same in every run: it depends on the data only)."""
-    _, protocol, method = SEED_METRICS[metric]
+    """The figure's trivial baseline (the same in every run: it depends on the data only); None for a figure
+    without one."""
+    _, protocol, method, (_, key) = SEED_METRICS[metric]
+    if method is None:
+        return None
     for run in runs:
-        value = run.test_sets.get(test_set, {}).get(protocol, {}).get(method, {}).get(metric)
+        value = run.test_sets.get(test_set, {}).get(protocol, {}).get(method, {}).get(key)
         if isinstance(value, (int, float)):
             return float(value)
     return None
@@ -361,12 +368,14 @@ def _pose_against_constant_velocity(runs: list[RunResults], groups: dict[str, li
                                     test_sets: list[str]) -> str:
     """Per configuration and test set, each pose figure's mean relative to constant velocity's; ``*`` where the
     model is better by more than its seed spread (constant velocity depends on the data only: no spread)."""
-    baselines = {(t, m): trivial_baseline(runs, t, m) for t in test_sets for m in POSE_TARGET_METRICS}
+    shown = [m for m in POSE_TARGET_METRICS
+             if any(seed_samples(group, t, m) for group in groups.values() for t in test_sets)]
+    baselines = {(t, m): trivial_baseline(runs, t, m) for t in test_sets for m in shown}
     rows = []
     for name, group in groups.items():
         for test_set in test_sets:
             cells = []
-            for metric in POSE_TARGET_METRICS:
+            for metric in shown:
                 values, baseline = seed_samples(group, test_set, metric), baselines[test_set, metric]
                 if not values or not baseline:
                     cells.append("–")
@@ -378,7 +387,7 @@ def _pose_against_constant_velocity(runs: list[RunResults], groups: dict[str, li
                 rows.append([name, test_set, str(len(group))] + cells)
     if not rows:
         return ""
-    headers = ["configuration", "test set", "seeds"] + [SEED_METRICS[m][0] for m in POSE_TARGET_METRICS]
+    headers = ["configuration", "test set", "seeds"] + [SEED_METRICS[m][0] for m in shown]
     return ("### Pose against constant velocity\n\nThe mean over seeds relative to constant velocity's figure "
             "(negative: the model is better); `*` where the model is better by more than its seed spread "
             "(mean + sd below constant velocity's).\n\n" + markdown_table(headers, rows))

@@ -351,3 +351,20 @@ def test_a_run_with_the_configuration_and_seed_of_another_but_other_params_is_le
     error = capsys.readouterr().err
     assert error.count("left out") == 1
     assert "offset-s0 left out" in error and "full-s0" in error and "preprocess.neighbour_offset" in error
+
+
+def test_seed_statistics_show_the_refined_path_and_the_scale_where_the_runs_have_them():
+    runs = [seeded_run(f"full-s{seed}", True, True, seed, 0.10, 0.50) for seed in (0, 1)]
+    for run, (refined, scale) in zip(runs, ((0.08, 0.9), (0.10, 1.1))):
+        run.test_sets["simcol_12"]["pose_simcol"]["refined"] = {"rte": refined, "rot": 1.0}
+        run.test_sets["simcol_12"]["scale"] = {"model": {"path_over_depth": scale, "depth_drift": 1.0}}
+    text = format_report(runs)
+    table = table_rows(text[text.index("### simcol_12"):text.index("### Pose against constant velocity")])
+    assert "refined RTE (cm)" in table[0] and "path / depth scale (1)" in table[0]
+    full = table[2]
+    assert full[table[0].index("refined RTE (cm)")] == "0.0900 ± 0.0141"
+    assert full[table[0].index("path / depth scale (1)")] == "1.0000 ± 0.1414"
+    # a figure without a trivial baseline shows none
+    assert table[3][table[0].index("path / depth scale (1)")] == "–"
+    against = table_rows(text[text.index("### Pose against constant velocity"):])
+    assert against[2][against[0].index("refined RTE (cm)")] == "-90.0 % *"  # 0.09 against constant velocity's 0.9
