@@ -382,3 +382,16 @@ def test_a_refined_path_is_written_with_the_networks_own_beside_it(scene: Path, 
     np.testing.assert_array_equal(network, read_tum(tmp_path / "plain" / "trajectory.tum")[1])
     _, path = read_tum(tmp_path / "refined" / "trajectory.tum")
     assert len(path) == len(network) and np.array_equal(path[0], network[0])
+
+
+def test_the_black_border_of_a_circular_field_of_view_gets_no_depth(scene: Path, model_file: Path, params: Params,
+                                                                    tmp_path: Path) -> None:
+    folder = image_folder(scene, params, tmp_path / "frames")
+    v, u = np.mgrid[:SIZE, :SIZE]
+    inside = ((u - (SIZE - 1) / 2) ** 2 + (v - (SIZE - 1) / 2) ** 2 <= (0.45 * SIZE) ** 2)
+    for path in folder.iterdir():
+        cv2.imwrite(str(path), cv2.imread(str(path)) * inside[..., None].astype(np.uint8))
+    summary = run(folder, model_file, tmp_path / "out", params, intrinsics=k_numbers(scene, params))
+    assert 0.45 < summary["field_of_view"]["share"] < 0.64  # pi 0.45^2, less the rim
+    depth = depth_of(tmp_path / "out", 0)
+    assert (depth[~inside] == 0).all() and (depth[24:40, 24:40] > 0).all()

@@ -11,6 +11,7 @@ docs/reconstruction.md.
 
 from __future__ import annotations
 
+import itertools
 import math
 import sys
 from dataclasses import asdict, dataclass, field
@@ -21,6 +22,7 @@ import numpy as np
 import torch
 
 from endoflow.config import ModelConfig, Params
+from endoflow.data.field_of_view import field_of_view, resized_field_of_view
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.errors import DataFormatError
@@ -41,6 +43,7 @@ from endoflow.reconstruction.recording import RECORDING_FILE, Recording
 if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for it
     from endoflow.tracking import RunHandle
 
+FIELD_OF_VIEW_FRAMES = 60  # the frames the field of view is found in: its border is black in every one
 NETWORK_PATH_FILE = "trajectory_network.tum"  # the pose network's own chain, beside a refined trajectory.tum
 # What MLflow gets of a reconstruction: what a person opens first, the path and the surface (not the depth maps).
 LOGGED_OUTPUTS = ("sheet.png", "video.mp4", RECORDING_FILE, "reconstruction.json", "trajectory.tum",
@@ -101,6 +104,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     unit = DEPTH_UNIT_CM * max(1, math.ceil(max_depth / (DEPTH_UNIT_CM * np.iinfo(np.uint16).max)))
     voxel = options.voxel_cm or default_voxel_cm(K, record.params.model.max_depth * options.scale, size)
     volume = TSDFVolume(voxel, options.trunc_cm or 4 * voxel) if options.fuse else None
+    valid = input_field_of_view(source, options.frames, region, size)
     path = CameraPath()
     tracker = KeyframeTracker(torch.from_numpy(K), options.refine) if options.refine is not None else None
     explained = PathPhotometry(K, np.asarray(record.baselines.mean_relative_pose, np.float64))
@@ -118,6 +122,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
                 image = images_to_device(torch.from_numpy(rgb).permute(2, 0, 1)[None].contiguous(), device,
                                          "float32")
                 depth, T_cur_prev = predict_frame(model, image, previous, options.scale, model_path, frame.index)
+                depth = np.where(valid, depth, np.float32(0))  # outside the field of view: unknown
                 network_pose = path.network_step(T_cur_prev, options.scale)
                 pose = network_pose if tracker is None else tracker.track(
                     torch.from_numpy(rgb).permute(2, 0, 1).double() / 255, torch.from_numpy(depth)[None],
@@ -153,6 +158,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
             "tsdf": {"voxel_cm": voxel, "trunc_cm": volume.trunc_cm} if volume is not None else None,
             "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
                      "blocks": len(volume.blocks)} if mesh is not None else None,
+            "field_of_view": {"share": float(valid.mean()), "frames_looked_at": FIELD_OF_VIEW_FRAMES},
             "path": {"refined": tracker is not None,
                      **({"keyframes": tracker.keyframes} if tracker is not None else {}),
                      "photometric_error": explained.means()},
@@ -202,6 +208,15 @@ class PathPhotometry:
 
     def means(self) -> dict[str, float]:
         return {name: float(np.mean(values)) for name, values in self.errors.items() if values}
+
+
+def input_field_of_view(source: FrameSource, frames: FrameRange, region: Crop, size: int) -> np.ndarray:
+    """``size x size`` bool: where the model's view of the input sees the scene (:mod:`endoflow.data.field_of_view`),
+    from its first :data:`FIELD_OF_VIEW_FRAMES` selected frames."""
+    looked_at = [frame.cropped(region).rgb for frame in itertools.islice(source.frames(frames), FIELD_OF_VIEW_FRAMES)]
+    if not looked_at:  # no frames: the run itself says so, naming the input
+        return np.ones((size, size), bool)
+    return resized_field_of_view(field_of_view(looked_at), size)
 
 
 def check_frame_range(source: FrameSource, frames: FrameRange) -> None:

@@ -1,0 +1,48 @@
+"""The field of view of an endoscope's frames: the pixels that see the scene, not the black border around it.
+
+An endoscope's image is a circle (or an octagon) in a black frame, sometimes with black bands beside it. That
+border is black in every frame and touches the image's edge; the lumen is dark too, but it lies inside and lights
+up as the camera moves. So a pixel is outside the field of view where it stays black (every channel at most
+``BLACK_LEVEL``) in every frame looked at, and belongs to a black region that touches the image's edge; the
+border's blurred rim is left out too (``RIM_PX``). Found once per sequence, from its frames.
+"""
+
+from __future__ import annotations
+
+from typing import Iterable
+
+import cv2
+import numpy as np
+
+from endoflow.data.frame_encoding import centre_square
+
+BLACK_LEVEL = 12  # of 255: the black of the border, above its compression noise, below a dark lumen's wall
+RIM_PX = 2  # the border's blurred edge, left out with it
+
+
+def field_of_view(frames: Iterable[np.ndarray]) -> np.ndarray:
+    """``H x W`` bool, True where the frames (``H x W x 3`` uint8, at least one) see the scene."""
+    brightest = None
+    for frame in frames:
+        if frame.ndim != 3 or frame.dtype != np.uint8:
+            raise ValueError(f"field of view: expected H x W x 3 uint8 frames, got {frame.dtype} {frame.shape}")
+        level = frame.max(axis=2)
+        brightest = level if brightest is None else np.maximum(brightest, level)
+    if brightest is None:
+        raise ValueError("field of view: no frames to find it in")
+    black = (brightest <= BLACK_LEVEL).astype(np.uint8)
+    count, labels = cv2.connectedComponents(black, connectivity=8)
+    edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    border = np.isin(labels, edge[edge > 0])
+    if RIM_PX and border.any():
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * RIM_PX + 1, 2 * RIM_PX + 1))
+        border = cv2.dilate(border.astype(np.uint8), kernel) > 0
+    return ~border
+
+
+def resized_field_of_view(valid: np.ndarray, size: int) -> np.ndarray:
+    """The field of view of ``valid`` after the centre crop to a square and the resize to ``size`` that frames get
+    (:mod:`endoflow.data.frame_encoding`): a pixel is in where all it averages over is."""
+    top, left, side = centre_square(*valid.shape)
+    square = valid[top:top + side, left:left + side].astype(np.float32)
+    return cv2.resize(square, (size, size), interpolation=cv2.INTER_AREA) > 0.999

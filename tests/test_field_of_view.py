@@ -1,0 +1,78 @@
+"""The field of view: the black border around an endoscope's image is found and left out, a dark lumen is not."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from endoflow.data.field_of_view import RIM_PX, field_of_view, resized_field_of_view
+from endoflow.reconstruction.frames import FrameRange, VideoFrames
+from tests.samples import COLONOSCOPY_CLIP
+
+SIZE = 96
+
+
+def scene_frames(count: int = 8, seed: int = 0) -> list[np.ndarray]:
+    """Textured frames that change from one to the next, with a lumen (a dark disc, moving) inside."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for i in range(count):
+        frame = rng.integers(60, 220, (SIZE, SIZE, 3)).astype(np.uint8)
+        cv2.circle(frame, (40 + i, 45), 10, (3, 2, 2), -1)  # the lumen: as black as the border
+        frames.append(frame)
+    return frames
+
+
+def circle(radius: float) -> np.ndarray:
+    v, u = np.mgrid[:SIZE, :SIZE]
+    return (u - (SIZE - 1) / 2) ** 2 + (v - (SIZE - 1) / 2) ** 2 <= radius**2
+
+
+def test_a_circular_field_of_view_is_found_and_its_rim_left_out():
+    inside = circle(40)
+    frames = [frame * inside[..., None].astype(np.uint8) for frame in scene_frames()]
+    valid = field_of_view(frames)
+    assert not valid[0, 0] and not valid[-1, -1] and valid[SIZE // 2, SIZE // 2]
+    assert (valid <= inside).all()  # nothing outside the circle
+    assert valid[circle(40 - RIM_PX - 1)].all()  # everything inside but the rim
+
+
+def test_a_dark_lumen_stays_in_the_field_of_view():
+    frames = [frame * circle(40)[..., None].astype(np.uint8) for frame in scene_frames()]
+    lumen = np.zeros((SIZE, SIZE), np.uint8)
+    cv2.circle(lumen, (43, 45), 6, 1, -1)  # black in every frame (the lumen moves by 7 px)
+    assert field_of_view(frames)[lumen > 0].all()
+
+
+def test_frames_without_a_border_are_all_in_view_and_bad_input_is_refused():
+    assert field_of_view(scene_frames()).all()
+    with pytest.raises(ValueError, match="no frames"):
+        field_of_view([])
+    with pytest.raises(ValueError, match="uint8"):
+        field_of_view([np.zeros((4, 4), np.float32)])
+
+
+def test_resizing_keeps_only_what_lies_wholly_inside():
+    valid = np.zeros((10, 20), bool)
+    valid[:, 5:15] = True  # the centre square is columns 5-14: all in view
+    assert resized_field_of_view(valid, 5).all()
+    valid[0, 5] = False
+    small = resized_field_of_view(valid, 5)
+    assert not small[0, 0] and small.sum() == 24
+
+
+@pytest.mark.skipif(not COLONOSCOPY_CLIP.is_file(), reason=f"real colonoscopy clip not found at {COLONOSCOPY_CLIP}")
+def test_the_real_clips_circular_field_of_view_is_found():
+    from endoflow.reconstruction.crop import Crop, frame_region
+
+    source = VideoFrames(COLONOSCOPY_CLIP)
+    region = frame_region(source.native_size, Crop(0, 0, 192, 192), str(COLONOSCOPY_CLIP))
+    frames = [frame.cropped(region).rgb for frame, _ in zip(source.frames(FrameRange()), range(60))]
+    valid = field_of_view(frames)
+    # a circle cut by the square's sides: the four corners out (about 7 % of the frame), the rest in
+    assert 0.85 < valid.mean() < 0.97
+    assert not valid[0, 0] and not valid[0, -1] and not valid[-1, 0] and not valid[-1, -1]
+    assert valid[96, 96] and valid[96, 10] and valid[10, 96]
