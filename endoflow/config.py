@@ -184,7 +184,7 @@ class SynthLayoutConfig(Section):
 class SynthTubeLayoutConfig(SynthLayoutConfig):
     test_frames: Optional[int] = setting(
         None, "frames of each test sequence, whose camera follows a script crossing every change of motion (a slow "
-              "advance, a pause, a withdrawal with a turn, a fast advance); null: as frames", ge=2)
+              "advance, a pause, a withdrawal, a fast advance, a turn); null: as frames", ge=2)
 
 
 class SynthConfig(Section):

@@ -311,3 +311,18 @@ def test_the_sequence_reader_gives_each_kept_sequence_whole_and_in_order(oracle_
     # three targets (frames 1..3) and the first one's prev; the last one's next is frame 4
     assert [(f.sequence, f.frame) for f in frames] == [(s, i) for s in ("S5", "O1") for i in range(5)]
     assert [f.depth_cm is not None for f in frames[:5]] == [False, True, True, True, False]
+
+
+def test_without_refinement_the_evaluation_has_no_refined_path_and_writes_every_table(oracle_shards: Path,
+                                                                                        tmp_path: Path):
+    params = shard_params(oracle_shards)
+    params.model = params.model.replace(latent_bank=False)
+    params.refine = params.refine.replace(enabled=False)
+    write_untrained_model(tmp_path / "endoflow.pt", params, None)
+    urls = eval_set_shards(str(oracle_shards), params.eval.test_sets["simcol_3"])
+    result = evaluate_test_set(params, "simcol_3", urls, tmp_path / "endoflow.pt", tmp_path / "m.json",
+                               tmp_path / "plots", tmp_path / "predictions")
+    assert set(result["pose_simcol"]) == {"model", "constant_velocity"}
+    columns = (tmp_path / "predictions" / "trajectory.csv").read_text().splitlines()[0].split(",")
+    assert "model_x" in columns and not any(column.startswith("refined") for column in columns)
+    assert (tmp_path / "plots" / "trajectory_O1.png").is_file()

@@ -313,3 +313,20 @@ def test_scale_consistency_hand_computed():
     assert metrics.scale_consistency(truth, half, [4.0] * 5)["path_over_depth"] == pytest.approx(0.5)
     with pytest.raises(ValueError, match="positive"):
         metrics.scale_consistency(truth, half, [])
+
+
+def test_the_direction_of_a_camera_that_mostly_pauses_comes_from_its_moving_steps():
+    # three of five steps exactly still (their median is 0): the two moving steps agree exactly
+    truth = path_of([translation(0, 0, z) for z in (0, 0, 1, 0, 2)])
+    predicted = np.stack([translation(x, 0, z) for x, z in ((1e-3, 0), (0, 1e-3), (0, 1), (1e-3, 0), (0, 2))])
+    assert metrics.motion_agreement(truth, predicted)["direction_deg"] == pytest.approx(0.0, abs=1e-6)
+    still = path_of([translation(0, 0, 0)] * 3)
+    assert metrics.motion_agreement(still, metrics.relative_poses(still))["direction_deg"] == 0.0
+
+
+def test_scale_consistency_refuses_paths_it_cannot_compare():
+    truth = path_of([translation(0, 0, z) for z in (1, 2, 3)])
+    with pytest.raises(ValueError, match="expected 3 relative poses"):
+        metrics.scale_consistency(truth, metrics.relative_poses(truth)[:1], [1.0] * 4)
+    with pytest.raises(ValueError, match="does not move"):
+        metrics.scale_consistency(truth, np.repeat(np.eye(4)[None], 3, axis=0), [1.0] * 4)

@@ -376,7 +376,7 @@ def test_a_refined_path_is_written_with_the_networks_own_beside_it(scene: Path, 
     # the ground-truth-free figure: the plain path is the network's own
     errors = plain["path"]["photometric_error"]
     assert set(errors) == {"path", "network", "constant_velocity"} and errors["path"] == errors["network"]
-    assert refined["path"]["photometric_error"]["path"] <= refined["path"]["photometric_error"]["network"] * 1.05
+    assert refined["path"]["photometric_error"]["path"] < refined["path"]["photometric_error"]["network"]
     # the network's own chain is the unrefined reconstruction's path, to the bit
     _, network = read_tum(tmp_path / "refined" / NETWORK_PATH_FILE)
     np.testing.assert_array_equal(network, read_tum(tmp_path / "plain" / "trajectory.tum")[1])
@@ -392,6 +392,7 @@ def test_the_black_border_of_a_circular_field_of_view_gets_no_depth(scene: Path,
     for path in folder.iterdir():
         cv2.imwrite(str(path), cv2.imread(str(path)) * inside[..., None].astype(np.uint8))
     summary = run(folder, model_file, tmp_path / "out", params, intrinsics=k_numbers(scene, params))
-    assert 0.45 < summary["field_of_view"]["share"] < 0.64  # pi 0.45^2, less the rim
+    # pi 0.45^2 = 0.64 of the frame, less the 2-px rim: pi (0.45 - 2 / 64)^2 = 0.55
+    assert 0.53 < summary["field_of_view"]["share"] < 0.57
     depth = depth_of(tmp_path / "out", 0)
     assert (depth[~inside] == 0).all() and (depth[24:40, 24:40] > 0).all()

@@ -16,7 +16,9 @@ import numpy as np
 
 from endoflow.data.frame_encoding import centre_square
 
-BLACK_LEVEL = 12  # of 255: the black of the border, above its compression noise, below a dark lumen's wall
+# of 255: the black of the border, above its compression noise, below a dark lumen's wall (a frame-by-frame test
+# of a single pixel, as the tracker's, needs a lower one: it has no other frames to light the pixel up)
+BLACK_LEVEL = 12
 RIM_PX = 2  # the border's blurred edge, left out with it
 
 
@@ -31,7 +33,7 @@ def field_of_view(frames: Iterable[np.ndarray]) -> np.ndarray:
     if brightest is None:
         raise ValueError("field of view: no frames to find it in")
     black = (brightest <= BLACK_LEVEL).astype(np.uint8)
-    count, labels = cv2.connectedComponents(black, connectivity=8)
+    _, labels = cv2.connectedComponents(black, connectivity=8)
     edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     border = np.isin(labels, edge[edge > 0])
     if RIM_PX and border.any():

@@ -40,7 +40,8 @@ from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
 from endoflow.data.sequences import FrameRecord, sequence_frames
 from endoflow.data.shard_format import manifest_location, read_manifest
-from endoflow.devices import autocast, images_to_device, resolve_device, to_compute_layout, use_cpu_threads
+from endoflow.devices import (autocast, images_to_device, resolve_device, to_compute_layout, unit_float_images,
+                              use_cpu_threads)
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings, tracker_settings
 from endoflow.locations import absolute_location
 from endoflow.models.endoflow_model import load_trained_model
@@ -165,21 +166,21 @@ class SequenceEvaluator:
         if self.refine is not None:
             # the step into each frame of the batch; the sequence's first frame has none
             steps = [None] * (len(batch) - len(relative)) + list(relative)
-            self._track(result, batch, rgb, depth, steps)
+            self._track(result, batch, depth, steps)
         for frame, prediction in zip(batch, depth):
             self._add_frame(result, frame, prediction)
         self._carry = batch[-1]
         self.frames_done += len(batch)
 
-    def _track(self, result: SequenceResult, batch: list[FrameRecord], rgb: torch.Tensor, depth: np.ndarray,
+    def _track(self, result: SequenceResult, batch: list[FrameRecord], depth: np.ndarray,
                steps: list[Optional[np.ndarray]]) -> None:
         """Each frame's refined pose, aligned to the tracker's keyframe from the pose network's step; the tracker
         starts anew with each sequence and after missing frames."""
-        images = rgb.float().cpu()
+        # the frames as read, not the device's copy (bf16 under autocast on a GPU)
+        images = unit_float_images(torch.stack([frame.rgb for frame in batch]))
         for frame, image, prediction, step in zip(batch, images, depth, steps):
-            if step is None or frame.after_gap:
-                self.tracker = self.tracker or KeyframeTracker(torch.from_numpy(frame.K), self.refine)
-                self.tracker.restart()
+            if step is None or frame.after_gap:  # a sequence's K is its own
+                self.tracker = KeyframeTracker(torch.from_numpy(frame.K), self.refine)
             start = np.eye(4) if step is None else result.refined[-1] @ step
             result.refined.append(self.tracker.track(image, torch.from_numpy(prediction)[None],
                                                      torch.from_numpy(start)).numpy())
@@ -300,7 +301,7 @@ def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> tu
         trajectory[method] = result["trajectory"][:, :3, 3]
     ratios = [ratio for ratio in seq.depth_ratios[start:stop] if ratio is not None]
     for method in ("model", "refined") if ratios else ():
-        if method in predicted:
+        if method in predicted and np.any(predicted[method][:, :3, 3]):
             rows += score_rows(seq.name, None, method, "scale",
                                metrics.scale_consistency(gt_poses, predicted[method], ratios))
     return rows, trajectory
@@ -372,7 +373,7 @@ def write_tables(folder: Path, frames_table: pd.DataFrame, sequences_table: pd.D
     """The per-frame, per-sequence and trajectory tables (CSV) of one test set, the data of its DVC plots."""
     write_csv(folder / "per_frame.csv", frames_table)
     write_csv(folder / "per_sequence.csv", sequences_table)
-    rows = [{"sequence": seq, "frame": f, **{f"{m}_{axis}": traj[m][i, k] for m in ("gt", *POSE_METHODS)
+    rows = [{"sequence": seq, "frame": f, **{f"{m}_{axis}": traj[m][i, k] for m in ("gt", *POSE_METHODS) if m in traj
                                                for k, axis in enumerate("xyz")}}
             for seq, traj in trajectories.items() for i, f in enumerate(traj["frames"])]
     if rows:
@@ -385,7 +386,7 @@ def write_plots(name: str, out_plots: Path, evaluator: SequenceEvaluator, frames
     with staged_directory(out_plots, FIGURE_FOLDER) as folder:
         for seq, traj in trajectories.items():
             figure = plots.trajectory_figure(f"{name} {seq}: trajectory (scale fitted, chained from the first "
-                                             f"GT pose)", traj["gt"], {m: traj[m] for m in POSE_METHODS})
+                                             f"GT pose)", traj["gt"], {m: traj[m] for m in POSE_METHODS if m in traj})
             save_figure(folder / f"trajectory_{slug(seq)}.png", figure)
         if evaluator.examples:
             save_figure(folder / "depth_examples.png",

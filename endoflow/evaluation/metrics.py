@@ -266,7 +266,8 @@ def motion_agreement(gt_poses: np.ndarray, pred_relative: np.ndarray) -> dict[st
     gt_t, pred_t = gt_relative[:, :3, 3], pred_relative[:, :3, 3]
     gt_step, pred_step = np.linalg.norm(gt_t, axis=1), np.linalg.norm(pred_t, axis=1)
     scale = abs(fit_translation_scale(gt_t, pred_t))
-    moving = gt_step >= DIRECTION_MIN_STEP_SHARE * np.median(gt_step)
+    # steps of a paused camera have no direction; a sequence that mostly pauses still has its moving ones
+    moving = gt_step > max(DIRECTION_MIN_STEP_SHARE * float(np.median(gt_step)), 1e-9)
     cosine = np.sum(gt_t * pred_t, axis=1) / np.maximum(gt_step * pred_step, 1e-12)
     return {
         "step_corr": correlation(gt_step, pred_step),
@@ -275,7 +276,9 @@ def motion_agreement(gt_poses: np.ndarray, pred_relative: np.ndarray) -> dict[st
                                      rotation_angle_deg(pred_relative[:, :3, :3])),
         "step_spread": 0.0 if _constant(pred_step) else float(scale * np.std(pred_step) / max(float(np.std(gt_step)),
                                                                                                1e-12)),
-        "direction_deg": float(np.median(np.degrees(np.arccos(np.clip(cosine[moving], -1.0, 1.0))))),
+        # a camera that never moves has no direction to find: none is wrong
+        "direction_deg": float(np.median(np.degrees(np.arccos(np.clip(cosine[moving], -1.0, 1.0)))))
+        if moving.any() else 0.0,
     }
 
 
@@ -290,9 +293,14 @@ def scale_consistency(gt_poses: np.ndarray, pred_relative: np.ndarray, depth_rat
     """
     gt_poses = _pose_stack(gt_poses, "GT poses")
     pred_relative = _pose_stack(pred_relative, "predicted relative poses")
+    if len(pred_relative) != len(gt_poses) - 1:
+        raise ValueError(f"expected {len(gt_poses) - 1} relative poses for {len(gt_poses)} GT poses, "
+                         f"got {len(pred_relative)}")
     ratios = np.asarray(depth_ratios, dtype=np.float64)
     if len(ratios) == 0 or not np.all(ratios > 0):
         raise ValueError(f"expected positive per-frame depth ratios, got {len(ratios)} of them")
+    if not np.any(pred_relative[:, :3, 3]):
+        raise ValueError("the predicted path does not move: it has no scale to compare with the depth's")
     path_scale = fit_translation_scale(relative_poses(gt_poses)[:, :3, 3], pred_relative[:, :3, 3])
     quarter = max(1, len(ratios) // 4)
     return {"path_over_depth": float(path_scale / np.median(ratios)),

@@ -23,7 +23,8 @@ import torch.nn.functional as F
 
 from endoflow.config import RefineConfig
 from endoflow.geometry.camera import backproject, intrinsics_inverse, scale_intrinsics
-from endoflow.geometry.pose import pose_vec_to_matrix
+from endoflow.geometry.warp import sampling_grid
+from endoflow.geometry.pose import invert_pose, pose_vec_to_matrix
 from endoflow.shapes import check_shape
 
 SATURATED = 0.98  # a keyframe pixel with a channel above this is a highlight
@@ -77,11 +78,12 @@ def align_to_keyframe(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb:
     for level in reversed(pyramid):
         pose, brightness = _refine_level(level, pose, brightness, settings)
     finest = pyramid[0]
-    cost_start, cost_end, both = _compare(finest, (start, start_brightness), (pose, brightness), settings)
+    cost_start, cost_end, both = _compare(_costs(finest, (start, start_brightness), settings),
+                                          _costs(finest, (pose, brightness), settings))
     if not cost_end <= cost_start:  # coarse levels can mislead: never hand back worse than the start
         pose, brightness, cost_end = start, start_brightness, cost_start
     return Alignment(pose, float(torch.exp(brightness[0])), float(brightness[1]), cost_start, cost_end,
-                     float(both.float().mean()))
+                     float(both.sum() / finest.usable.sum().clamp(min=1)))
 
 
 @dataclass(frozen=True)
@@ -138,7 +140,7 @@ def _sample(level: _Level, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tens
     u, v = projected[0] / z.clamp(min=1e-9), projected[1] / z.clamp(min=1e-9)
     height, width = level.frame.shape[-2:]
     inside = (z > 1e-6) & (u >= 1) & (u <= width - 2) & (v >= 1) & (v <= height - 2)
-    grid = torch.stack([u * (2 / (width - 1)) - 1, v * (2 / (height - 1)) - 1], dim=-1)[None, None]
+    grid = sampling_grid(u, v, height, width)[None, None]
     sampled = F.grid_sample(level.frame, grid, mode="bilinear", padding_mode="border", align_corners=True)[0, :, 0]
     return sampled[:9], moved, torch.stack([u, v]), inside & (sampled[9] > 0.999)
 
@@ -165,11 +167,10 @@ def _costs(level: _Level, state: tuple[torch.Tensor, torch.Tensor], settings: Al
     return _huber(residual, settings.huber).sum(dim=0), level.usable & inside
 
 
-def _compare(level: _Level, before: tuple[torch.Tensor, torch.Tensor], after: tuple[torch.Tensor, torch.Tensor],
-             settings: AlignmentSettings) -> tuple[float, float, torch.Tensor]:
-    """Mean costs before and after over the pixels taking part in both, and those pixels."""
-    cost_before, part_before = _costs(level, before, settings)
-    cost_after, part_after = _costs(level, after, settings)
+def _compare(before: tuple[torch.Tensor, torch.Tensor], after: tuple[torch.Tensor, torch.Tensor]
+             ) -> tuple[float, float, torch.Tensor]:
+    """Mean costs before and after (each :func:`_costs`) over the pixels taking part in both, and those pixels."""
+    (cost_before, part_before), (cost_after, part_after) = before, after
     both = part_before & part_after
     if not both.any() or int(both.sum()) < KEPT_SHARE * int(part_before.sum()):
         return float(cost_before[part_before].mean()) if part_before.any() else 0.0, float("inf"), both
@@ -190,10 +191,11 @@ def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor,
         hessian = jacobian.T @ (weights[:, None] * jacobian)
         gradient = jacobian.T @ (weights * residual)
         improved = False
+        current = _costs(level, (pose, brightness), settings)
         while damping < 1e6:
             step = -torch.linalg.solve(hessian + damping * torch.diag(hessian.diagonal().clamp(min=1e-12)), gradient)
             candidate = (pose_vec_to_matrix(step[:6]) @ pose, brightness + step[6:])
-            before, after, _ = _compare(level, (pose, brightness), candidate, settings)
+            before, after, _ = _compare(current, _costs(level, candidate, settings))
             if after < before:
                 (pose, brightness), damping, improved = candidate, damping / 3, True
                 break
@@ -263,17 +265,13 @@ class KeyframeTracker:
             self._make_keyframe(rgb, depth, start)
             return start
         key_rgb, key_depth, T_world_key = self.keyframe
-        T_frame_key = torch.linalg.inv(start) @ T_world_key
+        T_frame_key = invert_pose(start) @ T_world_key
         self.last = align_to_keyframe(key_rgb, key_depth, rgb, self.K, T_frame_key, self.settings.alignment)
-        T_world_frame = T_world_key @ torch.linalg.inv(self.last.T_frame_key)
+        T_world_frame = T_world_key @ invert_pose(self.last.T_frame_key)
         self.since_keyframe += 1
         if self.since_keyframe >= self.settings.keyframe_every or self.last.valid_share < self.settings.min_overlap:
             self._make_keyframe(rgb, depth, T_world_frame)
         return T_world_frame
-
-    def restart(self) -> None:
-        """Forget the keyframe: the next frame starts anew (after missing frames)."""
-        self.keyframe, self.since_keyframe = None, 0
 
     def _make_keyframe(self, rgb: torch.Tensor, depth: torch.Tensor, T_world_frame: torch.Tensor) -> None:
         self.keyframe = (rgb.to(torch.float64), depth.to(torch.float64), T_world_frame)

@@ -52,6 +52,12 @@ def project_target_pixels(
         return project(points_src, K), points_src[:, 2]
 
 
+def sampling_grid(u: torch.Tensor, v: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Pixel coordinates ``u, v`` (any equal shapes) as ``grid_sample``'s ``[..., 2]`` grid of an ``height x
+    width`` image, for ``align_corners=True``: -1 and 1 are the centres of the border pixels."""
+    return torch.stack([u * (2 / max(width - 1, 1)) - 1, v * (2 / max(height - 1, 1)) - 1], dim=-1)
+
+
 def warp_frame(
     image_src: torch.Tensor, depth_tgt: torch.Tensor, T_src_tgt: torch.Tensor, K: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -76,9 +82,7 @@ def warp_frame(
     low, high_u, high_v = -_BORDER_TOLERANCE, width - 1 + _BORDER_TOLERANCE, height - 1 + _BORDER_TOLERANCE
     valid = (z > 0) & (u >= low) & (u <= high_u) & (v >= low) & (v <= high_v)
 
-    # grid_sample's align_corners=True coordinates: -1 and 1 are the centres of the border pixels.
-    grid = torch.stack([u * (2 / max(width - 1, 1)) - 1, v * (2 / max(height - 1, 1)) - 1], dim=-1)
-    grid = grid.reshape(batch, height, width, 2)
+    grid = sampling_grid(u, v, height, width).reshape(batch, height, width, 2)
     sample_dtype = image_src.dtype if image_src.dtype in _SAMPLE_DTYPES else torch.float32
     warped = F.grid_sample(
         image_src.to(sample_dtype),

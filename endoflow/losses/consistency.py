@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from endoflow.geometry.warp import project_target_pixels
+from endoflow.geometry.warp import project_target_pixels, sampling_grid
 from endoflow.shapes import check_shape
 
 # keeps the ratio finite where both depths vanish (depth is at least model.min_depth, 0.1 cm, in training)
@@ -43,7 +43,7 @@ def depth_inconsistency(
     pixels, z = project_target_pixels(depth_tgt, T_src_tgt, K)
     u, v = pixels[:, 0], pixels[:, 1]
     valid = (z > 0) & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
-    grid = torch.stack([u * (2 / max(width - 1, 1)) - 1, v * (2 / max(height - 1, 1)) - 1], dim=-1)
+    grid = sampling_grid(u, v, height, width)
     seen = F.grid_sample(depth_src.to(grid.dtype), grid.reshape(batch, height, width, 2), mode="bilinear",
                          padding_mode="border", align_corners=True).reshape(batch, height * width)
     difference = (seen - z).abs() / (seen + z.clamp(min=0) + _EPS)

@@ -107,7 +107,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
     valid = input_field_of_view(source, options.frames, region, size)
     path = CameraPath()
     tracker = KeyframeTracker(torch.from_numpy(K), options.refine) if options.refine is not None else None
-    explained = PathPhotometry(K, np.asarray(record.baselines.mean_relative_pose, np.float64))
+    explained = PathPhotometry(K, record.baselines.mean_relative_pose, options.frames.stride, options.scale)
     progress = Progress(source_frame_count(source, options.frames), "frames")
     sampler = FrameSampler()
     with staged_directory(out_dir, EARLIER_RECONSTRUCTION, options.force, (source.location, model_path),
@@ -178,12 +178,14 @@ class PathPhotometry:
     """How well each path explains the frames, without ground truth: the SSIM + L1 error (Monodepth2's, images in
     [0, 1]) of each frame warped into the previous one with the previous frame's depth and the path's step, over
     the pixels that land inside, averaged over frames; for the path written, the pose network's own chain and a
-    constant step (the training set's mean). Lower is better; the refined path is fitted to a like error (against
-    keyframes), so it is favoured."""
+    constant step (the training set's mean ``T_prev_cur`` over ``stride`` frames, times ``scale``). Lower is
+    better; the refined path is fitted to a like error (against keyframes), so it is favoured."""
 
-    def __init__(self, K: np.ndarray, constant_step: np.ndarray) -> None:
+    def __init__(self, K: np.ndarray, mean_step: np.ndarray, stride: int, scale: float) -> None:
         self.K = torch.from_numpy(K).float()[None]
-        self.T_prev_cur_constant = torch.from_numpy(constant_step).float()[None]  # T_cur_next: prev-from-cur
+        constant = np.linalg.matrix_power(np.asarray(mean_step, np.float64), stride)
+        constant[:3, 3] *= scale
+        self.constant_step = constant  # T_prev_cur between selected frames
         self.previous: Optional[tuple[torch.Tensor, torch.Tensor]] = None
         self.errors: dict[str, list[float]] = {"path": [], "network": [], "constant_velocity": []}
 
@@ -191,18 +193,18 @@ class PathPhotometry:
         image = torch.from_numpy(rgb).permute(2, 0, 1).float()[None] / 255
         if self.previous is not None:
             prev_image, prev_depth = self.previous
-            steps = {"path": relative_pose(path.poses[-2], path.poses[-1]),
-                     "network": relative_pose(path.network_poses[-2], path.network_poses[-1])}
-            for name, T_prev_cur in steps.items():
-                self.errors[name].append(self._error(prev_image, prev_depth, image, invert_pose(
-                    torch.from_numpy(T_prev_cur).float()[None])))
-            self.errors["constant_velocity"].append(self._error(prev_image, prev_depth, image,
-                                                                invert_pose(self.T_prev_cur_constant)))
+            T_cur_prev = {"path": relative_pose(path.poses[-1], path.poses[-2]),
+                          "network": relative_pose(path.network_poses[-1], path.network_poses[-2]),
+                          "constant_velocity": invert_pose(self.constant_step)}
+            for name, T in T_cur_prev.items():
+                self.errors[name].append(self._error(prev_image, prev_depth, image,
+                                                     torch.from_numpy(T).float()[None]))
         self.previous = (image, torch.from_numpy(depth).float()[None, None])
 
     def _error(self, target: torch.Tensor, depth: torch.Tensor, source: torch.Tensor, T_source_target: torch.Tensor
                ) -> float:
         warped, valid = warp_frame(source, depth, T_source_target, self.K)
+        valid = valid & (depth > 0)  # no depth (outside the field of view): no point to move
         error = photometric_error(warped, target, "ssim_l1")
         return float((error * valid).sum() / valid.sum().clamp(min=1))
 
@@ -213,9 +215,12 @@ class PathPhotometry:
 def input_field_of_view(source: FrameSource, frames: FrameRange, region: Crop, size: int) -> np.ndarray:
     """``size x size`` bool: where the model's view of the input sees the scene (:mod:`endoflow.data.field_of_view`),
     from its first :data:`FIELD_OF_VIEW_FRAMES` selected frames."""
-    looked_at = [frame.cropped(region).rgb for frame in itertools.islice(source.frames(frames), FIELD_OF_VIEW_FRAMES)]
-    if not looked_at:  # no frames: the run itself says so, naming the input
+    selected = itertools.islice(source.frames(frames), FIELD_OF_VIEW_FRAMES)
+    first = next(selected, None)
+    if first is None:  # no frames: the run itself says so, naming the input
         return np.ones((size, size), bool)
+    # one frame at a time: 60 frames of a 1080p video are 370 MB
+    looked_at = (frame.cropped(region).rgb for frame in itertools.chain([first], selected))
     return resized_field_of_view(field_of_view(looked_at), size)
 
 
@@ -291,7 +296,7 @@ class CameraPath:
         self.gt_poses.append(frame.T_world_cam)
         if frame.depth_cm is not None:
             gt = resize_depth(np.asarray(frame.depth_cm, np.float32), size)  # the crop and resize the frame had
-            valid = gt > 0
+            valid = (gt > 0) & (depth > 0)
             if valid.any():
                 self.depth_ratios.append(float(np.median(gt[valid]) / np.median(depth[valid])))
 
@@ -319,7 +324,7 @@ def preview_range(depth: np.ndarray, model_cfg: ModelConfig, scale: float) -> tu
     """The depth range the previews colour: the first frame's 2nd to 98th percentile widened 1.5 times each way,
     within the model's range. The model's whole range (0.1 to 20 cm by default) would leave a colon seen at 1 to
     5 cm in one dark colour; one range for the run keeps colours comparable between frames."""
-    low, high = np.percentile(depth, [2, 98])
+    low, high = np.percentile(depth[depth > 0] if (depth > 0).any() else depth, [2, 98])
     return (float(max(low / 1.5, model_cfg.min_depth * scale)),
             float(min(high * 1.5, model_cfg.max_depth * scale)))
 

@@ -14,7 +14,7 @@ For a target frame ``cur`` and its neighbours ``prev`` and ``next``:
   averaged over the batch (zero without the pose VAE).
 - ``geometry``: with ``loss.geometry_weight`` > 0, DepthNet also predicts both neighbours' depth and
   :func:`~endoflow.losses.consistency.geometry_consistency` compares it with the target's depth moved by the
-  predicted poses (scale 0), so that depth and path keep one scale over a video (else zero, and no extra pass).
+  predicted poses (scale 0), so that depth and path keep one scale over a video (else absent, and no extra pass).
 - ``total = photometric + loss.smoothness_weight * smoothness + loss.kl_weight * kl + loss.geometry_weight *
   geometry`` (``kl_weight`` is beta; :func:`loss_weights`).
 """
