@@ -32,14 +32,14 @@ SWEEP_TARGET = "evaluate"
 VAE_STUDY = (("vae-mean-warp", {"model.pose_sample": False}), ("vae-beta0", {"loss.kl_weight": 0.0}),
              ("vae-beta1e-4", {"loss.kl_weight": 1e-4}), ("vae-beta1e-3", {"loss.kl_weight": 1e-3}))
 # The motion study (docs/results.md): the full model as it is, trained on a mixture of frame offsets, with the
-# depth consistency between neighbouring frames (SC-SfMLearner's weight), both, with half the triplets played
-# backwards, and with all three.
+# depth consistency between neighbouring frames (SC-SfMLearner's weight), with both, and with a quarter of the
+# triplets played backwards (half of them left the pose network, which starts blind to the direction, with no
+# net signal: it learned no motion at all, seed 0).
 MIXED_OFFSETS = {"preprocess.train_offsets": [1, 2, 3]}
 CONSISTENCY = {"loss.geometry_weight": 0.5}
-REVERSAL = {"train.time_reversal": 0.5}
+REVERSAL = {"train.time_reversal": 0.25}
 MOTION_STUDY = (("motion-base", {}), ("motion-offsets", MIXED_OFFSETS), ("motion-geometry", CONSISTENCY),
-                ("motion-both", {**MIXED_OFFSETS, **CONSISTENCY}), ("motion-reversal", REVERSAL),
-                ("motion-all", {**MIXED_OFFSETS, **CONSISTENCY, **REVERSAL}))
+                ("motion-both", {**MIXED_OFFSETS, **CONSISTENCY}), ("motion-reversal", REVERSAL))
 STUDIES = ("ablation", "vae", "motion")
 
 
