@@ -39,7 +39,7 @@ MIXED_OFFSETS = {"preprocess.train_offsets": [1, 2, 3]}
 CONSISTENCY = {"loss.geometry_weight": 0.5}
 REVERSAL = {"train.time_reversal": 0.25}
 MOTION_STUDY = (("motion-base", {}), ("motion-offsets", MIXED_OFFSETS), ("motion-geometry", CONSISTENCY),
-                ("motion-both", {**MIXED_OFFSETS, **CONSISTENCY}), ("motion-reversal", REVERSAL))
+                ("motion-both", {**MIXED_OFFSETS, **CONSISTENCY}), ("motion-reversal25", REVERSAL))
 STUDIES = ("ablation", "vae", "motion")
 
 
