@@ -372,6 +372,7 @@ def test_a_refined_path_is_written_with_the_networks_own_beside_it(scene: Path, 
     refined = run(scene, model_file, tmp_path / "refined", params, "S1", refine=tracker_settings(params.refine))
     plain = run(scene, model_file, tmp_path / "plain", params, "S1")
     assert refined["path"]["refined"] and refined["path"]["keyframes"] >= 1
+    assert (refined["path"]["scale_from"], plain["path"]["scale_from"]) == ("depth", "pose network")
     assert not plain["path"]["refined"] and not (tmp_path / "plain" / NETWORK_PATH_FILE).exists()
     # the ground-truth-free figure: the plain path is the network's own
     errors = plain["path"]["photometric_error"]

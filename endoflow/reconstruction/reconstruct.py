@@ -159,7 +159,8 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
             "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
                      "blocks": len(volume.blocks)} if mesh is not None else None,
             "field_of_view": {"share": float(valid.mean()), "frames_looked_at": FIELD_OF_VIEW_FRAMES},
-            "path": {"refined": tracker is not None,
+            # a refined path's translations come from the keyframes' depth: it has the depth's scale
+            "path": {"refined": tracker is not None, "scale_from": "depth" if tracker is not None else "pose network",
                      **({"keyframes": tracker.keyframes} if tracker is not None else {}),
                      "photometric_error": explained.means()},
             **path.ground_truth_scale(),
