@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any, Iterator, Optional, Sequence
 
-from endoflow.config import ConfigError, load_params
+from endoflow.config import SYNTH_LAYOUTS, ConfigError, load_params
 from endoflow.data.base import DATASETS
 from endoflow.errors import DataFormatError
 from endoflow.io import OutputFolderError
@@ -37,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(title="commands")
 
     synth = commands.add_parser("synth", help="render procedural data in a dataset's native layout")
-    synth.add_argument("--layout", choices=DATASETS, required=True)
+    synth.add_argument("--layout", choices=SYNTH_LAYOUTS, required=True)
     synth.add_argument("--out", required=True, type=Path, help="dataset root to create")
     synth.add_argument("--sequences", type=int, default=None)
     synth.add_argument("--frames", type=int, default=None)

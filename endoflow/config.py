@@ -163,6 +163,17 @@ class SceneNetConfig(Section):
     max_frames_per_trajectory: Optional[Count] = setting(None, "cap per trajectory; null: every frame")
 
 
+class C3VDConfig(Section):
+    root: str = setting("data/raw/C3VD", "C3VD root: one folder per sequence (the native layout); not part of the "
+                                         "default pipeline")
+    calibration: str = setting("calibration/cfhq190l_omnidirectional_values.txt",
+                               "the omnidirectional calibration's values, relative to the root (or absolute)")
+    focal_px: Optional[Number] = setting(None, "focal length of the pinhole frames and depth are undistorted onto; "
+                                               "null: the calibration's a0", unit="px", gt=0)
+    val: list[str] = setting(default_factory=list, doc="sequences of the val split")
+    test: list[str] = setting(default_factory=list, doc="sequences of the test split")
+
+
 class DataConfig(Section):
     # the data reaches training through the shards, whose manifest (every shard's SHA-256) is in the fingerprint
     TRAINING: ClassVar[Optional[bool]] = False
@@ -172,6 +183,7 @@ class DataConfig(Section):
     simcol: SimColConfig = setting(default_factory=SimColConfig)
     endoslam: EndoSLAMConfig = setting(default_factory=EndoSLAMConfig)
     scenenet: SceneNetConfig = setting(default_factory=SceneNetConfig)
+    c3vd: C3VDConfig = setting(default_factory=C3VDConfig)
 
 
 # ----------------------------------------------------------------------------------------------- synth
@@ -533,6 +545,8 @@ class Params(Section):
 DATASETS = tuple(name for name, info in DataConfig.model_fields.items()
                  if isinstance(info.annotation, type) and issubclass(info.annotation, Section))
 DEPTH_ONLY_DATASETS = frozenset({"scenenet"})
+# The layouts the built-in renderer writes (`endoflow synth`, stage `synthesize`), one per section of ``synth``.
+SYNTH_LAYOUTS = ("simcol", "endoslam", "scenenet")
 
 
 # ---------------------------------------------------------------------------------------- cross-field rules
@@ -575,7 +589,7 @@ def _bank_growth(p: Params) -> Optional[str]:
 
 def _synth_triplets(p: Params) -> Optional[str]:
     offset = max([p.preprocess.neighbour_offset, *(p.preprocess.train_offsets or [])])
-    for layout in (name for name in DATASETS if name not in DEPTH_ONLY_DATASETS):
+    for layout in (name for name in SYNTH_LAYOUTS if name not in DEPTH_ONLY_DATASETS):
         for key in ("frames", "test_frames"):
             frames = getattr(getattr(p.synth, layout), key)
             if frames is not None and frames <= 2 * offset:

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from endoflow.data.imageio import image_size, read_png8_gray, read_png16, read_rgb, write_png
+from endoflow.data.imageio import image_size, read_png8_gray, read_gray16, read_rgb, write_png
 from endoflow.errors import DataFormatError
 
 RNG = np.random.default_rng(3)
@@ -31,18 +31,18 @@ def test_16bit_rgba_gives_the_exact_8bit_values(tmp_path, alpha):
 def test_16bit_grey_round_trip_and_size_from_header(tmp_path):
     depth = RNG.integers(0, 65536, size=(5, 7), dtype=np.uint16)
     write_png(tmp_path / "d.png", depth)
-    np.testing.assert_array_equal(read_png16(tmp_path / "d.png"), depth)
+    np.testing.assert_array_equal(read_gray16(tmp_path / "d.png"), depth)
     assert image_size(tmp_path / "d.png") == (5, 7)
 
 
 def test_png16_refuses_8bit_and_colour(tmp_path):
     write_png(tmp_path / "eight.png", np.zeros((4, 4), np.uint8))
     with pytest.raises(DataFormatError, match="16-bit single-channel PNG, found uint8 with 1 channel") as info:
-        read_png16(tmp_path / "eight.png")
+        read_gray16(tmp_path / "eight.png")
     assert info.value.path == tmp_path / "eight.png"
     write_png(tmp_path / "colour.png", np.zeros((4, 4, 3), np.uint16))
     with pytest.raises(DataFormatError, match="found uint16 with 3 channel"):
-        read_png16(tmp_path / "colour.png")
+        read_gray16(tmp_path / "colour.png")
 
 
 def test_gray8_accepts_equal_channels_only(tmp_path):
@@ -66,7 +66,7 @@ def test_missing_and_unreadable_files_name_the_file(tmp_path):
     assert info.value.path == tmp_path / "nope.png"
     (tmp_path / "bad.png").write_bytes(b"not a png at all")
     with pytest.raises(DataFormatError, match="unreadable image"):
-        read_png16(tmp_path / "bad.png")
+        read_gray16(tmp_path / "bad.png")
 
 
 def test_write_refuses_unsupported_arrays(tmp_path):

@@ -16,7 +16,7 @@ from scipy.ndimage import map_coordinates
 
 from endoflow.cli import main as cli
 from endoflow.config import Params
-from endoflow.data.imageio import read_png16
+from endoflow.data.imageio import read_gray16
 from endoflow.data.registry import open_reader
 from endoflow.data.frame_encoding import resize_depth, stored_intrinsics
 from endoflow.errors import DataFormatError
@@ -119,7 +119,7 @@ def recorded_rows(recording: Path) -> dict[str, int]:
 
 def depth_of(out: Path, index: int) -> np.ndarray:
     unit = json.loads((out / "depth" / "depth.json").read_text())["unit_cm"]
-    return read_png16(out / "depth" / f"{index:06d}.png").astype(np.float64) * unit
+    return read_gray16(out / "depth" / f"{index:06d}.png").astype(np.float64) * unit
 
 
 # ----------------------------------------------------------------------------------------------- outputs

@@ -24,7 +24,13 @@ def _decode_unchanged(path: Path) -> np.ndarray:
         raise DataFormatError(path, "image file not found")
     # imdecode on the bytes (not imread) so paths with non-ASCII characters work on every platform.
     data = np.fromfile(path, dtype=np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    # libtiff warns about tags it does not need (C3VD's depth TIFFs: a NUL in ImageDescription) on every read
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    finally:
+        cv2.utils.logging.setLogLevel(level)
     if image is None:
         raise DataFormatError(path, "unreadable image: the file cannot be decoded (truncated or not an image)")
     return image
@@ -59,8 +65,8 @@ def read_rgb(path: str | Path) -> np.ndarray:
     return cv2.cvtColor(image, code)
 
 
-def read_png16(path: str | Path) -> np.ndarray:
-    """``H x W`` ``uint16`` single-channel image (depth maps); anything else is an error, never converted.
+def read_gray16(path: str | Path) -> np.ndarray:
+    """``H x W`` ``uint16`` single-channel image (depth maps: PNG, TIFF); anything else is an error, never converted.
 
     Raises:
         DataFormatError: missing or undecodable, or not 16-bit single channel (names the dtype found).
@@ -68,7 +74,8 @@ def read_png16(path: str | Path) -> np.ndarray:
     path = Path(path)
     image = _decode_unchanged(path)
     if image.dtype != np.uint16 or _channels(image) != 1:
-        raise DataFormatError(path, f"expected a 16-bit single-channel PNG, found {_describe(image)}")
+        kind = path.suffix.lstrip(".").upper() or "image"
+        raise DataFormatError(path, f"expected a 16-bit single-channel {kind}, found {_describe(image)}")
     return image
 
 

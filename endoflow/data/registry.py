@@ -7,6 +7,8 @@ from typing import Callable, Optional
 
 from endoflow.config import Params
 from endoflow.data.base import DATASETS, DatasetReader
+from endoflow.data.c3vd import POSE_FILE as C3VD_POSE_FILE
+from endoflow.data.c3vd import C3VDReader
 from endoflow.data.endoslam import EndoSLAMReader
 from endoflow.data.scenenet import SPLITS as SCENENET_SPLITS
 from endoflow.data.scenenet import SceneNetReader
@@ -28,16 +30,22 @@ def _looks_like_scenenet(root: Path) -> bool:
     return any(any((root / split).glob("*/*/depth")) for split in SCENENET_SPLITS if (root / split).is_dir())
 
 
+def _looks_like_c3vd(root: Path) -> bool:
+    return any(any(folder.glob("*_color.png")) for folder in (p.parent for p in root.glob(f"*/{C3VD_POSE_FILE}")))
+
+
 LAYOUT_TESTS: dict[str, Callable[[Path], bool]] = {
     "simcol": _looks_like_simcol,
     "endoslam": _looks_like_endoslam,
     "scenenet": _looks_like_scenenet,
+    "c3vd": _looks_like_c3vd,
 }
 
 EXPECTED_LAYOUTS = (
     "simcol: SyntheticColon_I/, SyntheticColon_II/ or SyntheticColon_III/; "
     "endoslam: UnityCam/ or Cameras/; "
-    "scenenet: train/ or val/ holding <part>/<trajectory>/depth/"
+    "scenenet: train/ or val/ holding <part>/<trajectory>/depth/; "
+    "c3vd: sequence folders holding pose.txt and <n>_color.png"
 )
 
 
@@ -71,4 +79,6 @@ def open_reader(root: str | Path, dataset: Optional[str], params: Params) -> Dat
         return EndoSLAMReader(root, params.data.endoslam)
     if name == "scenenet":
         return SceneNetReader(root, params.data.scenenet)
+    if name == "c3vd":
+        return C3VDReader(root, params.data.c3vd)
     raise DataFormatError(root, f"unknown dataset {name!r} (known: {', '.join(DATASETS)})")

@@ -14,7 +14,7 @@ import numpy as np
 
 from endoflow.config import SceneNetConfig
 from endoflow.data.base import DatasetReader, Sequence
-from endoflow.data.imageio import image_size, read_png16, read_rgb
+from endoflow.data.imageio import image_size, read_gray16, read_rgb
 from endoflow.data.layout import checked_size, natural_key, numbered_files, ray_length_to_z_factor, sized_loader, subfolders
 from endoflow.errors import DataFormatError
 
@@ -88,7 +88,7 @@ def _depth_loader(paths: list[Path], size: tuple[int, int], K: np.ndarray):
     to_z_cm = ray_length_to_z_factor(K, *size) / np.float32(10.0)
 
     def load(i: int) -> np.ndarray:
-        return checked_size(paths[i], read_png16(paths[i]), size).astype(np.float32) * to_z_cm
+        return checked_size(paths[i], read_gray16(paths[i]), size).astype(np.float32) * to_z_cm
 
     return load
 

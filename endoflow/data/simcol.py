@@ -11,7 +11,7 @@ import numpy as np
 
 from endoflow.config import SimColConfig
 from endoflow.data.base import DatasetReader, Sequence
-from endoflow.data.imageio import image_size, read_png16, read_rgb
+from endoflow.data.imageio import image_size, read_gray16, read_rgb
 from endoflow.data.layout import (
     checked_intrinsics,
     natural_key,
@@ -130,7 +130,7 @@ class SimColReader(DatasetReader):
 
 def decode_depth(path: Path) -> np.ndarray:
     """SimCol3D depth PNG -> ``H x W`` float32 z-depth in cm (``value / 255 / 256 * 20``)."""
-    return read_png16(path).astype(np.float32) * np.float32(DEPTH_CM_PER_COUNT)
+    return read_gray16(path).astype(np.float32) * np.float32(DEPTH_CM_PER_COUNT)
 
 
 def read_cam_txt(path: Path) -> np.ndarray:

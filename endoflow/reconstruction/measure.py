@@ -39,7 +39,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from endoflow.config import Params
-from endoflow.data.imageio import read_png16
+from endoflow.data.imageio import read_gray16
 from endoflow.data.frame_encoding import resize_depth, resize_rgb
 from endoflow.data.trajectory_files import read_tum
 from endoflow.devices import use_cpu_threads
@@ -216,7 +216,7 @@ def _frames_with_model_depth(source: FrameSource, frames: FrameRange, out_dir: P
                              summary: dict) -> Iterator[tuple[InputFrame, np.ndarray]]:
     unit = float(summary["depth_unit_cm"])
     for frame in source.frames(frames):
-        counts = read_png16(out_dir / "depth" / f"{frame.index:06d}.png")
+        counts = read_gray16(out_dir / "depth" / f"{frame.index:06d}.png")
         yield frame, counts.astype(np.float32) * np.float32(unit)
 
 

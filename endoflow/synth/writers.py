@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from endoflow.config import ConfigError, Params, SimColConfig
-from endoflow.data.base import DATASETS
+from endoflow.config import SYNTH_LAYOUTS
 from endoflow.data.endoslam import UNITYCAM_COLUMNS, UNITYCAM_K, UNITYCAM_POSE_SUFFIX, UNITYCAM_SIZE
 from endoflow.data.imageio import write_png
 from endoflow.data.scenenet import scenenet_intrinsics
@@ -89,8 +89,8 @@ def synthesize_layout(
     pose unit and frame rate come from ``params.data.endoslam``, so that the reader decodes what was written.
     Same arguments, same bytes.
     """
-    if layout not in DATASETS:
-        raise ValueError(f"unknown layout {layout!r}; expected one of {', '.join(DATASETS)}")
+    if layout not in SYNTH_LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r}; expected one of {', '.join(SYNTH_LAYOUTS)}")
     params = params or Params()
     defaults = getattr(params.synth, layout)
     sequences = defaults.sequences if sequences is None else sequences
@@ -146,7 +146,7 @@ def plan_jobs(layout: str, out: Path, sequences: int, frames: int, size: int, se
         endoslam_translation_to_cm=params.data.endoslam.unitycam_translation_to_cm,
         endoslam_fps=params.data.endoslam.fps,
     )
-    layout_id = DATASETS.index(layout)
+    layout_id = SYNTH_LAYOUTS.index(layout)
     jobs = []
     if layout == "simcol":
         for scene_id, (scene, letter) in enumerate(SIMCOL_SCENES):
