@@ -92,6 +92,11 @@ def images_to_device(images: torch.Tensor, device: torch.device, precision: Prec
 def batch_to_device(batch: dict, device: torch.device, precision: Precision) -> dict:
     """A loader batch on ``device``: its images as :func:`images_to_device` puts them, other tensors moved,
     everything else (keys, metadata) as it is."""
-    return {key: images_to_device(value, device, precision) if isinstance(value, torch.Tensor) and value.dim() == 4
+    return {key: images_to_device(value, device, precision) if _is_image(value)
             else value.to(device, non_blocking=True) if isinstance(value, torch.Tensor) else value
             for key, value in batch.items()}
+
+
+def _is_image(value: object) -> bool:
+    # masks (the field of view) are [B, 1, H, W] too, but bool: moved as they are
+    return isinstance(value, torch.Tensor) and value.dim() == 4 and value.dtype != torch.bool

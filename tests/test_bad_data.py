@@ -203,7 +203,7 @@ def sequence_numbered(frame_ids: list[int]) -> Sequence:
 def test_targets_need_neighbours_exactly_offset_frame_steps_away(
     frame_ids: list[int], offset: int, targets: list[int]
 ) -> None:
-    settings = EncodeSettings("simcol", 8, offset, 0.001, depth_only=False, reader_params="{}")
+    settings = EncodeSettings("simcol", 8, offset, (offset,), 0.001, depth_only=False, reader_params="{}")
     assert [s.frame for s in sequence_samples(sequence_numbered(frame_ids), settings)] == targets
 
 

@@ -17,6 +17,7 @@ from endoflow.config import LossConfig, Params
 from endoflow.geometry.camera import scale_intrinsics
 from endoflow.geometry.pose import pose_vec_to_matrix, relative_pose
 from endoflow.models.endoflow_model import build_model
+from endoflow.losses.smoothness import edge_aware_smoothness
 from endoflow.training.objective import reprojection, training_step_losses
 from tests.samples import SIMCOL_SAMPLE
 
@@ -200,3 +201,76 @@ def test_a_triplet_played_backwards_is_explained_by_the_reversed_motion():
     swapped = loss_with(backwards, batch["depth"], batch["T_next_cur"], batch["T_prev_cur"], cfg)
     assert swapped == pytest.approx(forward, rel=1e-6)
     assert loss_with(backwards, batch["depth"], batch["T_prev_cur"], batch["T_next_cur"], cfg) > 1.5 * forward
+
+
+def circle_mask(size: int, radius_share: float = 0.45) -> torch.Tensor:
+    v, u = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    return ((u - (size - 1) / 2) ** 2 + (v - (size - 1) / 2) ** 2 <= (radius_share * size) ** 2)[None, None]
+
+
+def test_pixels_outside_the_field_of_view_give_no_gradient_to_depth():
+    batch = simcol_triplets(size=32)
+    valid = circle_mask(32).expand(len(batch["cur"]), 1, 32, 32)
+    cfg = LossConfig()
+    depth = batch["depth"].clone().requires_grad_(True)
+    loss = reprojection(batch["cur"], [batch["prev"], batch["next"]], depth, [batch["T_prev_cur"], batch["T_next_cur"]],
+                        batch["K"], cfg, valid=valid)
+    loss.backward()
+    assert depth.grad[~valid].abs().max() == 0 and depth.grad[valid].abs().sum() > 0
+    disp = (1 / depth.detach()).requires_grad_(True)
+    edge_aware_smoothness(disp, batch["cur"], valid).backward()
+    assert disp.grad[~valid].abs().max() == 0 and disp.grad[valid].abs().sum() > 0
+
+
+def test_a_field_of_view_that_is_everything_is_the_loss_without_one_to_the_bit():
+    batch = simcol_triplets(size=32)
+    params = Params()
+    model = build_model(params, None).eval()
+    torch.manual_seed(0)  # auto-masking's tie-break noise
+    plain = training_step_losses(model, batch, params.loss)
+    torch.manual_seed(0)
+    everything = training_step_losses(model, {**batch, "valid": torch.ones_like(batch["depth"], dtype=torch.bool)},
+                                      params.loss)
+    assert torch.equal(plain["total"], everything["total"])
+
+
+def test_frames_with_a_black_circular_border_and_its_mask_learn_depth_and_motion_inside_it():
+    """The short optimisation above on the frames blacked out beyond a circle, with the field of view: scored on
+    the original frames inside the circle, the loss falls as far as without a border."""
+    torch.manual_seed(0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        batch = {key: value[:TRIPLETS] for key, value in simcol_triplets().items()}
+        valid = circle_mask(SIZE).expand(TRIPLETS, 1, SIZE, SIZE)
+        bordered = {**batch, **{name: batch[name] * valid for name in ("prev", "cur", "next")}, "valid": valid}
+        params = Params()
+        cfg = params.loss.replace(automask=False)
+        model = build_model(params, None)
+        optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=3e-4)
+        identity = torch.eye(4).expand(TRIPLETS, 4, 4)
+
+        def loss_inside(depth: torch.Tensor, T_prev: torch.Tensor, T_next: torch.Tensor) -> float:
+            return reprojection(batch["cur"], [batch["prev"], batch["next"]], depth, [T_prev, T_next], batch["K"],
+                                cfg, valid=valid).item()
+
+        def evaluation_loss() -> tuple[float, float]:
+            model.eval()
+            with torch.no_grad():
+                depth = model.predict_depth(bordered["cur"])
+                T_prev = model.predict_pose(bordered["cur"], bordered["prev"], source_is_next=False)
+                T_next = model.predict_pose(bordered["cur"], bordered["next"])
+                return loss_inside(depth, T_prev, T_next), loss_inside(depth, identity, identity)
+
+        start, no_motion = evaluation_loss()
+        model.train()
+        for _ in range(STEPS):
+            optimiser.zero_grad(set_to_none=True)
+            training_step_losses(model, bordered, cfg)["total"].backward()
+            optimiser.step()
+        end, _ = evaluation_loss()
+    finally:
+        torch.set_num_threads(threads)
+    print(f"start {start:.4f} no-motion {no_motion:.4f} end {end:.4f}")
+    assert end < 0.6 * start
+    assert end < 0.6 * no_motion

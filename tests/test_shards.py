@@ -35,7 +35,7 @@ from tests.samples import SIMCOL_SAMPLE
 
 NATIVE_K = np.array([[40.0, 0.0, 31.0], [0.0, 42.0, 22.5], [0.0, 0.0, 1.0]])
 SPLIT_OF = {"S1": "train", "S2": "train", "S4": "val", "S5": "test"}
-SAMPLE_FILES = {"prev.png", "cur.png", "next.png", "depth.png", "meta.json"}
+SAMPLE_FILES = {"prev.png", "cur.png", "next.png", "depth.png", "meta.json", "valid.png"}
 
 
 def native_rgb(height: int, width: int, position: int) -> np.ndarray:
@@ -157,6 +157,8 @@ def test_every_sample_has_the_schema_and_the_source_poses(shards: tuple[Path, di
             np.testing.assert_allclose(meta["T_world_cam"][name], native_pose(position + shift), atol=1e-12)
         depth = decode_png(files["depth.png"])
         assert depth.dtype == np.uint16 and depth.shape == (32, 32)
+        valid = decode_png(files["valid.png"])  # frames without a black border: all in view
+        assert valid.dtype == np.uint8 and valid.shape == (32, 32) and (valid == 255).all()
 
 
 def test_stored_k_sends_each_pixel_along_the_ray_of_the_native_point_it_shows(shards: tuple[Path, dict]) -> None:

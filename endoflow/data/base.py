@@ -16,6 +16,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from endoflow.config import DATASETS, DEPTH_ONLY_DATASETS  # noqa: F401  (re-exported: readers' names)
+from endoflow.data.field_of_view import FIELD_OF_VIEW_FRAMES, field_of_view
 from endoflow.errors import DataFormatError
 
 
@@ -63,6 +64,7 @@ class Sequence:
     group: str = ""
     problems: list[str] = field(default_factory=list)
     source_files: list[tuple[Path, ...]] = field(default_factory=list)
+    _valid: Optional[np.ndarray] = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.source_files and len(self.source_files) != len(self.frame_ids):
@@ -88,6 +90,18 @@ class Sequence:
         if self.poses is None or not np.isfinite(self.poses[i]).all():
             return None
         return self.poses[i]
+
+    def field_of_view(self) -> np.ndarray:
+        """``H x W`` bool: where the sequence's frames see the scene (:mod:`endoflow.data.field_of_view`), found in
+        up to :data:`~endoflow.data.field_of_view.FIELD_OF_VIEW_FRAMES` frames spread over it, once."""
+        if self._valid is None:
+            if self.load_rgb is None:
+                raise DataFormatError(self.name, f"{self.dataset} sequence has no RGB frames to find a field of "
+                                                 f"view in")
+            count = min(len(self), FIELD_OF_VIEW_FRAMES)
+            positions = np.linspace(0, len(self) - 1, count).round().astype(int)
+            self._valid = field_of_view(self.load_rgb(int(i)) for i in positions)
+        return self._valid
 
     def frame(self, i: int) -> Frame:
         """Decode the i-th frame (position in the sequence, not the dataset's frame id)."""

@@ -20,6 +20,7 @@ from endoflow.data.frame_encoding import centre_square
 # of a single pixel, as the tracker's, needs a lower one: it has no other frames to light the pixel up)
 BLACK_LEVEL = 12
 RIM_PX = 2  # the border's blurred edge, left out with it
+FIELD_OF_VIEW_FRAMES = 60  # the frames it is found in: its border is black in every one
 
 
 def field_of_view(frames: Iterable[np.ndarray]) -> np.ndarray:

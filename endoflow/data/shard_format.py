@@ -10,6 +10,8 @@ order. A complete sample is exactly :data:`TRIPLET_MEMBERS` (a target frame with
 
 - ``prev.png``, ``cur.png``, ``next.png``: RGB ``uint8`` at the stored square size.
 - ``depth.png``: ``uint16`` z-depth of ``cur``, ``depth_cm = count * meta["depth_unit"]``, 0 = unknown.
+- ``valid.png`` (triplets): ``uint8`` 255 where the sequence's frames see the scene, 0 outside its field of view
+  (the black border of an endoscope's image: :mod:`endoflow.data.field_of_view`), one mask for the sequence.
 - ``meta.json``: ``dataset``, ``sequence``, ``group``, ``split``, ``frame``, ``frame_ids``
   (``prev``/``cur``/``next``), ``neighbour_offset`` (how many regular frame steps ``prev`` and ``next`` lie from
   ``cur``; null when depth-only), ``K`` (3x3 at the stored size, pixel centres at integers), ``T_world_cam``
@@ -59,14 +61,15 @@ MANIFEST = "manifest.parquet"
 # Parquet schema metadata key: JSON {shard name: {"samples": n, "sha256": hex}}, empty shards included.
 SHARD_TABLE_KEY = b"endoflow.shards"
 # Bumped whenever the bytes written for the same input change.
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 
 IMAGE_NAMES = ("prev", "cur", "next")
 DEPTH_MEMBER = "depth.png"
 META_MEMBER = "meta.json"
-TRIPLET_MEMBERS = frozenset({*(f"{name}.png" for name in IMAGE_NAMES), DEPTH_MEMBER, META_MEMBER})
+VALID_MEMBER = "valid.png"
+TRIPLET_MEMBERS = frozenset({*(f"{name}.png" for name in IMAGE_NAMES), DEPTH_MEMBER, META_MEMBER, VALID_MEMBER})
 DEPTH_ONLY_MEMBERS = frozenset({DEPTH_MEMBER, META_MEMBER})
-TENSOR_KEYS = ("prev", "cur", "next", "depth", "K", "T_prev", "T_cur", "T_next")
+TENSOR_KEYS = ("prev", "cur", "next", "depth", "valid", "K", "T_prev", "T_cur", "T_next")
 
 MANIFEST_SCHEMA = pa.schema(
     [
@@ -415,7 +418,8 @@ def decode_sample(sample: Mapping[str, object], rgb8: bool = False) -> dict:
     - ``prev``, ``cur``, ``next``: ``[3, H, W]`` float32 RGB in [0, 1] (absent for depth-only samples); with
       ``rgb8``, ``uint8`` RGB 0..255 as stored, for :func:`endoflow.devices.images_to_device` to scale on the
       device (:func:`endoflow.devices.unit_float_images`);
-    - ``depth``: ``[1, H, W]`` float32 z-depth of ``cur`` in cm, 0 where unknown;
+    - ``depth``: ``[1, H, W]`` float32 z-depth of ``cur`` in cm, 0 where unknown or outside the field of view;
+    - ``valid``: ``[1, H, W]`` bool, the field of view (triplets only);
     - ``K``: ``[3, 3]`` float32 pixel intrinsics of the stored size;
     - ``T_prev``, ``T_cur``, ``T_next``: ``[4, 4]`` float32 camera-to-world ``T_world_cam`` in cm, all NaN
       where unknown;
@@ -432,6 +436,10 @@ def decode_sample(sample: Mapping[str, object], rgb8: bool = False) -> dict:
             rgb = decode_rgb8(sample[f"{name}.png"], f"{source}: {name}.png")
             out[name] = rgb if rgb8 else unit_float_images(rgb)
     out["depth"] = torch.from_numpy(decode_depth(sample[DEPTH_MEMBER], meta["depth_unit"], source))[None]
+    if VALID_MEMBER in sample:
+        out["valid"] = torch.from_numpy(decode_mask(sample[VALID_MEMBER], source))[None]
+        # ground truth outside the field of view is no measurement of the scene the frames show: unknown
+        out["depth"] = torch.where(out["valid"], out["depth"], torch.zeros_like(out["depth"]))
     out["K"] = torch.tensor(meta["K"], dtype=torch.float32)
     for name in IMAGE_NAMES:
         pose = meta["T_world_cam"][name]
@@ -458,6 +466,15 @@ def decode_rgb8(data: bytes, source: str) -> torch.Tensor:
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise DataFormatError(source, f"expected 8-bit RGB, found {image.dtype} {image.shape}")
     return torch.from_numpy(np.ascontiguousarray(image[..., ::-1].transpose(2, 0, 1)))
+
+
+def decode_mask(data: bytes, source: str) -> np.ndarray:
+    """``H x W`` bool from an 8-bit grey ``valid.png`` (255 in, 0 out; nothing else)."""
+    mask = _decode_png(data, f"{source}: {VALID_MEMBER}")
+    if mask.ndim != 2 or mask.dtype != np.uint8 or not np.isin(mask, (0, 255)).all():
+        raise DataFormatError(source, f"{VALID_MEMBER}: expected 8-bit grey of 0 and 255, found {mask.dtype} "
+                                      f"{mask.shape}")
+    return mask == 255
 
 
 def decode_depth(data: bytes, depth_unit: float, source: str) -> np.ndarray:

@@ -20,11 +20,13 @@ import numpy as np
 import webdataset as wds
 
 from endoflow.data.base import Sequence
+from endoflow.data.field_of_view import resized_field_of_view
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.data.shard_format import (
     DEPTH_MEMBER,
     IMAGE_NAMES,
     META_MEMBER,
+    VALID_MEMBER,
     HashingWriter,
     ShardEntry,
     sample_sha256,
@@ -81,6 +83,8 @@ class FrameCache:
         self.sequence: Optional[str] = None
         self.frames: dict[int, bytes] = {}
         self.decoded = 0
+        self.valid_of: Optional[str] = None
+        self.valid = b""
 
     def rgb_png(self, sequence: Sequence, position: int) -> bytes:
         if sequence.name != self.sequence:
@@ -93,6 +97,13 @@ class FrameCache:
             self.frames[position] = encode_png(resize_rgb(rgb, self.settings.size))
             self.decoded += 1
         return self.frames[position]
+
+    def valid_png(self, sequence: Sequence) -> bytes:
+        """The sequence's field of view at the stored size, 255 in and 0 out."""
+        if sequence.name != self.valid_of:
+            valid = resized_field_of_view(sequence.field_of_view(), self.settings.size)
+            self.valid_of, self.valid = sequence.name, encode_png(valid.astype(np.uint8) * 255)
+        return self.valid
 
     def evict_before(self, position: int) -> None:
         for old in [p for p in self.frames if p < position]:
@@ -113,6 +124,8 @@ def encode_sample(
             files[f"{name}.png"] = cache.rgb_png(sequence, position)
     depth_counts, out_of_range = depth_to_counts(stored_depth(sequence, i, settings.size), settings.depth_unit)
     files[DEPTH_MEMBER] = encode_png(depth_counts)
+    if not settings.depth_only:
+        files[VALID_MEMBER] = cache.valid_png(sequence)
     files[META_MEMBER] = json.dumps(sample_meta(spec, sequence, positions, settings), sort_keys=True).encode()
     return files, out_of_range
 

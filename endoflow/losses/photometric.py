@@ -21,6 +21,8 @@ _C2 = 0.03**2
 # Noise on the identity error breaks exact ties with the reprojection error (e.g. a static camera, where the
 # warp returns the source) at random instead of always the same way.
 _TIE_BREAK_STD = 1e-5
+# A source's error where it does not see a pixel: above any photometric error, so the minimum takes another source
+_UNSEEN_ERROR = 1e3
 
 
 def _local_mean(x: torch.Tensor) -> torch.Tensor:
@@ -78,6 +80,7 @@ def reprojection_loss(
     sources: list[torch.Tensor],
     cfg: LossConfig,
     identity: torch.Tensor | None = None,
+    seen: list[torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Photometric reprojection loss of the target reconstructed from several sources.
 
@@ -91,23 +94,46 @@ def reprojection_loss(
             lower: such pixels (static scenes, objects moving with the camera) give no gradient.
         identity: :func:`identity_error` of these sources, when the caller already has it (it depends on
             neither depth nor pose, so a multi-scale loss computes it once).
+        seen: per warped source, ``[B, 1, H, W]`` bool: the target pixel is in the field of view and its
+            warped sample lands in the source's (None: everywhere). A source counts only where it is seen, and
+            the loss averages over the pixels some source sees; pixels no source sees give no gradient.
 
     Returns:
-        ``loss`` (scalar, mean of the per-pixel map), the per-pixel map ``[B, 1, H, W]`` that is averaged,
+        ``loss`` (scalar, mean of the per-pixel map over the pixels seen), the per-pixel map ``[B, 1, H, W]``,
         and ``mask [B, 1, H, W]`` bool, True where the reprojection error is the one used (all True without
         auto-masking).
     """
-    if not warped or (cfg.automask and len(sources) != len(warped)):
-        raise ValueError(f"expected at least one warped image and, with automask, as many sources "
+    mismatched = (cfg.automask and len(sources) != len(warped)) or (seen is not None and len(seen) != len(warped))
+    if not warped or mismatched:
+        raise ValueError(f"expected at least one warped image and, with automask or seen masks, as many sources "
                          f"({len(warped)} warped, {len(sources)} sources)")
-    reprojection = _combine_over_sources(
-        [photometric_error(w, target, cfg.photometric, cfg.ssim_weight) for w in warped], cfg.min_reprojection
-    )
-    if not cfg.automask:
-        return reprojection.mean(), reprojection, torch.ones_like(reprojection, dtype=torch.bool)
-    if identity is None:
-        identity = identity_error(target, sources, cfg)
-    identity = identity + _TIE_BREAK_STD * torch.randn_like(identity)
-    mask = reprojection < identity
-    per_pixel = torch.where(mask, reprojection, identity)
-    return per_pixel.mean(), per_pixel, mask
+    errors = [photometric_error(w, target, cfg.photometric, cfg.ssim_weight) for w in warped]
+    if seen is None:
+        reprojection, any_seen = _combine_over_sources(errors, cfg.min_reprojection), None
+    else:
+        reprojection, any_seen = _combine_seen(errors, seen, cfg.min_reprojection)
+    if cfg.automask:
+        if identity is None:
+            identity = identity_error(target, sources, cfg)
+        identity = identity + _TIE_BREAK_STD * torch.randn_like(identity)
+        mask = reprojection < identity
+        per_pixel = torch.where(mask, reprojection, identity)
+    else:
+        per_pixel, mask = reprojection, torch.ones_like(reprojection, dtype=torch.bool)
+    if any_seen is None:
+        return per_pixel.mean(), per_pixel, mask
+    loss = per_pixel[any_seen].mean() if any_seen.any() else per_pixel.sum() * 0
+    return loss, per_pixel, mask & any_seen
+
+
+def _combine_seen(errors: list[torch.Tensor], seen: list[torch.Tensor], use_minimum: bool
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_combine_over_sources` over the sources that see each pixel, and where any does."""
+    stacked, visible = torch.cat(errors, dim=1), torch.cat(seen, dim=1)
+    any_seen = visible.any(dim=1, keepdim=True)
+    if use_minimum:
+        unseen = torch.full_like(stacked, _UNSEEN_ERROR)
+        combined = torch.where(visible, stacked, unseen).min(dim=1, keepdim=True).values
+    else:
+        combined = (stacked * visible).sum(dim=1, keepdim=True) / visible.sum(dim=1, keepdim=True).clamp(min=1)
+    return combined, any_seen

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from endoflow.config import ModelConfig, Params
-from endoflow.data.field_of_view import field_of_view, resized_field_of_view
+from endoflow.data.field_of_view import FIELD_OF_VIEW_FRAMES, field_of_view, resized_field_of_view
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.errors import DataFormatError
@@ -43,7 +43,6 @@ from endoflow.reconstruction.recording import RECORDING_FILE, Recording
 if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for it
     from endoflow.tracking import RunHandle
 
-FIELD_OF_VIEW_FRAMES = 60  # the frames the field of view is found in: its border is black in every one
 NETWORK_PATH_FILE = "trajectory_network.tum"  # the pose network's own chain, beside a refined trajectory.tum
 # What MLflow gets of a reconstruction: what a person opens first, the path and the surface (not the depth maps).
 LOGGED_OUTPUTS = ("sheet.png", "video.mp4", RECORDING_FILE, "reconstruction.json", "trajectory.tum",

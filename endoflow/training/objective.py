@@ -71,17 +71,27 @@ def reprojection(
     K: torch.Tensor,
     loss_cfg: LossConfig,
     identity: torch.Tensor | None = None,
+    valid: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Photometric loss of ``target [B, 3, H, W]`` rebuilt from each source with target ``depth [B, 1, H, W]``
     and ``T_source_target[i] [B, 4, 4]`` (one per source), as ``loss_cfg`` says; ``identity`` as
-    :func:`reprojection_loss` takes it."""
+    :func:`reprojection_loss` takes it. ``valid [B, 1, H, W]`` bool: the field of view, the same in every frame of
+    a sequence (None: everywhere); a source counts where the target pixel is in it and lands in it."""
     warped = [warp_frame(src, depth, T, K)[0] for src, T in zip(sources, T_source_target)]
-    return reprojection_loss(warped, target, sources, loss_cfg, identity)[0]
+    seen = None
+    if valid is not None:
+        inside = valid.to(depth.dtype)
+        # bilinear samples of the mask: a warped sample is in view where all four pixels around it are
+        seen = [valid & (warp_frame(inside, depth, T, K)[0] > 0.999) for T in T_source_target]
+        # SSIM's windows reach a pixel's neighbours: those out of view take part as values, not as gradient
+        warped = [torch.where(s, w, w.detach()) for w, s in zip(warped, seen)]
+    return reprojection_loss(warped, target, sources, loss_cfg, identity, seen)[0]
 
 
 def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig) -> dict[str, torch.Tensor]:
     """Losses of one batch (keys as the loader's: ``prev``, ``cur``, ``next`` ``[B, 3, H, W]`` in [0, 1],
-    ``K [B, 3, 3]``).
+    ``K [B, 3, 3]``, and ``valid [B, 1, H, W]``, the field of view, where the shards have it: pixels outside it
+    take part in neither the photometric nor the smoothness term).
 
     Returns:
         ``total`` (what to back-propagate), each term of :func:`loss_weights`, and per scale s ``photometric/s``
@@ -97,6 +107,9 @@ def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig
     ]
     scales = range(len(disps)) if loss_cfg.multiscale else range(1)
     identity = identity_error(cur, sources, loss_cfg) if loss_cfg.automask else None
+    valid = batch.get("valid")
+    if valid is not None and bool(valid.all()):
+        valid = None  # every pixel in view (the built-in data): the plain means, the same loss to the bit
     out: dict[str, torch.Tensor] = {}
     photometric, smoothness = [], []
     for s in scales:
@@ -104,8 +117,8 @@ def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig
         if disp.shape[-2:] != cur.shape[-2:]:
             disp = F.interpolate(disp, size=cur.shape[-2:], mode="bilinear", align_corners=False)
         transforms = [pose.T_source_target for pose in poses]
-        loss = reprojection(cur, sources, model.disp_to_depth(disp), transforms, K, loss_cfg, identity)
-        smooth = edge_aware_smoothness(disps[s], cur) / 2**s
+        loss = reprojection(cur, sources, model.disp_to_depth(disp), transforms, K, loss_cfg, identity, valid)
+        smooth = edge_aware_smoothness(disps[s], cur, valid) / 2**s
         out[f"photometric/{s}"], out[f"smoothness/{s}"] = loss, smooth
         photometric.append(loss)
         smoothness.append(smooth)
