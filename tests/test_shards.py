@@ -415,3 +415,28 @@ def test_train_offsets_give_each_train_target_its_offset_in_turn_and_leave_val_a
     # frame i takes offset [1, 3][i % 2] where both its neighbours exist: even frames 2-10 at 1, odd 3-7 at 3
     assert offsets["train"] == {2: 1, 3: 3, 4: 1, 5: 3, 6: 1, 7: 3, 8: 1, 10: 1}
     assert offsets["val"] == offsets["test"] == {i: 1 for i in range(1, 11)}
+
+
+@dataclass(frozen=True)
+class BorderedSource(SyntheticSource):
+    """The synthetic sequences seen through a circle in a black frame, as an endoscope's image is."""
+
+    def sequence(self, name: str, split: str) -> Sequence:
+        sequence = super().sequence(name, split)
+        v, u = np.mgrid[:self.height, :self.width]
+        inside = ((u - (self.width - 1) / 2) ** 2 + (v - (self.height - 1) / 2) ** 2 <= 22.0**2)[..., None]
+        load = sequence.load_rgb
+        sequence.load_rgb = lambda i: (load(i) * inside).astype(np.uint8)
+        return sequence
+
+
+def test_a_black_border_is_stored_as_the_field_of_view_and_its_ground_truth_is_unknown(tmp_path: Path) -> None:
+    from endoflow.data.loader import raw_samples
+    from endoflow.data.shard_format import decode_sample
+
+    write_dataset_shards(BorderedSource(), "simcol", small_params(), tmp_path / "simcol")
+    sample = decode_sample(next(raw_samples(sorted(str(p) for p in (tmp_path / "simcol").glob("train-*.tar")))))
+    valid = sample["valid"][0]
+    # a circle of radius 22 in the centre 48 x 48 of the frame, at 32 px: the corners out, the middle in
+    assert not valid[0, 0] and not valid[-1, -1] and valid[16, 16] and 0.45 < valid.float().mean() < 0.75
+    assert (sample["depth"][0][~valid] == 0).all() and (sample["depth"][0][valid] > 0).any()
