@@ -195,7 +195,7 @@ def _model_summary(args: argparse.Namespace) -> int:
 def _reconstruct(args: argparse.Namespace) -> int:
     from endoflow.devices import use_cpu_threads
     from endoflow.models.model_file import load_model_file
-    from endoflow.reconstruction.crop import Crop
+    from endoflow.data.crop import Crop
     from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
     from endoflow.geometry.direct_alignment import tracker_settings
     from endoflow.reconstruction.reconstruct import ReconstructOptions, log_reconstruction, reconstruct

@@ -97,6 +97,9 @@ CountOrCounts = Annotated[Union[int, list[int]], PlainValidator(_count_or_counts
 Intrinsics = Optional[Annotated[list[list[Number]],
                                 _expect(lambda rows: len(rows) == 3 and all(len(row) == 3 for row in rows),
                                         "a 3x3 matrix (three rows of three numbers)")]]
+Region = Optional[Annotated[list[int], _expect(
+    lambda v: len(v) == 4 and v[0] >= 0 and v[1] >= 0 and v[2] >= 1 and v[3] >= 1,
+    "[x, y, width, height] in whole pixels, x and y >= 0, width and height >= 1")]]
 PlainName = Annotated[str, _expect(_is_plain_name, "a name of letters, digits, _ and -")]
 
 
@@ -174,6 +177,29 @@ class C3VDConfig(Section):
     test: list[str] = setting(default_factory=list, doc="sequences of the test split")
 
 
+class VideoConfig(Section):
+    """Unlabelled video: every video file and folder of images under ``root`` is a sequence
+    (:mod:`endoflow.data.video`)."""
+
+    root: str = setting("data/raw/synthetic/Video", "folder of videos (mp4, avi, mov, mkv) and/or folders of frames, "
+                                                   "each a sequence; no depth, no poses")
+    intrinsics: Optional[str] = setting(
+        None, "K of the native frames for every sequence: a cam.txt, a YAML/JSON file (fx, fy, cx, cy, width, height) "
+              "or 'fx,fy,cx,cy' (px); a sidecar <name>.intrinsics.{json,yaml,yml,txt} beside a sequence overrides "
+              "it; null: unknown, assumed from assumed_fov_deg")
+    assumed_fov_deg: Number = setting(140.0, "diagonal field of view assumed of a camera whose intrinsics are unknown "
+                                             "(a pinhole, centred)", unit="deg", gt=0, lt=180)
+    crop: Region = setting(None, "[x, y, width, height] of the native frames to keep (one view of a side-by-side "
+                                 "recording, an overlay left out); null: the whole frame", unit="px")
+    fps: Optional[Number] = setting(None, "target frame rate: every round(native / fps)-th frame is kept; null: "
+                                          "every frame", unit="Hz", gt=0)
+    folder_fps: Number = setting(30.0, "frame rate of a folder of frames", unit="Hz", gt=0)
+    val: list[str] = setting(default_factory=list, doc="sequences of the val split (whole)")
+    test: list[str] = setting(default_factory=list, doc="sequences of the test split (whole)")
+    val_share: Number = setting(0.2, "of every other sequence, the last share of its frames held out as the "
+                                     "validation sequence <name>@val (a split by time)", ge=0, lt=1)
+
+
 class DataConfig(Section):
     # the data reaches training through the shards, whose manifest (every shard's SHA-256) is in the fingerprint
     TRAINING: ClassVar[Optional[bool]] = False
@@ -184,6 +210,7 @@ class DataConfig(Section):
     endoslam: EndoSLAMConfig = setting(default_factory=EndoSLAMConfig)
     scenenet: SceneNetConfig = setting(default_factory=SceneNetConfig)
     c3vd: C3VDConfig = setting(default_factory=C3VDConfig)
+    video: VideoConfig = setting(default_factory=VideoConfig)
 
 
 # ----------------------------------------------------------------------------------------------- synth
@@ -215,6 +242,8 @@ class SynthConfig(Section):
     # is a test sequence
     endoslam: SynthTubeLayoutConfig = setting(default_factory=lambda: SynthTubeLayoutConfig(sequences=2, frames=120))
     scenenet: SynthLayoutConfig = setting(default_factory=lambda: SynthLayoutConfig(sequences=60, frames=20))
+    # unlabelled: video files and frame folders seen through an endoscope's circle, for data.video
+    video: SynthLayoutConfig = setting(default_factory=lambda: SynthLayoutConfig(sequences=2, frames=90))
 
 
 # ------------------------------------------------------------------------------------------ preprocess
@@ -337,6 +366,12 @@ class LossConfig(Section):
 class TrainConfig(Section):
     shards: str = setting("data/shards/simcol", "training shards (their manifest is in the fingerprint)",
                           training=False)
+    # Real unlabelled video beside the built-in data: `-S 'train.mix={data/shards/video: 1.0}'` trains half of every
+    # batch on it. Its validation has no depth; the val splits with depth still select the best epoch.
+    mix: dict[str, Annotated[Number, Field(gt=0)]] = setting(
+        default_factory=dict, doc="more shard folders to train on, each with its weight beside shards' 1: every "
+                                  "batch takes samples from each folder in proportion; their val splits validate too "
+                                  "(their manifests are in the fingerprint)")
     latent_bank: str = setting("models/latent_bank.pt", "the bank file (its bytes are in the fingerprint)",
                                training=False)
     out: str = setting("models/endoflow.pt", "the model file", training=False)
@@ -546,7 +581,7 @@ DATASETS = tuple(name for name, info in DataConfig.model_fields.items()
                  if isinstance(info.annotation, type) and issubclass(info.annotation, Section))
 DEPTH_ONLY_DATASETS = frozenset({"scenenet"})
 # The layouts the built-in renderer writes (`endoflow synth`, stage `synthesize`), one per section of ``synth``.
-SYNTH_LAYOUTS = ("simcol", "endoslam", "scenenet")
+SYNTH_LAYOUTS = ("simcol", "endoslam", "scenenet", "video")
 
 
 # ---------------------------------------------------------------------------------------- cross-field rules
@@ -591,7 +626,7 @@ def _synth_triplets(p: Params) -> Optional[str]:
     offset = max([p.preprocess.neighbour_offset, *(p.preprocess.train_offsets or [])])
     for layout in (name for name in SYNTH_LAYOUTS if name not in DEPTH_ONLY_DATASETS):
         for key in ("frames", "test_frames"):
-            frames = getattr(getattr(p.synth, layout), key)
+            frames = getattr(getattr(p.synth, layout), key, None)
             if frames is not None and frames <= 2 * offset:
                 return (f"synth.{layout}.{key} must exceed 2 x the largest of preprocess.neighbour_offset and "
                         f"train_offsets = {2 * offset} (a sample needs frames cur - {offset} and cur + {offset}), "
@@ -724,7 +759,7 @@ def flatten_params(params: Any, prefix: str = "") -> dict[str, Any]:
     flat: dict[str, Any] = {}
     for name, value in tree.items():
         key = f"{prefix}{name}"
-        if isinstance(value, dict):
+        if isinstance(value, dict) and value:  # an empty mapping (train.mix) stays a key
             flat.update(flatten_params(value, prefix=f"{key}."))
         else:
             flat[key] = value
@@ -737,7 +772,8 @@ def params_to_dict(params: BaseModel) -> dict[str, Any]:
 
 
 def training_keys(params: Params) -> list[str]:
-    """The flat keys (as :func:`flatten_params` names them) of the fields that change what training computes."""
+    """The flat keys (as :func:`flatten_params` names them) of the fields that change what training computes; a
+    mapping of values (``train.mix``) is one key, its entries' flat keys below it."""
     return sorted(_training_keys(params, "", inherited=True))
 
 
@@ -853,7 +889,8 @@ def _section_after(section: Any, part: Any) -> Any:
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
         return annotation
     args = getattr(annotation, "__args__", ())
-    if getattr(annotation, "__origin__", None) is dict and len(args) == 2 and issubclass(args[1], BaseModel):
+    if (getattr(annotation, "__origin__", None) is dict and len(args) == 2 and isinstance(args[1], type)
+            and issubclass(args[1], BaseModel)):
         return _Entries(args[1])
     return None
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from endoflow.config import load_params
 from endoflow.synth.writers import synthesize_layout
 
-FOLDERS = {"simcol": "SimCol3D", "endoslam": "EndoSLAM", "scenenet": "SceneNet"}
+FOLDERS = {"simcol": "SimCol3D", "endoslam": "EndoSLAM", "scenenet": "SceneNet", "video": "Video"}
 
 
 def main() -> None:

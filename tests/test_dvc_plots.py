@@ -65,7 +65,7 @@ def test_every_reconstructed_sequence_is_charted_beside_constant_velocity(params
 def test_training_curves_chart_loss_and_validation_error_per_epoch():
     chart = top_level_plots()["training curves"]
     assert chart["x"] == "epoch"
-    assert chart["y"] == {"${train.plots}/history.csv": ["train_loss", "val_abs_rel", "val_rmse"]}
+    assert chart["y"] == {"${train.plots}/history.csv": ["train_loss", "val_abs_rel", "val_rmse", "val_photometric"]}
 
 
 def test_stage_plots_are_pictures_only():

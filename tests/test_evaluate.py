@@ -326,3 +326,16 @@ def test_without_refinement_the_evaluation_has_no_refined_path_and_writes_every_
     columns = (tmp_path / "predictions" / "trajectory.csv").read_text().splitlines()[0].split(",")
     assert "model_x" in columns and not any(column.startswith("refined") for column in columns)
     assert (tmp_path / "plots" / "trajectory_O1.png").is_file()
+
+
+def test_a_test_set_of_unlabelled_video_is_refused_saying_why():
+    from endoflow.config import EvalSetConfig
+    from endoflow.evaluation.evaluate import belongs_to
+
+    test_set = EvalSetConfig(dataset="video")
+    meta = {"split": "test", "group": "video", "sequence": "clip", "dataset": "video",
+            "ground_truth": {"depth": False, "pose": False}}
+    with pytest.raises(ValueError, match="sequence clip has no ground-truth depth or poses .* photometric error"):
+        belongs_to(meta, test_set)
+    assert not belongs_to({**meta, "split": "train"}, test_set)  # not of the test set: not looked at
+    assert belongs_to({**meta, "ground_truth": {"depth": True, "pose": False}}, test_set)

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from endoflow.data.field_of_view import RIM_PX, field_of_view, resized_field_of_view
+from endoflow.data.field_of_view import MIN_SHARE, RIM_PX, NoFieldOfView, field_of_view, resized_field_of_view
 from endoflow.reconstruction.frames import FrameRange, VideoFrames
 from tests.samples import COLONOSCOPY_CLIP
 
@@ -55,6 +55,21 @@ def test_frames_without_a_border_are_all_in_view_and_bad_input_is_refused():
         field_of_view([np.zeros((4, 4), np.float32)])
 
 
+def test_text_burnt_into_the_border_is_not_part_of_the_field_of_view():
+    frames = [frame * circle(40)[..., None].astype(np.uint8) for frame in scene_frames()]
+    for frame in frames:
+        cv2.putText(frame, "12:04", (0, 8), cv2.FONT_HERSHEY_PLAIN, 0.6, (255, 255, 255), 1)  # a timestamp
+    valid = field_of_view(frames)
+    assert not valid[:8, :12].any() and valid[circle(40 - RIM_PX - 1)].all()
+
+
+def test_frames_that_stay_black_have_no_field_of_view_and_say_so():
+    frames = [np.zeros((SIZE, SIZE, 3), np.uint8) for _ in range(3)]
+    frames[0][40:50, 40:50] = 200  # a speck of light: far below the smallest field of view
+    with pytest.raises(NoFieldOfView, match=rf"black .* over \d+% of the image; expected .* at least {MIN_SHARE:.0%}"):
+        field_of_view(frames)
+
+
 def test_resizing_keeps_only_what_lies_wholly_inside():
     valid = np.zeros((10, 20), bool)
     valid[:, 5:15] = True  # the centre square is columns 5-14: all in view
@@ -66,7 +81,7 @@ def test_resizing_keeps_only_what_lies_wholly_inside():
 
 @pytest.mark.skipif(not COLONOSCOPY_CLIP.is_file(), reason=f"real colonoscopy clip not found at {COLONOSCOPY_CLIP}")
 def test_the_real_clips_circular_field_of_view_is_found():
-    from endoflow.reconstruction.crop import Crop, frame_region
+    from endoflow.data.crop import Crop, frame_region
 
     source = VideoFrames(COLONOSCOPY_CLIP)
     region = frame_region(source.native_size, Crop(0, 0, 192, 192), str(COLONOSCOPY_CLIP))

@@ -22,9 +22,11 @@ import webdataset as wds
 from endoflow.config import ConfigError, params_from_dict
 from endoflow.data.loader import (
     PREFETCH_BATCHES,
+    batch_shares,
     batches_per_epoch,
     epoch_loader,
     list_shards,
+    mixed_rank_batches,
     rank_batches,
     rank_epoch,
     rank_shards,
@@ -161,8 +163,9 @@ def test_ranks_read_disjoint_shards_and_yield_equal_batch_counts_from_uneven_sha
     assert len({tuple(a) for a in assignments}) > 1, "the shard assignment should change between epochs"
 
 
-def write_shard_folder(folder: Path, samples: list[dict], sizes: list[int]) -> list[str]:
-    """Train shards of the given sizes, cycling through ``samples`` under new keys, with a true manifest."""
+def write_shard_folder(folder: Path, samples: list[dict], sizes: list[int], prefix: str = "uneven") -> list[str]:
+    """Train shards of the given sizes, cycling through ``samples`` under new keys (``<prefix>-<shard>-<i>``), with
+    a true manifest."""
     folder.mkdir()
     pool = itertools.cycle(samples)
     entries, rows = [], {name: [] for name in MANIFEST_SCHEMA.names}
@@ -171,7 +174,7 @@ def write_shard_folder(folder: Path, samples: list[dict], sizes: list[int]) -> l
         with wds.TarWriter(str(folder / name), encoder=False, mtime=0) as tar:
             for i in range(size):
                 sample = {k: v for k, v in next(pool).items() if not k.startswith("__")}
-                key = f"uneven-{index}-{i}"
+                key = f"{prefix}-{index}-{i}"
                 tar.write({"__key__": key, **sample})
                 meta = json.loads(sample["meta.json"])
                 for column, value in (("shard", name), ("key", key), ("dataset", meta["dataset"]),
@@ -321,3 +324,41 @@ def test_loader_processes_must_fit_the_workers_cpus_and_shape_the_training_finge
     fits = params_from_dict(defaults_with({"train.loader_workers": 2, "ray.cpus_per_worker": 3.0}))
     in_process = params_from_dict(defaults_with({"train.loader_workers": 0, "ray.cpus_per_worker": 3.0}))
     assert training_fingerprint(fits, str(shard_dir), None) != training_fingerprint(in_process, str(shard_dir), None)
+
+
+# ------------------------------------------------------------------------------------------ several folders
+def test_batch_shares_follow_the_weights_and_add_up_to_the_batch() -> None:
+    assert batch_shares(12, [1.0]) == [12]
+    assert batch_shares(12, [1.0, 1.0]) == [6, 6]
+    assert batch_shares(12, [1.0, 0.5]) == [8, 4]
+    assert batch_shares(4, [1.0, 1.0, 1.0]) == [2, 1, 1]  # the tie's extra sample to the first folder
+    assert batch_shares(12, [1.0, 0.01]) == [12, 0]  # too small a weight to get a sample: the trainer refuses it
+    for size, weights in itertools.product(range(1, 20), ([1.0, 0.3], [1.0, 2.0, 0.7], [1.0, 1e-3])):
+        assert sum(batch_shares(size, weights)) == size
+    with pytest.raises(ValueError, match="positive weights"):
+        batch_shares(4, [1.0, 0.0])
+
+
+@MORE_PROCESSES_THAN_CORES
+def test_one_folder_mixed_with_nothing_gives_the_batches_of_one_folder(shard_dir: Path) -> None:
+    urls = list_shards(shard_dir, "train")
+    for loader_workers in (0, 2):
+        alone = keys_of(rank_batches(urls, 1, 2, batch_size=2, epoch=3, seed=5, loader_workers=loader_workers))
+        mixed = keys_of(mixed_rank_batches([(urls, 2)], 1, 2, epoch=3, seed=5, loader_workers=loader_workers))
+        assert alone == mixed
+
+
+@MORE_PROCESSES_THAN_CORES
+def test_mixed_batches_take_each_folders_share_and_the_first_folder_sets_the_epoch(
+        shard_dir: Path, tmp_path: Path) -> None:
+    samples = list(raw_samples(list_shards(shard_dir, "train")))
+    first = write_shard_folder(tmp_path / "first", samples, [4, 4], prefix="first")
+    second = write_shard_folder(tmp_path / "second", samples, [1, 1], prefix="second")  # fewer than it is asked for
+    for loader_workers in (0, 2):
+        batches = list(mixed_rank_batches([(first, 3), (second, 1)], 0, 1, epoch=0, seed=0,
+                                          loader_workers=loader_workers))
+        assert len(batches) == batches_per_epoch(first, 1, 3) == 2
+        # 3 of each batch from the first folder's 8 samples, 1 from the second's 2: each used once
+        assert [[key.split("-")[0] for key in batch["key"]] for batch in batches] == [["first"] * 3 + ["second"]] * 2
+        keys = keys_of(batches)
+        assert len(set(keys)) == len(keys) == 8

@@ -17,6 +17,8 @@ from endoflow.config import LossConfig, Params
 from endoflow.geometry.camera import scale_intrinsics
 from endoflow.geometry.pose import pose_vec_to_matrix, relative_pose
 from endoflow.models.endoflow_model import build_model
+from endoflow.losses.consistency import geometry_consistency
+from endoflow.losses.photometric import held_out_photometric_error
 from endoflow.losses.smoothness import edge_aware_smoothness
 from endoflow.training.objective import reprojection, training_step_losses
 from tests.samples import SIMCOL_SAMPLE
@@ -220,6 +222,68 @@ def test_pixels_outside_the_field_of_view_give_no_gradient_to_depth():
     disp = (1 / depth.detach()).requires_grad_(True)
     edge_aware_smoothness(disp, batch["cur"], valid).backward()
     assert disp.grad[~valid].abs().max() == 0 and disp.grad[valid].abs().sum() > 0
+
+
+def test_the_geometry_term_gives_no_gradient_to_depth_outside_the_field_of_view():
+    batch = simcol_triplets(size=32)
+    valid = circle_mask(32).expand(len(batch["cur"]), 1, 32, 32)
+    depth = (batch["depth"] * 1.1).requires_grad_(True)  # off the truth, so that it has a gradient
+    sources = [batch["depth"] * 0.9, batch["depth"] * 1.05]
+    geometry_consistency(depth, sources, [batch["T_prev_cur"], batch["T_next_cur"]], batch["K"], valid).backward()
+    assert depth.grad[~valid].abs().max() == 0 and depth.grad[valid].abs().sum() > 0
+
+
+def test_the_smoothness_of_every_scale_counts_inside_the_field_of_view_in_bfloat16_too():
+    """Coarse scales find their mask by area averaging: in bfloat16 the threshold 0.999 would round to 1."""
+    batch = simcol_triplets(size=64)
+    params = Params()
+    model = build_model(params, None).eval()
+    masked = {**batch, "valid": circle_mask(64).expand(len(batch["cur"]), 1, 64, 64)}
+    torch.manual_seed(0)
+    full = training_step_losses(model, masked, params.loss)
+    torch.manual_seed(0)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        half = training_step_losses(model, masked, params.loss)
+    for scale in range(4):
+        assert float(half[f"smoothness/{scale}"]) == pytest.approx(float(full[f"smoothness/{scale}"]), rel=0.05)
+        assert float(half[f"smoothness/{scale}"]) > 0
+
+
+def test_the_held_out_photometric_error_ranks_the_true_depth_and_motion_first():
+    batch = simcol_triplets()
+    sources, truth = [batch["prev"], batch["next"]], [batch["T_prev_cur"], batch["T_next_cur"]]
+    true = held_out_photometric_error(batch["cur"], sources, batch["depth"], truth, batch["K"])
+    flat = held_out_photometric_error(batch["cur"], sources, torch.full_like(batch["depth"], float(
+        batch["depth"].mean())), truth, batch["K"])
+    still = held_out_photometric_error(batch["cur"], sources, batch["depth"], [torch.eye(4).expand_as(t) for t in truth],
+                                       batch["K"])
+    assert true.shape == (len(batch["cur"]),)
+    assert (true < flat).all() and (true < still).all()
+    # a frame rebuilt from itself has no error; outside the field of view nothing counts
+    itself = held_out_photometric_error(batch["cur"], [batch["cur"]], batch["depth"], [torch.eye(4).expand_as(truth[0])],
+                                        batch["K"])
+    assert itself.abs().max() < 1e-5  # float32 round-off of the identity warp
+    valid = circle_mask(SIZE).expand(len(batch["cur"]), 1, SIZE, SIZE)
+    scrambled = {name: torch.where(valid, batch[name], torch.rand_like(batch[name])) for name in ("prev", "cur", "next")}
+    inside = held_out_photometric_error(scrambled["cur"], [scrambled["prev"], scrambled["next"]], batch["depth"], truth,
+                                        batch["K"], valid)
+    unmasked = held_out_photometric_error(scrambled["cur"], [scrambled["prev"], scrambled["next"]], batch["depth"],
+                                          truth, batch["K"])
+    assert (inside < 0.5 * unmasked).all()
+
+
+def test_the_best_epoch_is_picked_by_depth_where_validation_has_it_else_by_the_photometric_error():
+    from endoflow.training.checkpoint import BestEpoch
+    from endoflow.training.loop import improves_on, selection_metric
+
+    labelled = {"val_abs_rel": 0.1, "val_rmse": 1.0, "val_photometric": 0.2}
+    assert selection_metric(labelled) == "val_abs_rel" and selection_metric({"val_photometric": 0.2}) == "val_photometric"
+    best = BestEpoch(0, labelled, {})
+    assert improves_on({**labelled, "val_photometric": 0.3}, best)  # better depth wins, whatever the photometric
+    assert not improves_on({**labelled, "val_abs_rel": 0.2, "val_photometric": 0.1}, best)
+    unlabelled = BestEpoch(0, {"val_photometric": 0.2}, {})
+    assert improves_on({"val_photometric": 0.19}, unlabelled) and not improves_on({"val_photometric": 0.21}, unlabelled)
+    assert improves_on({}, BestEpoch(0, {}, {}))  # no validation data: the latest epoch
 
 
 def test_a_field_of_view_that_is_everything_is_the_loss_without_one_to_the_bit():

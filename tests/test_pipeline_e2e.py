@@ -34,7 +34,7 @@ def smoke_repro(tmp_path_factory) -> Path:
 
 def test_every_stage_output_exists(smoke_repro):
     params = load_params(smoke_repro / "params.yaml")
-    for dataset in ("simcol", "endoslam", "scenenet"):
+    for dataset in ("simcol", "endoslam", "scenenet", "video"):
         shards = smoke_repro / params.preprocess.out / dataset
         assert (shards / "manifest.parquet").is_file()
         assert list(shards.glob("*.tar"))
@@ -51,6 +51,23 @@ def test_every_stage_output_exists(smoke_repro):
         measured = json.loads((smoke_repro / params.reconstruct.out / name / "measurement.json").read_text())
         assert set(measured["surface"]) >= {"ground_truth", "model", "trivial"}, name
         assert (smoke_repro / params.reconstruct.plots / name / "sheet.png").is_file()
+
+
+def test_the_smoke_run_trained_on_the_built_in_video_beside_simcol(smoke_repro):
+    """The smoke preset mixes the unlabelled video into every batch: its shards say they have no ground truth, and
+    the training run logged both folders as its inputs."""
+    from endoflow.data.loader import list_shards, raw_samples
+    from endoflow.data.shard_format import decode_meta, has_ground_truth
+
+    params = load_params(smoke_repro / "params.yaml")
+    assert params.train.mix == {"data/shards/video": 1.0}
+    urls = list_shards(str(smoke_repro / params.preprocess.out / "video"), "train")
+    meta = decode_meta(next(raw_samples(urls))["meta.json"], urls[0])
+    assert not has_ground_truth(meta, "depth") and not has_ground_truth(meta, "pose")
+    client = MlflowClient(tracking_uri=f"sqlite:///{smoke_repro / 'mlflow.db'}")
+    (training,) = client.search_runs([client.get_experiment_by_name(params.tracking.experiment).experiment_id])
+    assert {d.dataset.name for d in training.inputs.dataset_inputs} >= {"simcol", "video"}
+    assert "val_photometric" in training.data.metrics
 
 
 def test_dvc_metrics_show_lists_training_and_evaluation(smoke_repro):
@@ -78,8 +95,8 @@ def test_dvc_metrics_are_a_short_numeric_summary(smoke_repro):
                 for key in ("abs_rel", "rte_cm", "rot_deg")}
     expected |= {f"reconstruct_{name}.{key}" for name in params.reconstruct.sequences
                  for key in ("ate_cm", "accuracy_cm", "completeness_2vox_pct")}
-    expected |= {"train.best_epoch", "train.val_abs_rel", "train.val_rmse_cm", "latent_bank.swd_final",
-                 "latent_bank.swd_ratio"}
+    expected |= {"train.best_epoch", "train.val_abs_rel", "train.val_rmse_cm", "train.val_photometric",
+                 "latent_bank.swd_final", "latent_bank.swd_ratio"}
     assert set(values) == expected
 
 

@@ -75,11 +75,12 @@ def test_the_pinhole_sees_what_the_fisheye_sees_along_each_ray():
 
 
 def write_sequence(root: Path, frames: int = 3) -> Path:
-    """A tiny C3VD layout: the small camera's calibration, colour PNGs, depth TIFFs, a column-major pose file."""
+    """A tiny C3VD layout: the small camera's calibration (its centre counted from pixel 1, as MATLAB writes it),
+    colour PNGs, depth TIFFs, a column-major pose file."""
     (root / "calibration").mkdir(parents=True)
     camera = small_camera()
     (root / "calibration" / "cfhq190l_omnidirectional_values.txt").write_text(
-        " ".join(str(v) for v in (camera.width, camera.height, camera.cx, camera.cy, camera.a0, camera.a2, camera.a3,
+        " ".join(str(v) for v in (camera.width, camera.height, camera.cx + 1, camera.cy + 1, camera.a0, camera.a2, camera.a3,
                                   camera.a4, camera.e, camera.f, camera.g)))
     folder = root / "sigmoid_t1_a"
     folder.mkdir()
@@ -127,6 +128,22 @@ def test_frames_of_another_size_than_the_calibration_are_refused(tmp_path: Path)
         cv2.imwrite(str(path), np.zeros((20, 40, 3), np.uint8))
     with pytest.raises(DataFormatError, match="frames are 40x20, the calibration describes 40x30"):
         open_reader(tmp_path, "c3vd", Params()).sequences()
+
+
+def test_a_later_frame_of_another_size_is_refused_when_it_is_read(tmp_path: Path):
+    folder = write_sequence(tmp_path)
+    cv2.imwrite(str(folder / "2_color.png"), np.zeros((20, 40, 3), np.uint8))
+    (sequence,) = open_reader(tmp_path, "c3vd", Params()).sequences()
+    sequence.load_rgb(1)
+    with pytest.raises(DataFormatError, match=r"2_color.png.*image size \(20, 40\) differs from the sequence's"):
+        sequence.load_rgb(2)
+
+
+@needs_sample
+def test_the_calibration_centre_counted_from_pixel_1_lands_near_the_image_centre():
+    camera = read_calibration(C3VD_SAMPLE / "calibration" / "cfhq190l_omnidirectional_values.txt")
+    # the file's 679.54 and 543.98 are MATLAB's, counted from 1
+    assert (camera.cx, camera.cy) == pytest.approx((678.5448, 542.9759), abs=1e-4)
 
 
 @needs_sample

@@ -14,7 +14,7 @@ import torch
 from endoflow.cli import main as cli
 from endoflow.errors import DataFormatError
 from endoflow.models.model_file import load_model_file, save_model_file
-from endoflow.reconstruction.crop import Crop
+from endoflow.data.crop import Crop
 from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
 from tests.test_reconstruct import model_file, params, recorded_rows  # noqa: F401 (fixtures)
 

@@ -419,12 +419,17 @@ def test_train_offsets_give_each_train_target_its_offset_in_turn_and_leave_val_a
 
 @dataclass(frozen=True)
 class BorderedSource(SyntheticSource):
-    """The synthetic sequences seen through a circle in a black frame, as an endoscope's image is."""
+    """The synthetic sequences seen through a circle in a black frame, as an endoscope's image is; each sequence's
+    circle has its own radius (:meth:`radius`)."""
+
+    def radius(self, name: str) -> float:
+        return 22.0 if name == "S1" else 17.0 + int(name[1:]) % 4
 
     def sequence(self, name: str, split: str) -> Sequence:
         sequence = super().sequence(name, split)
         v, u = np.mgrid[:self.height, :self.width]
-        inside = ((u - (self.width - 1) / 2) ** 2 + (v - (self.height - 1) / 2) ** 2 <= 22.0**2)[..., None]
+        radius = self.radius(name)
+        inside = ((u - (self.width - 1) / 2) ** 2 + (v - (self.height - 1) / 2) ** 2 <= radius**2)[..., None]
         load = sequence.load_rgb
         sequence.load_rgb = lambda i: (load(i) * inside).astype(np.uint8)
         return sequence
@@ -440,3 +445,25 @@ def test_a_black_border_is_stored_as_the_field_of_view_and_its_ground_truth_is_u
     # a circle of radius 22 in the centre 48 x 48 of the frame, at 32 px: the corners out, the middle in
     assert not valid[0, 0] and not valid[-1, -1] and valid[16, 16] and 0.45 < valid.float().mean() < 0.75
     assert (sample["depth"][0][~valid] == 0).all() and (sample["depth"][0][valid] > 0).any()
+
+
+def test_every_sample_carries_the_field_of_view_of_its_own_sequence(tmp_path: Path) -> None:
+    """Shards of 3 samples hold the end of one sequence and the start of the next: each keeps its own circle."""
+    from endoflow.data.field_of_view import field_of_view, resized_field_of_view
+    from endoflow.data.loader import raw_samples
+    from endoflow.data.shard_format import decode_sample
+
+    source = BorderedSource()
+    params = small_params()
+    params.preprocess = params.preprocess.replace(shard_multiple=1)  # 3 + 3 + 2 train samples: one shard straddles
+    write_dataset_shards(source, "simcol", params, tmp_path / "simcol")
+    expected = {s.name: resized_field_of_view(field_of_view([s.load_rgb(i) for i in range(len(s))]), 32)
+                for s in source()}
+    assert len({m.tobytes() for m in expected.values()}) > 1
+    shared = 0
+    for shard in sorted((tmp_path / "simcol").glob("*.tar")):
+        samples = [decode_sample(raw) for raw in raw_samples([str(shard)])]
+        shared += len({s["meta"]["sequence"] for s in samples}) > 1
+        for sample in samples:
+            np.testing.assert_array_equal(sample["valid"][0].numpy(), expected[sample["meta"]["sequence"]])
+    assert shared  # some shard holds two sequences

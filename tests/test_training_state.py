@@ -186,8 +186,12 @@ def test_the_worker_config_survives_pickling_and_a_misspelt_field_fails_on_the_d
 
     from endoflow.training.worker_config import WorkerConfig
 
-    config = WorkerConfig(Params(), ("/s/train-000000.tar",), (), None, "sqlite:///m.db", "run", resume_from=None)
+    config = WorkerConfig(Params(), (("/s/train-000000.tar",),), (), None, "sqlite:///m.db", "run", resume_from=None,
+                          batch_shares=(12,))
     assert pickle.loads(pickle.dumps(config)) == config
+    with pytest.raises(ValueError, match="one batch share per train folder"):
+        WorkerConfig(Params(), (("/s/train-000000.tar",), ("/v/train-000000.tar",)), (), None, "", "", None,
+                     batch_shares=(12,))
     with pytest.raises(TypeError, match="train_shard"):
         WorkerConfig(Params(), train_shard=(), val_shards=(), latent_bank=None, tracking_uri="", run_id="",
                      resume_from=None)

@@ -16,7 +16,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from endoflow.config import DATASETS, DEPTH_ONLY_DATASETS  # noqa: F401  (re-exported: readers' names)
-from endoflow.data.field_of_view import FIELD_OF_VIEW_FRAMES, field_of_view
+from endoflow.data.field_of_view import FIELD_OF_VIEW_FRAMES, NoFieldOfView, field_of_view
 from endoflow.errors import DataFormatError
 
 
@@ -50,6 +50,8 @@ class Sequence:
         source_files: per position, the files that frame is decoded from (RGB, depth); what a derived
             product built from the frame must be rebuilt after (see :meth:`frame_files`). Empty for
             sources that do not read files (frames made in memory).
+        intrinsics_known: whether ``K`` was given (a calibration, a dataset's file) or assumed for a camera
+            nobody calibrated (:mod:`endoflow.data.video`); shards say so, and training can learn it.
     """
 
     dataset: str
@@ -64,6 +66,7 @@ class Sequence:
     group: str = ""
     problems: list[str] = field(default_factory=list)
     source_files: list[tuple[Path, ...]] = field(default_factory=list)
+    intrinsics_known: bool = True
     _valid: Optional[np.ndarray] = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -100,7 +103,10 @@ class Sequence:
                                                  f"view in")
             count = min(len(self), FIELD_OF_VIEW_FRAMES)
             positions = np.linspace(0, len(self) - 1, count).round().astype(int)
-            self._valid = field_of_view(self.load_rgb(int(i)) for i in positions)
+            try:
+                self._valid = field_of_view(self.load_rgb(int(i)) for i in positions)
+            except NoFieldOfView as exc:
+                raise DataFormatError(f"{self.dataset}/{self.name}", str(exc)) from None
         return self._valid
 
     def frame(self, i: int) -> Frame:

@@ -5,7 +5,8 @@ the native layout, its fisheye frames and depth undistorted to a pinhole, in the
 A sequence is a folder holding ``<n>_color.png`` (8-bit RGB, ``n`` not zero-padded), ``<nnnn>_depth.tiff``
 (16-bit, 0..65535 for 0..100 mm of z-depth, 0 unknown) and ``pose.txt`` (one line per frame of the sequence: the 16
 numbers of a camera-to-world 4x4, column by column, translation in mm). The camera is Scaramuzza's omnidirectional
-model (OCamCalib), in ``data.c3vd.calibration``: a pixel's offset from ``(cx, cy)``, taken through the affine
+model as MATLAB's fisheye calibration writes it (centre counted from pixel 1, which we move to our 0-based pixels),
+in ``data.c3vd.calibration``: a pixel's offset from ``(cx, cy)``, taken through the affine
 ``[[e, f], [g, 1]]``, is ``(x, y)`` at ``rho = |(x, y)|``, and its ray is ``(x, y, a0 + a2 rho^2 + a3 rho^3 +
 a4 rho^4)``. Frames and depth are resampled onto a pinhole with the same centre, axis and size, focal
 ``data.c3vd.focal_px`` (the calibration's ``a0`` by default: the fisheye's own focal at its centre), colour bilinearly
@@ -18,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -87,6 +89,9 @@ def read_calibration(path: Path) -> OmnidirectionalCamera:
         raise DataFormatError(path, f"expected {len(CALIBRATION_FIELDS)} finite numbers ({' '.join(CALIBRATION_FIELDS)}), "
                                     f"found {len(numbers)}")
     values = dict(zip(CALIBRATION_FIELDS, numbers))
+    # MATLAB's fisheye calibration (positive a0, the stretch matrix [[e, f], [g, 1]]) counts pixels from 1
+    values["cx"] -= 1
+    values["cy"] -= 1
     return OmnidirectionalCamera(width=int(values.pop("width")), height=int(values.pop("height")), **values)
 
 
@@ -145,9 +150,8 @@ class C3VDReader(DatasetReader):
         return Sequence(
             dataset=self.name, name=folder.name, split=self._split(folder.name), K=pinhole(camera, self.cfg.focal_px),
             image_size=size, frame_ids=frame_ids, poses=poses,
-            load_rgb=sized_loader(colour_paths, size, lambda path: undistorted(read_rgb(path), maps, cv2.INTER_LINEAR)),
-            load_depth=sized_loader(depth_paths, size, lambda path: undistorted(decode_depth(path), maps,
-                                                                                cv2.INTER_NEAREST)),
+            load_rgb=undistorting(sized_loader(colour_paths, size, read_rgb), maps, cv2.INTER_LINEAR),
+            load_depth=undistorting(sized_loader(depth_paths, size, decode_depth), maps, cv2.INTER_NEAREST),
             group=folder.name.split("_")[0], problems=problems, source_files=list(zip(colour_paths, depth_paths)))
 
     def _split(self, name: str) -> str:
@@ -156,6 +160,13 @@ class C3VDReader(DatasetReader):
         if name in self.cfg.val:
             return "val"
         return "train"
+
+
+def undistorting(load: Callable[[int], np.ndarray], maps: tuple[np.ndarray, np.ndarray], interpolation: int
+                 ) -> Callable[[int], np.ndarray]:
+    """``i -> load(i)`` undistorted (:func:`undistorted`): the native frame's size is checked before it is
+    resampled, which gives every frame the calibration's size."""
+    return lambda i: undistorted(load(i), maps, interpolation)
 
 
 def undistorted(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray], interpolation: int) -> np.ndarray:

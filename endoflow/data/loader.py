@@ -12,6 +12,10 @@ Uneven shard counts or sizes would let one rank finish early and leave the other
 all-reduce; instead every rank yields exactly :func:`batches_per_epoch` batches, the even share of the
 epoch's samples, cycling through its own shards when they hold fewer samples than that.
 
+Several shard folders (``train.mix``): each batch takes a fixed number of samples from each folder
+(:func:`batch_shares`), each folder's part read as above with that batch size (:func:`mixed_rank_batches`); an
+epoch is one pass over the first folder, the others cycling through their own samples.
+
 Loader processes (``train.loader_workers``): a rank's batches can be read, checked, decoded and collated by
 worker processes of a torch ``DataLoader`` (:class:`RankEpoch`), so that the training thread only moves
 finished batches to its device; their images stay 8-bit until there. The rank's epoch is a run of samples of its own shards; each loader process
@@ -144,6 +148,49 @@ def rank_batches(
     return _raising_failures(epoch_loader(epoch_data, loader_workers, pin_memory))
 
 
+def mixed_rank_batches(
+    sources: list[tuple[list[str], int]],
+    rank: int,
+    world_size: int,
+    epoch: int,
+    seed: int,
+    shuffle_buffer: int = 256,
+    entries: Optional[Mapping[str, ShardEntry]] = None,
+    loader_workers: int = 0,
+    pin_memory: bool = False,
+    max_batches: Optional[int] = None,
+) -> Iterator[dict]:
+    """:func:`rank_batches` over several shard folders: ``sources`` lists each folder's shards and how many samples
+    of every batch it gives (:func:`batch_shares`). The epoch has the first folder's number of batches
+    (:func:`batches_per_epoch` at its share); each folder's part of a batch is read as :func:`rank_batches` reads
+    one folder, the others cycling through their samples as often as that takes. A single source is
+    :func:`rank_batches` itself, batch for batch."""
+    if not sources:
+        raise ValueError("no shard folders to read")
+    entries = entries if entries is not None else shard_entries([url for urls, _ in sources for url in urls])
+    first_urls, first_share = sources[0]
+    count = batches_per_epoch(first_urls, world_size, first_share, entries)
+    if max_batches is not None:
+        count = min(count, max_batches)
+    parts = tuple(rank_epoch(urls, rank, world_size, share, epoch, seed, shuffle_buffer, entries, batches=count)
+                  for urls, share in sources)
+    data = parts[0] if len(parts) == 1 else MixedEpoch(parts)
+    return _raising_failures(epoch_loader(data, loader_workers, pin_memory))
+
+
+def batch_shares(batch_size: int, weights: list[float]) -> list[int]:
+    """Samples of a ``batch_size`` batch each of the folders of ``weights`` gives: in proportion, the rounding by
+    largest remainders (ties to the earlier folder), so they add up to ``batch_size``."""
+    if batch_size < 1 or not weights or min(weights) <= 0:
+        raise ValueError(f"need batch_size >= 1 and positive weights, got {batch_size} and {weights}")
+    exact = [batch_size * w / sum(weights) for w in weights]
+    shares = [int(e) for e in exact]
+    by_remainder = sorted(range(len(weights)), key=lambda i: (shares[i] - exact[i], i))
+    for i in by_remainder[: batch_size - sum(shares)]:
+        shares[i] += 1
+    return shares
+
+
 def rank_epoch(
     urls: list[str],
     rank: int,
@@ -154,13 +201,15 @@ def rank_epoch(
     shuffle_buffer: int = 256,
     entries: Optional[Mapping[str, ShardEntry]] = None,
     max_batches: Optional[int] = None,
+    batches: Optional[int] = None,
 ) -> RankEpoch:
-    """What ``rank`` reads in ``epoch`` (see :func:`rank_batches`), checked here rather than in a loader process."""
+    """What ``rank`` reads in ``epoch`` (see :func:`rank_batches`), checked here rather than in a loader process;
+    ``batches`` sets the count instead of :func:`batches_per_epoch` (a folder mixed into another's epoch)."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be positive, got {batch_size}")
     entries = entries if entries is not None else shard_entries(urls)
     own = rank_shards(urls, rank, world_size, epoch, seed)
-    count = batches_per_epoch(urls, world_size, batch_size, entries)
+    count = batches_per_epoch(urls, world_size, batch_size, entries) if batches is None else batches
     if max_batches is not None:
         count = min(count, max_batches)
     if count and sum(entries[url].samples for url in own) == 0:
@@ -168,7 +217,7 @@ def rank_epoch(
     return RankEpoch(own, {url: entries[url] for url in own}, batch_size, count, seed, epoch, rank, shuffle_buffer)
 
 
-def epoch_loader(epoch_data: RankEpoch, loader_workers: int, pin_memory: bool) -> DataLoader:
+def epoch_loader(epoch_data: RankEpoch | MixedEpoch, loader_workers: int, pin_memory: bool) -> DataLoader:
     """A ``DataLoader`` over ready batches (``batch_size=None``), with ``loader_workers`` processes.
 
     It gets its own random generator: starting it then draws nothing from this process's torch random state,
@@ -211,6 +260,10 @@ class RankEpoch(IterableDataset):
         return self.batches
 
     def __iter__(self) -> Iterator[Union[dict, ShardFailure]]:
+        yield from _collated(self.sample_groups())
+
+    def sample_groups(self) -> Iterator[list[dict]]:
+        """The decoded samples of each batch of this loader process's part (:func:`worker_batches`)."""
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
         share = worker_batches(self.batches, worker, workers)
@@ -218,13 +271,40 @@ class RankEpoch(IterableDataset):
         buffer = max(1, self.shuffle_buffer // workers)
         rng = random.Random(f"{self.seed}-{self.epoch}-{self.rank}-{worker}")
         shuffled = wds.shuffle(buffer, buffer, rng=rng)(samples)
-        try:
-            for group in _groups(shuffled, self.batch_size):
-                yield collate_samples([decode_sample(sample, rgb8=True) for sample in group])
-        except DataFormatError as error:
-            if info is None:
-                raise
-            yield ShardFailure(error)
+        for group in _groups(shuffled, self.batch_size):
+            yield [decode_sample(sample, rgb8=True) for sample in group]
+
+
+@dataclass(frozen=True)
+class MixedEpoch(IterableDataset):
+    """One rank's batches of one epoch drawn from several folders: batch ``i`` is batch ``i`` of every part
+    (a :class:`RankEpoch` each, with that folder's share as its batch size and one count of batches), joined."""
+
+    parts: tuple[RankEpoch, ...]
+
+    def __len__(self) -> int:
+        return self.parts[0].batches
+
+    @property
+    def seed(self) -> int:
+        return self.parts[0].seed
+
+    def __iter__(self) -> Iterator[Union[dict, ShardFailure]]:
+        joined = ([sample for group in groups for sample in group]
+                  for groups in zip(*(part.sample_groups() for part in self.parts)))
+        yield from _collated(joined)
+
+
+def _collated(groups: Iterator[list[dict]]) -> Iterator[Union[dict, ShardFailure]]:
+    """Each group collated into a batch; a damaged shard met in a loader process is passed on as a
+    :class:`ShardFailure` (raised here when this process reads)."""
+    try:
+        for group in groups:
+            yield collate_samples(group)
+    except DataFormatError as error:
+        if get_worker_info() is None:
+            raise
+        yield ShardFailure(error)
 
 
 def worker_batches(batches: int, worker: int, workers: int) -> range:

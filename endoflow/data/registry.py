@@ -14,6 +14,7 @@ from endoflow.data.scenenet import SPLITS as SCENENET_SPLITS
 from endoflow.data.scenenet import SceneNetReader
 from endoflow.data.simcol import SCENES as SIMCOL_SCENES
 from endoflow.data.simcol import SimColReader
+from endoflow.data.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES, VideoReader
 from endoflow.errors import DataFormatError
 
 
@@ -34,18 +35,30 @@ def _looks_like_c3vd(root: Path) -> bool:
     return any(any(folder.glob("*_color.png")) for folder in (p.parent for p in root.glob(f"*/{C3VD_POSE_FILE}")))
 
 
+def _looks_like_video(root: Path) -> bool:
+    # frame folders without C3VD's pose file beside their images
+    return any((p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES)
+               or (p.is_dir() and not (p / C3VD_POSE_FILE).exists() and _holds_images(p)) for p in root.iterdir())
+
+
+def _holds_images(folder: Path) -> bool:
+    return any(p.suffix.lower() in IMAGE_SUFFIXES for p in folder.iterdir())
+
+
 LAYOUT_TESTS: dict[str, Callable[[Path], bool]] = {
     "simcol": _looks_like_simcol,
     "endoslam": _looks_like_endoslam,
     "scenenet": _looks_like_scenenet,
     "c3vd": _looks_like_c3vd,
+    "video": _looks_like_video,
 }
 
 EXPECTED_LAYOUTS = (
     "simcol: SyntheticColon_I/, SyntheticColon_II/ or SyntheticColon_III/; "
     "endoslam: UnityCam/ or Cameras/; "
     "scenenet: train/ or val/ holding <part>/<trajectory>/depth/; "
-    "c3vd: sequence folders holding pose.txt and <n>_color.png"
+    "c3vd: sequence folders holding pose.txt and <n>_color.png; "
+    "video: video files or folders of images"
 )
 
 
@@ -81,4 +94,6 @@ def open_reader(root: str | Path, dataset: Optional[str], params: Params) -> Dat
         return SceneNetReader(root, params.data.scenenet)
     if name == "c3vd":
         return C3VDReader(root, params.data.c3vd)
+    if name == "video":
+        return VideoReader(root, params.data.video)
     raise DataFormatError(root, f"unknown dataset {name!r} (known: {', '.join(DATASETS)})")

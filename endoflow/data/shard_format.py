@@ -16,7 +16,9 @@ order. A complete sample is exactly :data:`TRIPLET_MEMBERS` (a target frame with
   (``prev``/``cur``/``next``), ``neighbour_offset`` (how many regular frame steps ``prev`` and ``next`` lie from
   ``cur``; null when depth-only), ``K`` (3x3 at the stored size, pixel centres at integers), ``T_world_cam``
   (``prev``/``cur``/``next``: 4x4 camera-to-world in cm, or null), ``depth_unit`` (cm per count),
-  ``native_size`` ``[H, W]``.
+  ``native_size`` ``[H, W]``, ``intrinsics_known`` (false: ``K`` is assumed, the camera was never calibrated),
+  ``ground_truth`` (``{"depth": bool, "pose": bool}``: whether the dataset has them at all; unlabelled video has
+  neither, its ``depth.png`` is all 0 and its poses null, and consumers that score against ground truth refuse it).
 
 ``manifest.parquet`` has one row per sample (:data:`MANIFEST_SCHEMA`, in shard order, with the SHA-256 of the
 sample's members, :func:`sample_sha256`) and, in its schema metadata under :data:`SHARD_TABLE_KEY`, every shard
@@ -61,7 +63,7 @@ MANIFEST = "manifest.parquet"
 # Parquet schema metadata key: JSON {shard name: {"samples": n, "sha256": hex}}, empty shards included.
 SHARD_TABLE_KEY = b"endoflow.shards"
 # Bumped whenever the bytes written for the same input change.
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 
 IMAGE_NAMES = ("prev", "cur", "next")
 DEPTH_MEMBER = "depth.png"
@@ -69,6 +71,7 @@ META_MEMBER = "meta.json"
 VALID_MEMBER = "valid.png"
 TRIPLET_MEMBERS = frozenset({*(f"{name}.png" for name in IMAGE_NAMES), DEPTH_MEMBER, META_MEMBER, VALID_MEMBER})
 DEPTH_ONLY_MEMBERS = frozenset({DEPTH_MEMBER, META_MEMBER})
+META_KEYS = ("depth_unit", "K", "T_world_cam", "sequence", "frame", "intrinsics_known", "ground_truth")
 TENSOR_KEYS = ("prev", "cur", "next", "depth", "valid", "K", "T_prev", "T_cur", "T_next")
 
 MANIFEST_SCHEMA = pa.schema(
@@ -454,10 +457,16 @@ def decode_meta(data: bytes, source: str) -> dict:
         meta = json.loads(data)
     except (ValueError, UnicodeDecodeError) as exc:
         raise DataFormatError(source, f"meta.json is not valid JSON: {exc}") from None
-    missing = [k for k in ("depth_unit", "K", "T_world_cam", "sequence", "frame") if k not in meta]
+    missing = [k for k in META_KEYS if k not in meta]
     if missing:
-        raise DataFormatError(source, f"meta.json lacks {missing}")
+        raise DataFormatError(source, f"meta.json lacks {missing} (format {FORMAT_VERSION} has them: shards written by "
+                                      f"an older endoflow; rerun the preprocess stage)")
     return meta
+
+
+def has_ground_truth(meta: Mapping, kind: str) -> bool:
+    """Whether the dataset of a sample's ``meta`` has ground truth of ``kind`` (``depth`` or ``pose``)."""
+    return bool(meta["ground_truth"][kind])
 
 
 def decode_rgb8(data: bytes, source: str) -> torch.Tensor:

@@ -148,6 +148,8 @@ def sample_meta(
         "T_world_cam": poses,
         "depth_unit": settings.depth_unit,
         "native_size": [int(sequence.image_size[0]), int(sequence.image_size[1])],
+        "intrinsics_known": bool(sequence.intrinsics_known),
+        "ground_truth": {"depth": sequence.load_depth is not None, "pose": sequence.poses is not None},
     }
 
 

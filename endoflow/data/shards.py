@@ -38,7 +38,7 @@ class ReaderSequences:
 
 
 def preprocess_dataset(dataset: str, params: Params, out_dir: str | Path) -> dict:
-    """Write the shards and manifest of ``dataset`` (``simcol``, ``endoslam``, ``scenenet``) into ``out_dir``.
+    """Write the shards and manifest of ``dataset`` (a name of :data:`~endoflow.config.DATASETS`) into ``out_dir``.
 
     Reads ``params.data.<dataset>.root`` (made absolute against the working folder: Ray tasks run in their
     own folders) through :func:`endoflow.data.registry.open_reader`. ``out_dir`` is a path or an fsspec URL.

@@ -39,7 +39,7 @@ from endoflow.io import FIGURE_FOLDER, marked_output, save_figure, staged_direct
 from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
 from endoflow.data.sequences import FrameRecord, sequence_frames
-from endoflow.data.shard_format import manifest_location, read_manifest
+from endoflow.data.shard_format import has_ground_truth, manifest_location, read_manifest
 from endoflow.devices import (autocast, images_to_device, resolve_device, to_compute_layout, unit_float_images,
                               use_cpu_threads)
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings, tracker_settings
@@ -102,9 +102,24 @@ def eval_set_shards(shards_root: str, test_set: EvalSetConfig) -> list[str]:
 
 
 def belongs_to(meta: dict, test_set: EvalSetConfig) -> bool:
-    return (meta["split"] == test_set.split
+    """Whether a sample is of the test set; one of a dataset without ground truth is refused (see
+    :func:`refuse_unlabelled`)."""
+    keep = (meta["split"] == test_set.split
             and (not test_set.groups or meta["group"] in test_set.groups)
             and (not test_set.sequences or meta["sequence"] in test_set.sequences))
+    if keep:
+        refuse_unlabelled(meta, test_set)
+    return keep
+
+
+def refuse_unlabelled(meta: dict, test_set: EvalSetConfig) -> None:
+    """Evaluation scores depth and poses against ground truth: a sample of a dataset that has neither (unlabelled
+    video) has nothing to be scored against."""
+    if not (has_ground_truth(meta, "depth") or has_ground_truth(meta, "pose")):
+        raise ValueError(
+            f"test set of dataset {test_set.dataset!r}: sequence {meta['sequence']} has no ground-truth depth or "
+            f"poses ({meta['dataset']} is unlabelled), and evaluation scores against them; measure unlabelled video "
+            f"by the photometric error of held-out frames (training's val_photometric, endoflow adapt)")
 
 
 # ------------------------------------------------------------------------------------------- frames

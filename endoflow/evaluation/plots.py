@@ -17,6 +17,7 @@ from matplotlib.figure import Figure  # noqa: E402
 
 # y labels of the training history's columns (``plots/train/history.csv``)
 CURVE_LABELS = {"train_loss": "training loss", "val_abs_rel": "val Abs Rel", "val_rmse": "val RMSE (cm)",
+                "val_photometric": "val photometric error",
                 "lr": "learning rate"}
 
 

@@ -22,7 +22,8 @@ _EPS = 1e-7
 
 
 def depth_inconsistency(
-    depth_tgt: torch.Tensor, depth_src: torch.Tensor, T_src_tgt: torch.Tensor, K: torch.Tensor
+    depth_tgt: torch.Tensor, depth_src: torch.Tensor, T_src_tgt: torch.Tensor, K: torch.Tensor,
+    in_view: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-pixel normalised depth difference of the target's points seen from the source.
 
@@ -30,10 +31,12 @@ def depth_inconsistency(
         depth_tgt, depth_src: ``[B, 1, H, W]`` z-depth of the target and the source frame (one unit).
         T_src_tgt: ``[B, 4, 4]``, maps target-camera points into the source camera.
         K: ``[B, 3, 3]`` pixel intrinsics of both frames.
+        in_view: ``[B, 1, H, W]`` bool, the field of view shared by both frames (None: everywhere): a pixel counts
+            where it is in view and lands in view (the four pixels around its sample all are).
 
     Returns:
         ``difference [B, 1, H, W]`` in [0, 1) (0 where invalid) and ``valid [B, 1, H, W]`` bool: the point lies in
-        front of the source camera and projects inside the source image.
+        front of the source camera and projects inside the source image (and its field of view).
     """
     sizes = check_shape("depth_tgt", depth_tgt, "B,1,H,W")
     check_shape("depth_src", depth_src, "B,1,H,W", **sizes)
@@ -46,21 +49,28 @@ def depth_inconsistency(
     grid = sampling_grid(u, v, height, width)
     seen = F.grid_sample(depth_src.to(grid.dtype), grid.reshape(batch, height, width, 2), mode="bilinear",
                          padding_mode="border", align_corners=True).reshape(batch, height * width)
+    if in_view is not None:
+        check_shape("in_view", in_view, "B,1,H,W", **sizes)
+        lands_in_view = F.grid_sample(in_view.to(grid.dtype), grid.reshape(batch, height, width, 2), mode="bilinear",
+                                      padding_mode="zeros", align_corners=True).reshape(batch, height * width)
+        valid = valid & in_view.reshape(batch, height * width) & (lands_in_view > 0.999)
     difference = (seen - z).abs() / (seen + z.clamp(min=0) + _EPS)
     difference = torch.where(valid, difference, torch.zeros_like(difference))
     return difference.reshape(batch, 1, height, width), valid.reshape(batch, 1, height, width)
 
 
 def geometry_consistency(
-    depth_tgt: torch.Tensor, depth_srcs: list[torch.Tensor], T_src_tgts: list[torch.Tensor], K: torch.Tensor
+    depth_tgt: torch.Tensor, depth_srcs: list[torch.Tensor], T_src_tgts: list[torch.Tensor], K: torch.Tensor,
+    in_view: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Scalar: :func:`depth_inconsistency` averaged over the valid pixels of every source (0 where none is valid)."""
+    """Scalar: :func:`depth_inconsistency` averaged over the valid pixels of every source (0 where none is valid);
+    ``in_view`` as there."""
     if len(depth_srcs) != len(T_src_tgts) or not depth_srcs:
         raise ValueError(f"expected one pose per source depth, got {len(depth_srcs)} depths and "
                          f"{len(T_src_tgts)} poses")
     total, count = depth_tgt.new_zeros(()), depth_tgt.new_zeros(())
     for depth_src, T in zip(depth_srcs, T_src_tgts):
-        difference, valid = depth_inconsistency(depth_tgt, depth_src, T, K)
+        difference, valid = depth_inconsistency(depth_tgt, depth_src, T, K, in_view)
         total = total + difference.sum()
         count = count + valid.sum()
     return total / count.clamp(min=1)

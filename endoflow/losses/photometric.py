@@ -2,7 +2,8 @@
 over sources and auto-masking (Godard et al., "Digging into self-supervised monocular depth estimation").
 
 Images are ``[B, C, H, W]`` with values in [0, 1]; per-pixel errors are ``[B, 1, H, W]`` (mean over
-channels).
+channels). :func:`view_synthesis_error` is the one ground-truth-free measure of depth and motion: how well a frame
+is rebuilt from another (the held-out photometric error of validation, ``endoflow adapt`` and ``reconstruct``).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from endoflow.config import LossConfig
+from endoflow.geometry.warp import warp_frame
 from endoflow.shapes import check_shape
 
 # SSIM stabilisers for a dynamic range of 1 (Wang et al. 2004: (0.01 L)^2, (0.03 L)^2).
@@ -23,6 +25,28 @@ _C2 = 0.03**2
 _TIE_BREAK_STD = 1e-5
 # A source's error where it does not see a pixel: above any photometric error, so the minimum takes another source
 _UNSEEN_ERROR = 1e3
+# Monodepth2's SSIM share, fixed: a measure compared across runs must not follow a run's loss settings
+MEASURE_SSIM_WEIGHT = 0.85
+
+
+def view_synthesis_error(target: torch.Tensor, source: torch.Tensor, depth: torch.Tensor,
+                         T_source_target: torch.Tensor, K: torch.Tensor, in_view: torch.Tensor | None = None
+                         ) -> torch.Tensor:
+    """``[B]``: how far ``target`` is from ``source`` warped into it with the target's ``depth [B, 1, H, W]`` and
+    ``T_source_target [B, 4, 4]`` (``K [B, 3, 3]`` or ``[1, 3, 3]``): the SSIM + L1 error (:func:`photometric_error`,
+    SSIM share 0.85) averaged over the target pixels in view (``in_view [B, 1, H, W]`` bool, None: all) whose sample
+    lands inside the source image and in its view. Unitless, lower is better; 0 where no pixel counts."""
+    sizes = check_shape("target", target, "B,C,H,W")
+    check_shape("depth", depth, "B,1,H,W", B=sizes["B"], H=sizes["H"], W=sizes["W"])
+    K = K.expand(sizes["B"], 3, 3) if K.shape[0] == 1 else K
+    warped, lands = warp_frame(source, depth, T_source_target, K)
+    counted = lands
+    if in_view is not None:
+        check_shape("in_view", in_view, "B,1,H,W", **{k: sizes[k] for k in ("B", "H", "W")})
+        lands_in_view = warp_frame(in_view.to(depth.dtype), depth, T_source_target, K)[0] > 0.999
+        counted = counted & in_view & lands_in_view
+    error = photometric_error(warped, target, "ssim_l1", MEASURE_SSIM_WEIGHT)
+    return (error * counted).sum(dim=(1, 2, 3)) / counted.sum(dim=(1, 2, 3)).clamp(min=1)
 
 
 def _local_mean(x: torch.Tensor) -> torch.Tensor:
@@ -40,6 +64,19 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     numerator = (2 * mu_x * mu_y + _C1) * (2 * cov_xy + _C2)
     denominator = (mu_x * mu_x + mu_y * mu_y + _C1) * (var_x + var_y + _C2)
     return ((1 - numerator / denominator) / 2).clamp(0, 1)
+
+
+def held_out_photometric_error(target: torch.Tensor, sources: list[torch.Tensor], depth: torch.Tensor,
+                               T_source_target: list[torch.Tensor], K: torch.Tensor,
+                               in_view: torch.Tensor | None = None) -> torch.Tensor:
+    """``[B]``: the photometric error of held-out frames, the one measure of depth and motion without ground truth
+    (validation on unlabelled video, ``endoflow adapt``): each ``target`` rebuilt from each of its ``sources`` by
+    :func:`view_synthesis_error` with the predicted ``depth`` and ``T_source_target`` (one per source), averaged
+    over the sources. Unitless, lower is better."""
+    if len(sources) != len(T_source_target) or not sources:
+        raise ValueError(f"expected one pose per source, got {len(sources)} sources and {len(T_source_target)} poses")
+    errors = [view_synthesis_error(target, source, depth, T, K, in_view) for source, T in zip(sources, T_source_target)]
+    return torch.stack(errors).mean(dim=0)
 
 
 def photometric_error(

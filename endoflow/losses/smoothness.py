@@ -31,9 +31,11 @@ def edge_aware_smoothness(disp: torch.Tensor, image: torch.Tensor, valid: torch.
         grad_disp_y = (normalised[..., 1:, :] - normalised[..., :-1, :]).abs()
         return (grad_disp_x * torch.exp(-grad_image_x)).mean() + (grad_disp_y * torch.exp(-grad_image_y)).mean()
     check_shape("valid", valid, "B,1,h,w", B=sizes["B"])
-    inside = valid.to(disp.dtype)
+    # the coarse mask is found in float32: in bfloat16 0.999 rounds to 1 and no pixel would count as inside
+    inside = valid.float()
     if inside.shape[-2:] != disp.shape[-2:]:
-        inside = (F.interpolate(inside, size=disp.shape[-2:], mode="area") > 0.999).to(disp.dtype)
+        inside = (F.interpolate(inside, size=disp.shape[-2:], mode="area") > 0.999).float()
+    inside = inside.to(disp.dtype)
     mean = (disp * inside).sum(dim=(2, 3), keepdim=True) / inside.sum(dim=(2, 3), keepdim=True).clamp(min=1)
     normalised = disp / (mean + 1e-7)
     pairs_x = inside[..., :, 1:] * inside[..., :, :-1]

@@ -8,32 +8,20 @@ depth and poses come along). ``K`` is always in pixels of the input's native fra
 
 from __future__ import annotations
 
-import json
-import math
-import re
 from dataclasses import dataclass, replace
-from fnmatch import fnmatch
 from pathlib import Path
 from typing import Iterator, Optional
 
-import cv2
 import numpy as np
-import yaml
 
 from endoflow.config import Params
 from endoflow.data.base import Sequence
+from endoflow.data.crop import Crop, crop_image
 from endoflow.data.imageio import read_rgb
+from endoflow.data.intrinsics import INTRINSICS_FORMS, check_intrinsics, read_intrinsics
 from endoflow.data.registry import open_reader
-from endoflow.data.simcol import parse_cam_txt
+from endoflow.data.video import DEFAULT_FOLDER_FPS, IMAGE_SUFFIXES, VIDEO_SUFFIXES, image_files
 from endoflow.errors import DataFormatError
-from endoflow.reconstruction.crop import Crop, crop_image, frame_region, model_view
-
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-DEFAULT_FOLDER_FPS = 30.0  # timestamps of a folder of images: its frames are taken as 1/30 s apart
-# Plausible field of view of a frame, each axis, degrees: a pinhole camera's is below 180 and endoscopes reach about
-# 170; focal lengths outside (fx = 1 px, or 1e9 px) are in other units or of another image size.
-FIELD_OF_VIEW_DEG = (10.0, 170.0)
 
 
 @dataclass(frozen=True)
@@ -137,19 +125,11 @@ class VideoFrames(FrameSource):
 class FolderFrames(FrameSource):
     """Images in a folder, in natural name order (``frame_2`` before ``frame_10``), one every 1/``fps`` s: those
     whose names match ``pattern`` (a glob such as ``*_color.png``), or every image when it is None, refusing
-    images of different kinds (:func:`refuse_mixed_images`)."""
+    images of different kinds (:func:`endoflow.data.video.image_files`)."""
 
     def __init__(self, folder: Path, fps: float = DEFAULT_FOLDER_FPS, pattern: Optional[str] = None) -> None:
         self.location = folder
-        images = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=natural_order)
-        self.files = [p for p in images if pattern is None or fnmatch(p.name, pattern)]
-        if not self.files and pattern is not None and images:
-            raise DataFormatError(folder, f"no image matches --pattern {pattern!r}; it holds {len(images)} images, "
-                                          f"such as {', '.join(p.name for p in images[:3])}")
-        if not self.files:
-            raise DataFormatError(folder, f"no images found (expected files ending in {', '.join(IMAGE_SUFFIXES)})")
-        if pattern is None:
-            refuse_mixed_images(folder, self.files)
+        self.files = image_files(folder, pattern)
         self.fps = fps
         self.length = len(self.files)
         self.native_size = read_rgb(self.files[0]).shape[:2]
@@ -165,44 +145,6 @@ class FolderFrames(FrameSource):
                     raise DataFormatError(path, f"image of {rgb.shape[1]}x{rgb.shape[0]} px, expected "
                                                 f"{self.native_size[1]}x{self.native_size[0]} as the first image")
                 yield InputFrame(index, index / self.fps, rgb)
-
-
-def natural_order(path: Path) -> list:
-    """Sort key: digit runs compare as numbers (``frame_2`` before ``frame_10``)."""
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
-
-
-def refuse_mixed_images(folder: Path, files: list[Path]) -> None:
-    """Raise when ``files`` are images of more than one kind (size, channels, bit depth): frames mixed with depth
-    maps or masks, as in C3VD's sequence folders. Each naming scheme (the name with its digits left out, so
-    ``0_color.png`` and ``30_color.png`` share one) is judged on its first file; the error lists each kind with an
-    example and suggests a ``--pattern`` for the colour ones."""
-    schemes: dict[str, list[Path]] = {}
-    for path in files:
-        schemes.setdefault(re.sub(r"\d+", "*", path.name), []).append(path)
-    kinds = {scheme: image_kind(members[0]) for scheme, members in schemes.items()}
-    if len(set(kinds.values())) < 2:
-        return
-    listing = "; ".join(f"{len(schemes[s])} like {schemes[s][0].name} ({describe_kind(kinds[s])})" for s in schemes)
-    colour = " or ".join(f"--pattern '{s}'" for s in schemes if kinds[s] is not None and kinds[s][2] in (3, 4))
-    raise DataFormatError(folder, f"holds images of different kinds, frames mixed with other files: {listing}; "
-                                  f"pick the frames with --pattern GLOB{f' ({colour})' if colour else ''}")
-
-
-def image_kind(path: Path) -> Optional[tuple[int, int, int, int]]:
-    """``(width, height, channels, bits per sample)`` of an image file; None if it does not decode."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        return None
-    channels = 1 if image.ndim == 2 else image.shape[2]
-    return image.shape[1], image.shape[0], channels, image.dtype.itemsize * 8
-
-
-def describe_kind(kind: Optional[tuple[int, int, int, int]]) -> str:
-    if kind is None:
-        return "not a decodable image"
-    width, height, channels, bits = kind
-    return f"{width}x{height} px, {channels} channel{'s' if channels > 1 else ''}, {bits}-bit"
 
 
 class DatasetFrames(FrameSource):
@@ -273,64 +215,13 @@ def intrinsics_for(spec: Optional[str], frames: FrameSource, crop: Optional[Crop
     """``3 x 3`` K in pixels of ``frames``' native size, from ``spec``: a file (SimCol ``cam.txt``: K at the
     frames' size; YAML or JSON with ``fx, fy, cx, cy, width, height``), ``"fx,fy,cx,cy"`` in pixels of the
     frames, or None for the input's own K (a dataset sequence). Checked (:func:`check_intrinsics`) against the
-    frames and the part of them the model sees (``crop``, see :mod:`endoflow.reconstruction.crop`)."""
+    frames and the part of them the model sees (``crop``, see :mod:`endoflow.data.crop`)."""
     if spec is None:
         if frames.K is None:
-            raise DataFormatError(frames.description, "no intrinsics: pass --intrinsics with a cam.txt, a YAML/JSON "
-                                                      "file (fx, fy, cx, cy, width, height) or fx,fy,cx,cy in "
-                                                      "pixels of the input frames")
+            raise DataFormatError(frames.description, f"no intrinsics: pass --intrinsics with {INTRINSICS_FORMS}")
         K, source = frames.K, f"the intrinsics of {frames.description}"
-    elif Path(spec).is_file():
-        K, source = _intrinsics_file(Path(spec), frames.native_size), spec
     else:
-        K, source = _intrinsics_numbers(spec), f"--intrinsics {spec}"
+        K = read_intrinsics(spec, frames.native_size)
+        source = spec if Path(spec).is_file() else f"--intrinsics {spec}"
     check_intrinsics(K, frames.native_size, source, crop)
     return K
-
-
-def _intrinsics_numbers(spec: str) -> np.ndarray:
-    try:
-        fx, fy, cx, cy = (float(v) for v in spec.split(","))
-    except ValueError:
-        raise DataFormatError(spec, "expected an intrinsics file or four numbers fx,fy,cx,cy (pixels)") from None
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-
-
-def _intrinsics_file(path: Path, native_size: tuple[int, int]) -> np.ndarray:
-    if path.suffix.lower() == ".txt":
-        return parse_cam_txt(path.read_text(), path)
-    try:
-        raw = json.loads(path.read_text()) if path.suffix.lower() == ".json" else yaml.safe_load(path.read_text())
-        fx, fy, cx, cy = (float(raw[k]) for k in ("fx", "fy", "cx", "cy"))
-        width, height = int(raw["width"]), int(raw["height"])
-    except (ValueError, TypeError, KeyError, yaml.YAMLError) as exc:
-        raise DataFormatError(path, f"expected fx, fy, cx, cy (pixels) and the width and height they belong to "
-                                    f"({type(exc).__name__}: {exc})") from None
-    if (height, width) != tuple(native_size):
-        raise DataFormatError(path, f"intrinsics for {width}x{height} px, but the frames are "
-                                    f"{native_size[1]}x{native_size[0]}: give intrinsics for the frames' size")
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-
-
-def check_intrinsics(K: np.ndarray, native_size: tuple[int, int], source: str, crop: Optional[Crop] = None) -> None:
-    """Refuse, naming ``source``, a K that cannot be the frames' (non-finite, a focal length <= 0, the principal
-    point outside the image), whose field of view is implausible (:data:`FIELD_OF_VIEW_DEG`: focal lengths in
-    other units or of another image size), or whose principal point lies outside the square the model sees."""
-    height, width = native_size
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    if not (np.isfinite(K).all() and fx > 0 and fy > 0 and 0 < cx < width and 0 < cy < height):
-        raise DataFormatError(source, f"intrinsics fx={fx:g}, fy={fy:g}, cx={cx:g}, cy={cy:g} do not fit "
-                                      f"{width}x{height} px frames (focal lengths > 0, principal point inside the "
-                                      f"image)")
-    across = [math.degrees(2 * math.atan(extent / (2 * focal))) for extent, focal in ((width, fx), (height, fy))]
-    low, high = FIELD_OF_VIEW_DEG
-    if not all(low <= angle <= high for angle in across):
-        raise DataFormatError(source, f"intrinsics fx={fx:g}, fy={fy:g} give the {width}x{height} px frames a field "
-                                      f"of view of {across[0]:.3g} x {across[1]:.3g} degrees, outside the plausible "
-                                      f"{low:g} to {high:g}: give focal lengths in pixels of these frames")
-    view = model_view(frame_region(native_size, crop, source))
-    if not (view.x - 0.5 <= cx <= view.x + view.width - 0.5 and view.y - 0.5 <= cy <= view.y + view.height - 0.5):
-        raise DataFormatError(source, f"principal point cx={cx:g}, cy={cy:g} lies outside the square the model sees, "
-                                      f"{view} (the centre square of the {'--crop region' if crop else 'frames'}): "
-                                      f"these intrinsics are not of these frames, or --crop cuts the optical axis "
-                                      f"away")

@@ -41,6 +41,7 @@ from matplotlib.colors import FuncNorm, ListedColormap
 from matplotlib.figure import Figure
 from matplotlib.gridspec import GridSpecBase
 
+from endoflow.data.video_encoding import video_encoder
 from endoflow.io import atomic_path, write_bytes
 from endoflow.shapes import check_shape
 
@@ -48,7 +49,6 @@ Sample = tuple[int, np.ndarray, np.ndarray]  # (frame index, rgb, depth preview)
 
 DEFAULT_FPS = 30.0  # a video whose rate is unknown (0, NaN) plays at this rate
 MIN_VIDEO_HEIGHT = 256  # px: smaller panels are enlarged by an integer factor up to at least this height
-VIDEO_ENCODERS = ("libx264", "libopenh264", "mpeg4")  # first one this PyAV build has: H.264, else MPEG-4 part 2
 X264_CRF = "18"  # visually lossless; the default (23) smears the colour-mapped depth's bands
 MPEG4_BITS_PER_PIXEL = 0.3  # per pixel per frame: MPEG-4's default 200 kbit/s blurs anything but a thumbnail
 
@@ -135,7 +135,7 @@ class SideBySideVideo:
     :attr:`upscale` (an integer, nearest neighbour) to at least :data:`MIN_VIDEO_HEIGHT` px tall, and the frame is
     padded by a black row/column to even dimensions (yuv420p halves the colour resolution). ``fps`` that is zero
     or not finite (an input without a known rate) becomes :data:`DEFAULT_FPS`; a negative one is an error.
-    ``encoder`` names a PyAV encoder to use instead of the first of :data:`VIDEO_ENCODERS` the build has.
+    ``encoder`` names a PyAV encoder to use instead of :func:`endoflow.data.video_encoding.video_encoder`'s pick.
 
     Use as a context manager: the file appears at ``path`` (atomically) when the block ends without an error, and
     not at all otherwise.
@@ -152,7 +152,7 @@ class SideBySideVideo:
         self.panel_size = (height, width)
         self.upscale = max(1, math.ceil(MIN_VIDEO_HEIGHT / height))
         self.frame_size = (even(height * self.upscale), even(2 * width * self.upscale))
-        self.encoder = encoder or available_encoder()
+        self.encoder = encoder or video_encoder()
         self.frames = 0
         self._exits = ExitStack()
 
@@ -198,17 +198,6 @@ class SideBySideVideo:
                 self._exits.__exit__(*sys.exc_info())
                 raise
         self._exits.__exit__(kind, error, trace)
-
-
-def available_encoder() -> str:
-    """The first of :data:`VIDEO_ENCODERS` this PyAV build can encode with."""
-    for name in VIDEO_ENCODERS:
-        try:
-            av.codec.Codec(name, "w")
-        except av.codec.codec.UnknownCodecError:
-            continue
-        return name
-    raise RuntimeError(f"this PyAV build has none of the video encoders {', '.join(VIDEO_ENCODERS)}")
 
 
 def even(n: int) -> int:

@@ -22,19 +22,18 @@ import numpy as np
 import torch
 
 from endoflow.config import ModelConfig, Params
-from endoflow.data.field_of_view import FIELD_OF_VIEW_FRAMES, field_of_view, resized_field_of_view
+from endoflow.data.field_of_view import FIELD_OF_VIEW_FRAMES, NoFieldOfView, field_of_view, resized_field_of_view
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.devices import images_to_device, resolve_device
 from endoflow.errors import DataFormatError
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings
 from endoflow.geometry.pose import chain_step, invert_pose, relative_pose
-from endoflow.geometry.warp import warp_frame
 from endoflow.io import marked_output, staged_directory, write_bytes, write_json
-from endoflow.losses.photometric import photometric_error
+from endoflow.losses.photometric import view_synthesis_error
 from endoflow.models.endoflow_model import load_trained_model
 from endoflow.progress import Progress, format_duration
 from endoflow.reconstruction.alignment import ground_truth_in_path_world
-from endoflow.reconstruction.crop import Crop, crop_intrinsics, crop_warning, frame_region, model_view
+from endoflow.data.crop import Crop, crop_intrinsics, crop_warning, frame_region, model_view
 from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply
 from endoflow.reconstruction.pictures import FrameSampler, SideBySideVideo, depth_preview, write_contact_sheet
@@ -63,7 +62,7 @@ class ReconstructOptions:
     ``voxel_cm``/``trunc_cm``: TSDF voxel and truncation (None: from the model's depth range and ``size``);
     ``npy``: also write float32 depth; ``fuse``: build the surface; ``device``: ``auto``, ``cpu`` or ``cuda``;
     ``force``: replace an output folder that holds something other than an earlier reconstruction; ``crop``: the
-    region of the frames to use (None: all of it; see :mod:`endoflow.reconstruction.crop`); ``refine``: the
+    region of the frames to use (None: all of it; see :mod:`endoflow.data.crop`); ``refine``: the
     tracker that refines the pose network's path against keyframes (None: the network's chain as it is)."""
 
     frames: FrameRange = field(default_factory=FrameRange)
@@ -203,10 +202,7 @@ class PathPhotometry:
 
     def _error(self, target: torch.Tensor, depth: torch.Tensor, source: torch.Tensor, T_source_target: torch.Tensor
                ) -> float:
-        warped, valid = warp_frame(source, depth, T_source_target, self.K)
-        valid = valid & (depth > 0)  # no depth (outside the field of view): no point to move
-        error = photometric_error(warped, target, "ssim_l1")
-        return float((error * valid).sum() / valid.sum().clamp(min=1))
+        return float(view_synthesis_error(target, source, depth, T_source_target, self.K, depth > 0)[0])
 
     def means(self) -> dict[str, float]:
         return {name: float(np.mean(values)) for name, values in self.errors.items() if values}
@@ -221,7 +217,10 @@ def input_field_of_view(source: FrameSource, frames: FrameRange, region: Crop, s
         return np.ones((size, size), bool)
     # one frame at a time: 60 frames of a 1080p video are 370 MB
     looked_at = (frame.cropped(region).rgb for frame in itertools.chain([first], selected))
-    return resized_field_of_view(field_of_view(looked_at), size)
+    try:
+        return resized_field_of_view(field_of_view(looked_at), size)
+    except NoFieldOfView as exc:
+        raise DataFormatError(source.description, f"{exc}; --start skips dark frames at the start") from None
 
 
 def check_frame_range(source: FrameSource, frames: FrameRange) -> None:

@@ -1,4 +1,5 @@
-"""Write procedural data in the native layouts of SimCol3D, EndoSLAM (UnityCam) and SceneNet RGB-D.
+"""Write procedural data in the native layouts of SimCol3D, EndoSLAM (UnityCam) and SceneNet RGB-D, and as
+unlabelled video (:mod:`endoflow.data.video`).
 
 The bytes follow docs/datasets.md with the readers' own format constants, so our readers read synthetic and
 real data alike. Each sequence is staged and swapped in whole, and its bytes do not depend on the number of
@@ -13,7 +14,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Iterator, Optional
 
 import cv2
 import numpy as np
@@ -27,6 +28,7 @@ from endoflow.data.scenenet import scenenet_intrinsics
 from endoflow.data.simcol import DEPTH_COUNTS_PER_CM as SIMCOL_DEPTH_COUNTS_PER_CM
 from endoflow.data.simcol import SCENES as SIMCOL_SCENE_FOLDERS
 from endoflow.data.simcol import parse_cam_txt
+from endoflow.data.video_encoding import write_video
 from endoflow.devices import resolve_device
 from endoflow.geometry.camera import scale_intrinsics
 from endoflow.geometry.pose import matrix_to_quaternion_xyzw, opencv_to_unity
@@ -43,6 +45,9 @@ UNITYCAM_ORGANS = (("Colon", "colon"), ("Small Intestine", "intestine"), ("Stoma
 SCENENET_FRAME_STEP = 25
 SCENENET_VAL_EVERY = 10
 SCENENET_JPEG_QUALITY = 90
+VIDEO_FPS = 30.0
+# the circle an endoscope's image is, as a share of the frame's side: its corners are black, its sides touch
+VIDEO_CIRCLE_DIAMETER = 1.1
 # what a sequence folder holds once rendered: a rerun replaces it, a folder with anything else is refused
 RENDERED_SEQUENCE = files_only("a rendered sequence (PNG, JPEG, CSV and text files)",
                                ("*.png", "*.jpg", "*.csv", "*.txt"))
@@ -79,7 +84,8 @@ def synthesize_layout(
     workers: Optional[int] = None,
     device: Optional[str] = None,
 ) -> str:
-    """Render ``layout`` (``simcol``, ``endoslam``, ``scenenet``) into dataset root ``out``; returns a summary.
+    """Render ``layout`` (``simcol``, ``endoslam``, ``scenenet``, ``video``) into dataset root ``out``; returns a
+    summary.
 
     ``None`` arguments take ``params.synth`` defaults (``Params()`` when ``params`` is None): sequences per
     scene / organ count / trajectories, frames per sequence, frames per test sequence (``frames`` given alone
@@ -164,6 +170,13 @@ def plan_jobs(layout: str, out: Path, sequences: int, frames: int, size: int, se
             target = out / "UnityCam" / organ
             jobs.append(Job("endoslam", organ, stem, str(target), entropy=(seed, layout_id, organ_id),
                             **length(params.data.endoslam.split == "test"), **common))
+    elif layout == "video":
+        styles = sorted(STYLES)
+        for i in range(sequences):
+            # a video file, then a folder of frames, in turn
+            target = out / (f"clip_{i:03d}.mp4" if i % 2 == 0 else f"clip_{i:03d}")
+            jobs.append(Job("video", styles[i % len(styles)], f"clip_{i:03d}", str(target),
+                            entropy=(seed, layout_id, i), **length(False), **common))
     else:
         for i in range(sequences):
             split = "val" if i % SCENENET_VAL_EVERY == SCENENET_VAL_EVERY - 1 else "train"
@@ -179,7 +192,11 @@ def render_job(job: Job) -> None:
     torch.set_num_threads(1)  # same arithmetic, hence same bytes, in any process layout
     try:
         target = Path(job.target)
-        writer = {"simcol": _write_simcol, "endoslam": _write_endoslam, "scenenet": _write_scenenet}[job.layout]
+        if job.layout == "video" and target.suffix == ".mp4":
+            write_video(target, video_frames(job), VIDEO_FPS)
+            return
+        writer = {"simcol": _write_simcol, "endoslam": _write_endoslam, "scenenet": _write_scenenet,
+                  "video": _write_video_folder}[job.layout]
         with staged_directory(target, RENDERED_SEQUENCE) as staging:
             extra_files = writer(job, staging)
             # Files that live beside the sequence folder (SimCol's pose files) go first, before the folder
@@ -269,6 +286,30 @@ def unitycam_depth(depth_cm: np.ndarray, full_scale_cm: float) -> np.ndarray:
         raise ValueError(f"depth {depth_cm.max():.3f} cm beyond data.endoslam.depth_full_scale_cm = {full_scale_cm}")
     value = np.round(depth_cm / full_scale_cm * 255).astype(np.uint8)
     return np.stack([value, value, value, np.full_like(value, 255)], axis=-1)
+
+
+# ---------------------------------------------------------------------------------------------- video
+def video_frames(job: Job) -> Iterator[np.ndarray]:
+    """The frames of a video job: a tube sequence rendered with SimCol's camera, seen through a circle (black
+    corners, as an endoscope's image); no depth, no poses are written."""
+    sequence = tube_sequence(job)
+    K = simcol_intrinsics(job.size)
+    v, u = np.mgrid[:job.size, :job.size]
+    centre, radius = (job.size - 1) / 2, VIDEO_CIRCLE_DIAMETER * job.size / 2
+    inside = ((u - centre) ** 2 + (v - centre) ** 2 <= radius**2)[..., None]
+    for pose in sequence.poses:
+        rgb, _ = render_tube_frame(sequence.scene, pose, K, job.size, job.size)
+        yield to_uint8(rgb) * inside.astype(np.uint8)
+
+
+def _write_video_folder(job: Job, staging: Path) -> list[str]:
+    """A folder of frames, and beside it the camera's intrinsics (``<name>.intrinsics.yaml``, native pixels)."""
+    for f, rgb in enumerate(video_frames(job)):
+        write_png(staging / f"frame_{f:04d}.png", rgb)
+    fx, fy, cx, cy = (float(v) for v in simcol_intrinsics(job.size)[[0, 1, 0, 1], [0, 1, 2, 2]])
+    (staging / f"{job.name}.intrinsics.yaml").write_text(
+        f"fx: {fx!r}\nfy: {fy!r}\ncx: {cx!r}\ncy: {cy!r}\nwidth: {job.size}\nheight: {job.size}\n")
+    return [f"{job.name}.intrinsics.yaml"]
 
 
 # ------------------------------------------------------------------------------------------ SceneNet

@@ -31,7 +31,7 @@ from torch import nn  # noqa: E402
 
 from endoflow import tracking  # noqa: E402
 from endoflow.config import Params, Precision, TrainConfig  # noqa: E402
-from endoflow.data.loader import batches_per_epoch, rank_batches, triplet_dataset  # noqa: E402
+from endoflow.data.loader import batches_per_epoch, mixed_rank_batches, rank_batches, triplet_dataset  # noqa: E402
 from endoflow.data.shard_format import ShardEntry, shard_entries  # noqa: E402
 from endoflow.devices import (  # noqa: E402
     autocast,
@@ -56,6 +56,7 @@ from endoflow.training.checkpoint import (  # noqa: E402
     weights_digest,
     write_rank_audit,
 )
+from endoflow.losses.photometric import held_out_photometric_error  # noqa: E402
 from endoflow.training.objective import loss_weights, training_step_losses  # noqa: E402
 from endoflow.training.worker_config import WorkerConfig  # noqa: E402
 
@@ -127,7 +128,7 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
         if rank == 0:
             progress(f"[train] resuming after epoch {state.epoch + 1} (global step {state.global_step})")
 
-    entries = shard_entries(config.train_shards + config.val_shards)
+    entries = shard_entries(config.all_train_shards + config.val_shards)
     epoch_context = EpochContext(config, module, model, optimizer, entries, rank, world, device,
                                  RankZeroLogger(config, rank))
     examples = fixed_examples(list(config.val_shards), params.train.image_examples) if rank == 0 else []
@@ -175,11 +176,11 @@ def resume_point(location: str, rank: int) -> tuple[TrainingCheckpoint, dict]:
 def train_one_epoch(ctx: EpochContext, epoch: int, state: TrainState) -> dict[str, Any]:
     """One pass over this rank's share; returns the sample keys trained on and the mean loss."""
     cfg = ctx.params.train
-    shards = list(ctx.config.train_shards)
-    batches = rank_batches(shards, ctx.rank, ctx.world, cfg.batch_size, epoch, ctx.params.seed, entries=ctx.entries,
-                           loader_workers=cfg.loader_workers, pin_memory=ctx.device.type == "cuda",
-                           max_batches=cfg.steps_per_epoch)
-    total_steps = steps_in_epoch(shards, ctx.world, cfg, ctx.entries)
+    sources = [(list(urls), share) for urls, share in zip(ctx.config.train_shards, ctx.config.batch_shares)]
+    batches = mixed_rank_batches(sources, ctx.rank, ctx.world, epoch, ctx.params.seed, entries=ctx.entries,
+                                 loader_workers=cfg.loader_workers, pin_memory=ctx.device.type == "cuda",
+                                 max_batches=cfg.steps_per_epoch)
+    total_steps = steps_in_epoch(*sources[0], ctx.world, cfg, ctx.entries)
     ctx.module.train()
     keys: list[str] = []
     losses: list[float] = []
@@ -226,10 +227,17 @@ def played_backwards(batch: dict, share: float) -> dict:
 
 
 def improves_on(val: dict[str, float], best: Optional[BestEpoch]) -> bool:
-    """Lower (or equal: later) val Abs Rel wins; without validation data the latest epoch is kept."""
+    """Lower (or equal: later) :func:`selection_metric` wins; without validation data the latest epoch is kept."""
     if best is None:
         return True
-    return val.get("val_abs_rel", math.inf) <= best.val.get("val_abs_rel", math.inf)
+    key = selection_metric(val)
+    return val.get(key, math.inf) <= best.val.get(key, math.inf)
+
+
+def selection_metric(val: dict[str, float]) -> str:
+    """What picks the best epoch: val Abs Rel where the validation frames have ground-truth depth, else (unlabelled
+    video) the photometric error of the held-out frames."""
+    return "val_abs_rel" if "val_abs_rel" in val else "val_photometric"
 
 
 def check_finite_weights(model: EndoflowModel, epoch: int, state: TrainState) -> None:
@@ -242,40 +250,55 @@ def check_finite_weights(model: EndoflowModel, epoch: int, state: TrainState) ->
             f"lower train.lr or check the data")
 
 
-def steps_in_epoch(urls: list[str], world: int, cfg: TrainConfig, entries: dict[str, ShardEntry]) -> int:
-    """Batches per rank this epoch: the even share, capped by ``train.steps_per_epoch``."""
-    share = batches_per_epoch(urls, world, cfg.batch_size, entries)
+def steps_in_epoch(urls: list[str], per_batch: int, world: int, cfg: TrainConfig, entries: dict[str, ShardEntry]
+                   ) -> int:
+    """Batches per rank this epoch: the even share of the first folder's samples at ``per_batch`` of each batch,
+    capped by ``train.steps_per_epoch``."""
+    share = batches_per_epoch(urls, world, per_batch, entries)
     return share if cfg.steps_per_epoch is None else min(share, cfg.steps_per_epoch)
 
 
 @torch.no_grad()
 def validate(ctx: EpochContext) -> dict[str, float]:
-    """Median-scaled Abs Rel and RMSE (paper protocol) over the val split, shared out over the ranks."""
+    """Over the val split, shared out over the ranks: median-scaled Abs Rel and RMSE (paper protocol) of the frames
+    with ground-truth depth, and of every frame the photometric error of rebuilding it from its neighbours
+    (:func:`~endoflow.losses.photometric.held_out_photometric_error`)."""
     if not ctx.config.val_shards:
         return {}
     model, params, device, world = ctx.model, ctx.params, ctx.device, ctx.world
     model.eval()
-    sums = torch.zeros(3, dtype=torch.float64, device=device)  # abs_rel, rmse, images (on the backend's device)
+    # abs_rel, rmse, frames with depth, photometric, frames (on the backend's device)
+    sums = torch.zeros(5, dtype=torch.float64, device=device)
     batches = rank_batches(list(ctx.config.val_shards), ctx.rank, world, params.train.batch_size, 0, params.seed,
                            entries=ctx.entries, loader_workers=params.train.loader_workers,
                            pin_memory=device.type == "cuda", max_batches=params.train.val_batches)
     for index, batch in enumerate(batches):
         if params.train.val_batches is not None and index >= params.train.val_batches:
             break
+        inputs = batch_to_device(batch, device, params.train.precision)
+        cur, sources = inputs["cur"], [inputs["prev"], inputs["next"]]
         with autocast(device, params.train.precision):
-            depth = model.predict_depth(images_to_device(batch["cur"], device, params.train.precision))
-        depth = depth.float().cpu().numpy()[:, 0]
-        for gt, pred in zip(batch["depth"][:, 0].numpy(), depth):
+            depth = model.predict_depth(cur)
+            poses = [model.predict_pose(cur, inputs["prev"], source_is_next=False),
+                     model.predict_pose(cur, inputs["next"], source_is_next=True)]
+        photometric = held_out_photometric_error(cur.float(), [s.float() for s in sources], depth.float(),
+                                                 [T.float() for T in poses], inputs["K"].float(), inputs.get("valid"))
+        sums[3] += photometric.double().sum()
+        sums[4] += len(photometric)
+        for gt, pred in zip(batch["depth"][:, 0].numpy(), depth.float().cpu().numpy()[:, 0]):
             if (gt > 0).any():
                 errors = metrics.paper_depth_errors(gt, pred)
-                sums += torch.tensor([errors["abs_rel"], errors["rmse"], 1.0], dtype=torch.float64, device=device)
+                sums[:3] += torch.tensor([errors["abs_rel"], errors["rmse"], 1.0], dtype=torch.float64, device=device)
     if world > 1:
         dist.all_reduce(sums)
     model.train()
-    abs_rel, rmse, images = sums.cpu().tolist()
-    if images == 0:
+    abs_rel, rmse, with_depth, photometric, frames = sums.cpu().tolist()
+    if frames == 0:
         return {}
-    return {"val_abs_rel": abs_rel / images, "val_rmse": rmse / images, "val_images": int(images)}
+    val = {"val_photometric": photometric / frames, "val_images": int(frames)}
+    if with_depth:
+        val.update({"val_abs_rel": abs_rel / with_depth, "val_rmse": rmse / with_depth})
+    return val
 
 
 def report_checkpoint(ctx: EpochContext, scheduler: Any, state: TrainState, keys: list[str],

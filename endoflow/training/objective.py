@@ -127,7 +127,7 @@ def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig
     out["kl"] = pose_kl(poses)
     weights = loss_weights(loss_cfg)
     if "geometry" in weights:
-        out["geometry"] = neighbour_consistency(model, disps[0], sources, poses, K)
+        out["geometry"] = neighbour_consistency(model, disps[0], sources, poses, K, valid)
     total = out["photometric"]
     for term in list(weights)[1:]:
         total = total + weights[term] * out[term]
@@ -136,9 +136,9 @@ def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig
 
 
 def neighbour_consistency(model: EndoflowModel, disp_cur: torch.Tensor, sources: list[torch.Tensor],
-                          poses: list[PoseEstimate], K: torch.Tensor) -> torch.Tensor:
+                          poses: list[PoseEstimate], K: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:
     """:func:`geometry_consistency` of the target's full-resolution depth (from its scale-0 disparity) with each
-    source's own predicted depth, through the poses that warp the sources."""
+    source's own predicted depth, through the poses that warp the sources, inside the field of view ``valid``."""
     depth_cur = model.disp_to_depth(disp_cur)
     depth_sources = [model.predict_depth(source) for source in sources]
-    return geometry_consistency(depth_cur, depth_sources, [pose.T_source_target for pose in poses], K)
+    return geometry_consistency(depth_cur, depth_sources, [pose.T_source_target for pose in poses], K, valid)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import math
 import posixpath
 import sys
 import tempfile
@@ -32,7 +33,7 @@ import pandas as pd
 
 from endoflow import tracking
 from endoflow.config import ConfigError, Params, flatten_params, training_keys
-from endoflow.data.loader import list_shards, raw_samples
+from endoflow.data.loader import batch_shares, list_shards, raw_samples
 from endoflow.data.shard_format import (
     DEPTH_MEMBER,
     META_MEMBER,
@@ -71,7 +72,11 @@ REPEATING_OS_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.
 
 # what ``train.metrics`` holds for DVC, under ``train``: {name with its unit: key of the training summary} (the
 # other figures, the run id and fingerprint are in the model file and the MLflow run)
-TRAIN_DVC_METRICS = {"best_epoch": "best_epoch", "val_abs_rel": "val_abs_rel", "val_rmse_cm": "val_rmse"}
+TRAIN_DVC_METRICS = {"best_epoch": "best_epoch", "val_abs_rel": "val_abs_rel", "val_rmse_cm": "val_rmse",
+                     "val_photometric": "val_photometric"}
+# the best epoch's validation figures in the closing lines, as a person reads them
+VALIDATION_LABELS = {"val_abs_rel": "val Abs Rel", "val_rmse": "val RMSE (cm)",
+                     "val_photometric": "val photometric error of held-out frames"}
 # the training summary (the best epoch's figures, steps, run id, fingerprint) in the MLflow run
 TRAINING_SUMMARY_ARTIFACT = "train/summary.json"
 # every line Ray's processes printed while training (the terminal shows those that matter), in the MLflow run
@@ -81,13 +86,15 @@ RAY_LOG_FOLDER = "logs"
 RAY_LOG_TEMPORARY = "endoflow-ray-log-"
 
 
-def training_fingerprint(params: Params, train_shards: str, latent_bank: Optional[str]) -> str:
-    """SHA-256 (hex, 16 chars) of the params that shape training and of the train manifest and latent bank."""
+def training_fingerprint(params: Params, train_shards: str | list[str], latent_bank: Optional[str]) -> str:
+    """SHA-256 (hex, 16 chars) of the params that shape training and of the train manifests (of ``train_shards``,
+    one folder or several) and latent bank."""
     digest = hashlib.sha256()
     shaping = set(training_keys(params))
-    flat = {k: v for k, v in flatten_params(params).items() if k in shaping}
+    flat = {k: v for k, v in flatten_params(params).items() if k in shaping or k.rpartition(".")[0] in shaping}
     digest.update(json.dumps(flat, sort_keys=True, default=str).encode())
-    for location in [manifest_location(train_shards), *([latent_bank] if latent_bank else [])]:
+    folders = [train_shards] if isinstance(train_shards, str) else train_shards
+    for location in [*map(manifest_location, folders), *([latent_bank] if latent_bank else [])]:
         with fsspec.open(location, "rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 digest.update(block)
@@ -95,7 +102,8 @@ def training_fingerprint(params: Params, train_shards: str, latent_bank: Optiona
 
 
 def training_baselines(train_urls: list[str]) -> TrainingBaselines:
-    """Mean GT depth (scalar and per pixel) and mean per-frame relative pose of the train shards.
+    """Mean GT depth (scalar and per pixel) and mean per-frame relative pose of the train shards' samples that have
+    them (depth NaN, the step the identity, where none has).
 
     A sample's ``inv(T_cur) @ T_next`` spans its ``neighbour_offset`` frames (``meta.json``); its per-frame root
     (:func:`step_root`) is what the constant-velocity baseline repeats between consecutive frames.
@@ -115,9 +123,10 @@ def training_baselines(train_urls: list[str]) -> TrainingBaselines:
         if poses.get("cur") is not None and poses.get("next") is not None:
             relative = np.linalg.inv(np.array(poses["cur"])) @ np.array(poses["next"])
             steps.setdefault(int(meta["neighbour_offset"]), []).append(relative)
-    if depth_sum is None or depth_count.sum() == 0:
-        raise ValueError(f"train shards {train_urls[:1]}...: no GT depth to compute the baselines from")
-    mean_depth = float(depth_sum.sum() / depth_count.sum())
+    if depth_sum is None:
+        raise ValueError(f"train shards {train_urls[:1]}...: no samples to compute the baselines from")
+    # unlabelled video alone: no depth baselines (NaN, shown as such), the identity step
+    mean_depth = float(depth_sum.sum() / depth_count.sum()) if depth_count.sum() else math.nan
     mean_map = np.where(depth_count > 0, depth_sum / np.maximum(depth_count, 1), mean_depth)
     per_frame = [step_root(np.array(spanned), offset) for offset, spanned in sorted(steps.items())]
     return TrainingBaselines(mean_depth, mean_map.astype(np.float32),
@@ -132,29 +141,49 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
     reopens it).
     """
     root = Path(project_root).resolve()
-    shards = absolute_location(params.train.shards, root)
-    train_urls, val_urls = list_shards(shards, "train"), list_shards(shards, "val")
-    if not train_urls:
-        raise FileNotFoundError(f"{shards}: no train-*.tar shards (run the preprocess stage first)")
+    folders = [absolute_location(folder, root) for folder in (params.train.shards, *params.train.mix)]
+    train_urls = [list_shards(folder, "train") for folder in folders]
+    val_urls = [url for folder in folders for url in list_shards(folder, "val")]
+    for folder, urls in zip(folders, train_urls):
+        if not urls:
+            raise FileNotFoundError(f"{folder}: no train-*.tar shards (run the preprocess stage first)")
+    shares = mix_shares(params)
     latent_bank = absolute_location(params.train.latent_bank, root) if params.model.latent_bank else None
     if latent_bank:
         check_latent_bank_file(local_file(latent_bank))
-    fingerprint = training_fingerprint(params, shards, latent_bank)
+    fingerprint = training_fingerprint(params, folders, latent_bank)
     name = tracking.run_name_for("train", [*tracking.ablation_switches(params), f"seed{params.seed}"])
     with tracking.run(params, root, params.tracking.experiment, name, fingerprint) as run:
-        run.log_shards_input(manifest_location(shards), posixpath.basename(shards.rstrip("/")), "training")
+        for folder in folders:
+            run.log_shards_input(manifest_location(folder), posixpath.basename(folder.rstrip("/")), "training")
         if latent_bank:
             tracking.link_latent_bank(params, run, file_sha256(latent_bank))
         # the run crosses to the Ray workers by its id
-        config = WorkerConfig(params, tuple(train_urls), tuple(val_urls), latent_bank, run.uri, run.run_id,
-                              resume_from=None, unlogged_metrics=str(run.unlogged_file()))
+        config = WorkerConfig(params, tuple(map(tuple, train_urls)), tuple(val_urls), latent_bank, run.uri,
+                              run.run_id, resume_from=None, unlogged_metrics=str(run.unlogged_file()),
+                              batch_shares=tuple(shares))
         return train_in_run(params, root, run, config, fingerprint)
+
+
+def mix_shares(params: Params) -> list[int]:
+    """Samples of every batch that ``train.shards`` (weight 1) and each folder of ``train.mix`` give.
+
+    Raises:
+        ConfigError: a folder would give none (naming it, and what to change).
+    """
+    folders = [params.train.shards, *params.train.mix]
+    shares = batch_shares(params.train.batch_size, [1.0, *params.train.mix.values()])
+    for folder, share in zip(folders, shares):
+        if share == 0:
+            raise ConfigError(f"train.mix: {folder} would give 0 of the {params.train.batch_size} samples of a batch; "
+                              f"raise its weight or train.batch_size")
+    return shares
 
 
 def train_in_run(params: Params, root: Path, run: tracking.RunHandle, config: WorkerConfig,
                  fingerprint: str) -> dict[str, Any]:
     """Train (or resume) on Ray and write the outputs, inside the open MLflow ``run`` (``config``'s)."""
-    baselines = training_baselines(list(config.train_shards))
+    baselines = training_baselines(list(config.all_train_shards))
     storage = absolute_location(params.ray.storage_path, home_project(root))
     run_name = f"{params.ray.run_name}-{fingerprint}"
     resume_from = latest_checkpoint(f"{storage.rstrip('/')}/{run_name}", params.ray.num_workers)
@@ -184,9 +213,10 @@ def train_in_run(params: Params, root: Path, run: tracking.RunHandle, config: Wo
 
 def format_training_summary(summary: dict[str, Any], model_path: str) -> str:
     """The closing lines of the ``train`` stage: the best epoch's validation figures, the model and the run."""
+    figures = "; ".join(f"{label} {summary[key]:.4f}" for key, label in VALIDATION_LABELS.items() if key in summary)
     return (f"[train] done: {summary['epochs']} epochs, {summary['global_steps']} steps; best epoch "
-            f"{summary['best_epoch']}: val Abs Rel {summary['val_abs_rel']:.4f}, val RMSE "
-            f"{summary['val_rmse']:.4f}; final train loss {summary['final_train_loss']:.4f}\n"
+            f"{summary['best_epoch']}{': ' + figures if figures else ' (no validation data)'}; final train loss "
+            f"{summary['final_train_loss']:.4f}\n"
             f"[train] model written to {model_path}; MLflow run {summary['mlflow_run_id']}\n")
 
 
@@ -282,7 +312,7 @@ def write_training_outputs(params: Params, root: Path, state: TrainState, run_id
     history = pd.DataFrame(state.history)
     with staged_directory(root / params.train.plots, FIGURE_FOLDER) as folder:
         write_csv(folder / "history.csv", history)
-        keys = [k for k in ("train_loss", "val_abs_rel", "val_rmse", "lr") if k in history]
+        keys = [k for k in ("train_loss", "val_abs_rel", "val_rmse", "val_photometric", "lr") if k in history]
         save_figure(folder / "curves.png", plots.training_curves_figure(state.history, keys))
     summary = {
         "epochs": int(state.epoch) + 1,
