@@ -6,13 +6,14 @@ import argparse
 import contextlib
 import json
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any, Iterator, Optional, Sequence
 
 from endoflow.config import SYNTH_LAYOUTS, ConfigError, load_params
 from endoflow.data.base import DATASETS
 from endoflow.errors import DataFormatError
-from endoflow.io import OutputFolderError
+from endoflow.io import OutputFolderError, write_bytes
 from endoflow.sweep import STUDIES
 
 
@@ -87,7 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "frames with other images, such as depth maps, is refused)")
     rec.add_argument("--intrinsics", default=None,
                      help="cam.txt, YAML/JSON with fx, fy, cx, cy, width, height, or fx,fy,cx,cy in pixels of "
-                          "the input frames (a dataset sequence brings its own)")
+                          "the input frames (a dataset sequence brings its own; without: the intrinsics the model "
+                          "learned for video, else a centred pinhole of data.assumed_fov_deg, as it prints)")
     rec.add_argument("--size", type=int, default=None, help="square model input in px (default: the model's)")
     rec.add_argument("--crop", default=None, metavar="X,Y,W,H",
                      help="use this region of the frames (pixels; e.g. one half of a side-by-side frame); the model "
@@ -112,6 +114,36 @@ def build_parser() -> argparse.ArgumentParser:
                      help="log the pictures, path, surface and summary into the model's MLflow run (the store of "
                           "params.yaml's tracking.uri; a new run, with a warning, if the store lacks it)")
     rec.set_defaults(handler=_reconstruct)
+
+    rec.add_argument("--adapt", type=int, default=0, metavar="STEPS",
+                     help="first fit the model to the input with `endoflow adapt` for this many steps (0: not); the "
+                          "adapted model is written into --out as model_adapted.pt (logged with --mlflow)")
+
+    fit = commands.add_parser("adapt", help="fit a trained model to one video (self-supervised fine-tuning), "
+                                            "measured on held-out frames")
+    fit.add_argument("input", type=Path, help="video file, folder of images, or dataset root (with --sequence)")
+    fit.add_argument("--model", default="models/endoflow.pt", help="model file, or models:/<name>/<version>")
+    fit.add_argument("--out", type=Path, required=True, help="the adapted model file to write")
+    fit.add_argument("--steps", type=_positive_int, default=None, help="optimiser steps (default: 300)")
+    fit.add_argument("--sequence", default=None, help="a sequence of the dataset at INPUT (its ground truth unused)")
+    fit.add_argument("--intrinsics", default=None,
+                     help="as reconstruct's; without: learned on the video, from the model's video camera or the "
+                          "assumed pinhole")
+    fit.add_argument("--crop", default=None, metavar="X,Y,W,H", help="use this region of the frames (pixels)")
+    fit.add_argument("--start", type=int, default=0, help="first frame (position in the input)")
+    fit.add_argument("--stop", type=int, default=None, help="stop before this frame")
+    fit.add_argument("--stride", type=int, default=1, help="use every K-th frame")
+    fit.add_argument("--held-out", type=float, default=None,
+                     help="the last share of the frames, never trained on, that measures the fit (default: 0.2)")
+    fit.add_argument("--lr", type=float, default=None, help="learning rate (default: the model's train.lr)")
+    fit.add_argument("--batch-size", type=_positive_int, default=None,
+                     help="triplets per step (default: the model's train.batch_size)")
+    fit.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    fit.add_argument("--threads", type=_positive_int, default=None,
+                     help="torch's CPU threads (default: the model's params' threads)")
+    fit.add_argument("--no-mlflow", dest="mlflow", action="store_false",
+                     help="do not log a run and an MLflow model (default: both, in params.yaml's tracking store)")
+    fit.set_defaults(handler=_adapt)
 
     report = commands.add_parser("report", help="Markdown tables (paper Tables 1-3) of workspace + DVC experiments")
     report.add_argument("--no-experiments", action="store_true", help="only the workspace's metrics")
@@ -192,13 +224,54 @@ def _model_summary(args: argparse.Namespace) -> int:
     return 0
 
 
+def _adapt(args: argparse.Namespace) -> int:
+    from endoflow.devices import use_cpu_threads
+    from endoflow.models.model_file import load_model_file
+    from endoflow.training.adapt import AdaptOptions
+
+    given = {"steps": args.steps, "held_out": args.held_out}  # left out: AdaptOptions' defaults
+    try:
+        options = AdaptOptions(lr=args.lr, batch_size=args.batch_size, start=args.start, stop=args.stop,
+                               stride=args.stride, device=args.device,
+                               **{key: value for key, value in given.items() if value is not None})
+    except ValueError as exc:
+        print(f"endoflow adapt: error: {exc}", file=sys.stderr)
+        return 2
+    with _model_file(args.model, args.params) as model_path:
+        use_cpu_threads(args.threads or load_model_file(model_path).params.threads)
+        _run_adaptation(args, model_path, args.out, options)
+    return 0
+
+
+def _run_adaptation(args: argparse.Namespace, model_path: Path, out: Path, options: Any) -> dict:
+    """``endoflow adapt`` of ``args.input`` (also ``reconstruct --adapt``), in an MLflow run unless ``--no-mlflow``."""
+    from endoflow.data.crop import Crop
+    from endoflow.models.model_file import load_model_file
+    from endoflow.training.adapt import adapt, input_sequence, log_adaptation
+
+    record = load_model_file(model_path)
+    crop = Crop.parse(args.crop) if args.crop else None
+    sequence = input_sequence(args.input, args.sequence, record.params, crop, args.intrinsics)
+    if not args.mlflow:
+        return adapt(sequence, model_path, out, options)
+    from endoflow import tracking
+
+    tracking_params = _params_if_present(args.params)
+    with tracking.run(tracking_params, Path(".").resolve(), tracking_params.tracking.experiment,
+                      f"adapt {sequence.name}") as run:
+        summary = adapt(sequence, model_path, out, options, run)
+        log_adaptation(run, summary, out)
+    return summary
+
+
 def _reconstruct(args: argparse.Namespace) -> int:
     from endoflow.devices import use_cpu_threads
     from endoflow.models.model_file import load_model_file
     from endoflow.data.crop import Crop
     from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
     from endoflow.geometry.direct_alignment import tracker_settings
-    from endoflow.reconstruction.reconstruct import ReconstructOptions, log_reconstruction, reconstruct
+    from endoflow.reconstruction.reconstruct import ADAPTED_MODEL, ReconstructOptions, log_reconstruction, reconstruct
+    from endoflow.training.adapt import AdaptOptions
 
     refine = _params_if_present(args.params).refine
     try:
@@ -209,12 +282,19 @@ def _reconstruct(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"endoflow reconstruct: error: {exc}", file=sys.stderr)
         return 2
-    with _model_file(args.model, args.params) as model_path:
+    with _model_file(args.model, args.params) as model_path, tempfile.TemporaryDirectory() as scratch:
         record = load_model_file(model_path)
         use_cpu_threads(args.threads or record.params.threads)
         frames = open_frames(args.input, args.sequence, record.params, args.pattern)
         K = intrinsics_for(args.intrinsics, frames, options.crop)
-        summary = reconstruct(frames, K, model_path, args.out, options)
+        used = model_path
+        if args.adapt:
+            used = Path(scratch) / ADAPTED_MODEL
+            _run_adaptation(args, model_path, used, AdaptOptions(
+                steps=args.adapt, start=args.start, stop=args.stop, stride=args.stride, device=args.device))
+        summary = reconstruct(frames, K, used, args.out, options)
+        if args.adapt:
+            write_bytes(args.out / ADAPTED_MODEL, used.read_bytes())
     if args.mlflow:
         run = log_reconstruction(_params_if_present(args.params), Path(".").resolve(), record.mlflow_run_id,
                                  args.out.name, args.out)

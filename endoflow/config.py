@@ -186,9 +186,7 @@ class VideoConfig(Section):
     intrinsics: Optional[str] = setting(
         None, "K of the native frames for every sequence: a cam.txt, a YAML/JSON file (fx, fy, cx, cy, width, height) "
               "or 'fx,fy,cx,cy' (px); a sidecar <name>.intrinsics.{json,yaml,yml,txt} beside a sequence overrides "
-              "it; null: unknown, assumed from assumed_fov_deg")
-    assumed_fov_deg: Number = setting(140.0, "diagonal field of view assumed of a camera whose intrinsics are unknown "
-                                             "(a pinhole, centred)", unit="deg", gt=0, lt=180)
+              "it; null: unknown, assumed from data.assumed_fov_deg")
     crop: Region = setting(None, "[x, y, width, height] of the native frames to keep (one view of a side-by-side "
                                  "recording, an overlay left out); null: the whole frame", unit="px")
     fps: Optional[Number] = setting(None, "target frame rate: every round(native / fps)-th frame is kept; null: "
@@ -206,6 +204,9 @@ class DataConfig(Section):
 
     size: ImageSize = setting(64, "stored square size of shard images (centre crop to square, then resize)",
                               unit="px")
+    # endoscopes see about 140 degrees across; training corrects it (model/intrinsics.py)
+    assumed_fov_deg: Number = setting(140.0, "diagonal field of view of the centred pinhole assumed where a camera's "
+                                             "intrinsics are unknown or withheld", unit="deg", gt=0, lt=180)
     simcol: SimColConfig = setting(default_factory=SimColConfig)
     endoslam: EndoSLAMConfig = setting(default_factory=EndoSLAMConfig)
     scenenet: SceneNetConfig = setting(default_factory=SceneNetConfig)
@@ -263,6 +264,9 @@ class PreprocessConfig(Section):
     neighbour_offset: Count = setting(1, "prev/next are frames cur -/+ this offset", unit="frames")
     # A mixture keeps consecutive pairs, the pairs the model is scored on, in training, while wider pairs carry
     # several frames' motion: a pose network that answers one step for every pair cannot fit them all.
+    # to measure what training learns of them: the shards hold the assumed K, as for a camera nobody calibrated
+    withhold_intrinsics: bool = setting(False, "store every sequence's K as unknown, assumed from "
+                                               "data.assumed_fov_deg")
     train_offsets: Optional[list[Count]] = setting(
         None, "the train split's offsets, one per target frame in turn (its position in the sequence modulo their "
               "count); null: neighbour_offset", unit="frames", min_length=1)
@@ -385,6 +389,9 @@ class TrainConfig(Section):
                                          "that a pose network cannot answer one forward step for every pair",
                                     ge=0, le=1)
     weight_decay: Number = setting(1e-3, "weight decay", ge=0)
+    # An assumed focal length can be off by a factor of two: at train.lr the corrections would move too slowly.
+    intrinsics_lr: Number = setting(2e-3, "learning rate of the intrinsics learned for cameras whose K is unknown "
+                                          "(models/intrinsics.py)", gt=0)
     # adam adds the decay to the gradient (L2), which Adam's normalisation inflates wherever the photometric
     # gradient is small; on the default data it stalls learning.
     optimizer: Literal["adam", "adamw"] = setting("adamw", "adamw: decoupled weight decay; adam: L2 decay")

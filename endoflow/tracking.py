@@ -82,6 +82,8 @@ LATENT_BANK_DIGEST_TAG = "endoflow.latent_bank_sha256"
 LATENT_BANK_RUN_TAG = "endoflow.latent_bank_run_id"
 # on a run opened for a model whose own training run is not in this store (a model file copied between machines)
 MODEL_RUN_TAG = "endoflow.model_run_id"
+# on an adaptation run (`endoflow adapt`): the run of the model it adapted (MLflow's parent run tag, so its UI nests it)
+PARENT_RUN_TAG = "mlflow.parentRunId"
 # the process that opened (or reopened) a run, as io.process_mark writes it: <process id>@<machine>
 PROCESS_TAG = "endoflow.process"
 # what MLflow's UI shows beside a dataset input: what the run used it for

@@ -284,7 +284,7 @@ def target_sample(frame: int, sequence: str = "S1") -> dict:
     meta = {"sequence": sequence, "group": "g", "frame": frame, "split": "test", "native_size": [8, 8],
             "K": [[8.0, 0.0, 3.5], [0.0, 8.0, 3.5], [0.0, 0.0, 1.0]],
             "frame_ids": {"prev": frame - 1, "cur": frame, "next": frame + 1},
-            "T_world_cam": {"prev": pose, "cur": pose, "next": pose}}
+            "T_world_cam": {"prev": pose, "cur": pose, "next": pose}, "dataset": "simcol", "intrinsics_known": True}
     image = torch.zeros(3, 8, 8)
     return {"meta": meta, "prev": image, "cur": image, "next": image, "depth": torch.ones(1, 8, 8)}
 

@@ -209,3 +209,10 @@ def test_gradient_penalty_gradcheck_and_gradgradcheck_in_the_critic_weights():
     weight = uniform(4, 2, low=-1.0, high=1.0, seed=30)
     check(penalty, weight)
     assert gradgradcheck(penalty, (weight,), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_learned_intrinsics_gradcheck():
+    from endoflow.models.intrinsics import correct_intrinsics
+
+    check(lambda K, c: correct_intrinsics(K, c, (HEIGHT, WIDTH)), intrinsics(2),
+          uniform(2, 4, low=-0.3, high=0.3, seed=31))

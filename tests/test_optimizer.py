@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from endoflow.config import TrainConfig
-from endoflow.training.loop import make_optimizer
+from endoflow.training.optimization import make_optimizer
 
 
 def weight_after_small_pulls(optimizer_name: str, steps: int = 10) -> float:

@@ -14,7 +14,8 @@ from endoflow.data.loader import raw_samples
 from endoflow.data.registry import detect_dataset, open_reader
 from endoflow.data.shard_format import decode_sample, has_ground_truth
 from endoflow.data.shards import preprocess_dataset
-from endoflow.data.video import VAL_SUFFIX, VideoFile, assumed_intrinsics, frame_stride
+from endoflow.data.intrinsics import assumed_intrinsics
+from endoflow.data.video import VAL_SUFFIX, VideoFile, frame_stride
 from endoflow.data.video_encoding import write_video
 from endoflow.errors import DataFormatError
 from endoflow.reconstruction.frames import FrameRange, VideoFrames

@@ -195,10 +195,27 @@ def test_an_interrupted_run_leaves_the_previous_output_folder_whole(
 
 
 # --------------------------------------------------------------------------------------------- bad input
-def test_frames_without_intrinsics_ask_for_them(scene: Path, params: Params, tmp_path: Path) -> None:
+def test_frames_without_intrinsics_take_the_learned_camera_else_an_assumed_one_and_say_which(
+        scene: Path, params: Params, model_file: Path, tmp_path: Path) -> None:
+    from endoflow.config import DATASETS
+    from endoflow.data.intrinsics import assumed_intrinsics
+    from endoflow.models.endoflow_model import load_trained_model
+
     folder = image_folder(scene, params, tmp_path / "frames")
-    with pytest.raises(DataFormatError, match="no intrinsics: pass --intrinsics"):
-        intrinsics_for(None, open_frames(folder, None, params))
+    assert intrinsics_for(None, open_frames(folder, None, params)) is None
+    assumed = run(folder, model_file, tmp_path / "assumed", params, frames=FrameRange(stop=2), fuse=False)
+    assert assumed["intrinsics"].startswith("assumed (a centred pinhole of 140 degrees across the diagonal")
+    np.testing.assert_allclose(assumed["K"], assumed_intrinsics((SIZE, SIZE), 140.0))
+    # a model that learned its video camera: the focal length twice the assumed one
+    model, record = load_trained_model(model_file, torch.device("cpu"))
+    with torch.no_grad():
+        model.intrinsics.corrections[DATASETS.index("video")] = torch.tensor([np.log(2.0), np.log(2.0), 0.0, 0.0])
+    learned_file = tmp_path / "learned.pt"
+    save_model_file(learned_file, ModelRecord(record.params, model.state_dict(), 1, {}, None, record.baselines))
+    learned = run(folder, learned_file, tmp_path / "learned", params, frames=FrameRange(stop=2), fuse=False)
+    assert learned["intrinsics"].startswith("learned by the model for its 'video' camera")
+    assert learned["K"][0][0] == pytest.approx(2 * assumed["K"][0][0])
+    assert json.loads((tmp_path / "learned" / "reconstruction.json").read_text())["intrinsics"] == learned["intrinsics"]
 
 
 @pytest.mark.parametrize("content, message", [

@@ -121,8 +121,8 @@ def test_a_sample_that_decodes_badly_names_its_shard_file() -> None:
     good_png = bytes.fromhex("89504e470d0a1a0a")  # a PNG signature and nothing else
     sample = {"__key__": "simcol-S1-000003", "__url__": "/data/shards/simcol/test-000002.tar",
               **{name: good_png for name in TRIPLET_MEMBERS if name.endswith(".png")},
-              "meta.json": b'{"depth_unit": 0.001, "K": [[1,0,0],[0,1,0],[0,0,1]], "sequence": "S1", "frame": 3, '
-                           b'"T_world_cam": {"prev": null, "cur": null, "next": null}, "intrinsics_known": true, '
+              "meta.json": b'{"dataset": "simcol", "depth_unit": 0.001, "K": [[1,0,0],[0,1,0],[0,0,1]], '
+                           b'"sequence": "S1", "frame": 3, "T_world_cam": {"prev": null, "cur": null, "next": null}, "intrinsics_known": true, '
                            b'"ground_truth": {"depth": true, "pose": true}}'}
     with pytest.raises(DataFormatError, match="cannot be decoded") as caught:
         decode_sample(sample)

@@ -23,8 +23,6 @@ from endoflow.errors import DataFormatError
 # Plausible field of view of a frame, each axis, degrees: a pinhole camera's is below 180 and endoscopes reach about
 # 170; focal lengths outside (fx = 1 px, or 1e9 px) are in other units or of another image size.
 FIELD_OF_VIEW_DEG = (10.0, 170.0)
-INTRINSICS_FORMS = ("a cam.txt, a YAML/JSON file (fx, fy, cx, cy, width, height) or fx,fy,cx,cy in pixels of the "
-                    "input frames")
 
 
 def read_intrinsics(spec: str, native_size: tuple[int, int]) -> np.ndarray:
@@ -62,6 +60,15 @@ def _intrinsics_file(path: Path, native_size: tuple[int, int]) -> np.ndarray:
 def pinhole(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """The ``3 x 3`` K of focal lengths ``fx, fy`` and principal point ``cx, cy`` (pixels)."""
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def assumed_intrinsics(size: tuple[int, int], diagonal_fov_deg: float) -> np.ndarray:
+    """The K of a pinhole with square pixels, its principal point at the centre of ``size`` ``(height, width)``
+    frames and a field of view of ``diagonal_fov_deg`` across their diagonal: what is assumed of a camera nobody
+    calibrated (endoscopes see about 140 degrees across)."""
+    height, width = size
+    focal = math.hypot(width, height) / 2 / math.tan(math.radians(diagonal_fov_deg) / 2)
+    return pinhole(focal, focal, (width - 1) / 2, (height - 1) / 2)
 
 
 def check_intrinsics(K: np.ndarray, native_size: tuple[int, int], source: str, crop: Optional[Crop] = None) -> None:

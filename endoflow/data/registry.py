@@ -95,5 +95,5 @@ def open_reader(root: str | Path, dataset: Optional[str], params: Params) -> Dat
     if name == "c3vd":
         return C3VDReader(root, params.data.c3vd)
     if name == "video":
-        return VideoReader(root, params.data.video)
+        return VideoReader(root, params.data.video, params.data.assumed_fov_deg)
     raise DataFormatError(root, f"unknown dataset {name!r} (known: {', '.join(DATASETS)})")

@@ -29,7 +29,8 @@ class FrameRecord:
         depth_cm: ``H x W`` GT z-depth in cm, or ``None`` (edge frames from ``prev``/``next``, or no GT).
         pose: ``4 x 4`` GT ``T_world_cam`` or ``None``.
         native_size: ``(H, W)`` of the dataset's frame.
-        K: ``3 x 3`` pixel intrinsics at the stored size.
+        K: ``3 x 3`` pixel intrinsics at the stored size (assumed where ``intrinsics_known`` is False).
+        dataset: the dataset the frame comes from (its camera's learned intrinsics replace an assumed K).
         after_gap: frames are missing between the previous frame of the sequence and this one.
     """
 
@@ -42,6 +43,8 @@ class FrameRecord:
     native_size: tuple[int, int]
     K: np.ndarray
     after_gap: bool = False
+    intrinsics_known: bool = True
+    dataset: str = ""
 
 
 def sequence_frames(urls: list[str], keep: Callable[[dict], bool] = lambda meta: True,
@@ -110,4 +113,6 @@ def _record(sample: dict, which: str) -> FrameRecord:
         rgb=sample[which], depth_cm=depth, pose=pose if pose is not None and np.isfinite(pose).all() else None,
         native_size=(int(meta["native_size"][0]), int(meta["native_size"][1])),
         K=np.array(meta["K"], dtype=np.float64),
+        intrinsics_known=bool(meta["intrinsics_known"]),
+        dataset=meta["dataset"],
     )

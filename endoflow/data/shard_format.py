@@ -55,6 +55,7 @@ import pyarrow.parquet as pq
 import torch
 from webdataset.tariterators import group_by_keys
 
+from endoflow.config import DATASETS
 from endoflow.devices import unit_float_images
 from endoflow.errors import DataFormatError
 
@@ -71,8 +72,8 @@ META_MEMBER = "meta.json"
 VALID_MEMBER = "valid.png"
 TRIPLET_MEMBERS = frozenset({*(f"{name}.png" for name in IMAGE_NAMES), DEPTH_MEMBER, META_MEMBER, VALID_MEMBER})
 DEPTH_ONLY_MEMBERS = frozenset({DEPTH_MEMBER, META_MEMBER})
-META_KEYS = ("depth_unit", "K", "T_world_cam", "sequence", "frame", "intrinsics_known", "ground_truth")
-TENSOR_KEYS = ("prev", "cur", "next", "depth", "valid", "K", "T_prev", "T_cur", "T_next")
+META_KEYS = ("dataset", "depth_unit", "K", "T_world_cam", "sequence", "frame", "intrinsics_known", "ground_truth")
+TENSOR_KEYS = ("prev", "cur", "next", "depth", "valid", "K", "intrinsics_known", "camera", "T_prev", "T_cur", "T_next")
 
 MANIFEST_SCHEMA = pa.schema(
     [
@@ -423,7 +424,9 @@ def decode_sample(sample: Mapping[str, object], rgb8: bool = False) -> dict:
       device (:func:`endoflow.devices.unit_float_images`);
     - ``depth``: ``[1, H, W]`` float32 z-depth of ``cur`` in cm, 0 where unknown or outside the field of view;
     - ``valid``: ``[1, H, W]`` bool, the field of view (triplets only);
-    - ``K``: ``[3, 3]`` float32 pixel intrinsics of the stored size;
+    - ``K``: ``[3, 3]`` float32 pixel intrinsics of the stored size; ``intrinsics_known``: ``[]`` bool, False where
+      K is assumed (a camera nobody calibrated: training learns it); ``camera``: ``[]`` int64, the dataset's
+      position in :data:`~endoflow.config.DATASETS` (the camera learned intrinsics belong to);
     - ``T_prev``, ``T_cur``, ``T_next``: ``[4, 4]`` float32 camera-to-world ``T_world_cam`` in cm, all NaN
       where unknown;
     - ``meta``: the sample's ``meta.json`` as a dict; ``key``: its key.
@@ -444,11 +447,20 @@ def decode_sample(sample: Mapping[str, object], rgb8: bool = False) -> dict:
         # ground truth outside the field of view is no measurement of the scene the frames show: unknown
         out["depth"] = torch.where(out["valid"], out["depth"], torch.zeros_like(out["depth"]))
     out["K"] = torch.tensor(meta["K"], dtype=torch.float32)
+    out["intrinsics_known"] = torch.tensor(bool(meta["intrinsics_known"]))
+    out["camera"] = torch.tensor(camera_index(meta["dataset"], source))
     for name in IMAGE_NAMES:
         pose = meta["T_world_cam"][name]
         out[f"T_{name}"] = (torch.full((4, 4), float("nan")) if pose is None
                             else torch.tensor(pose, dtype=torch.float32))
     return out
+
+
+def camera_index(dataset: str, source: str) -> int:
+    """The camera of a dataset's samples: its position in :data:`~endoflow.config.DATASETS`."""
+    if dataset not in DATASETS:
+        raise DataFormatError(source, f"meta.json names dataset {dataset!r}; expected one of {', '.join(DATASETS)}")
+    return DATASETS.index(dataset)
 
 
 def decode_meta(data: bytes, source: str) -> dict:

@@ -21,7 +21,7 @@ import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Optional
 
 import numpy as np
 
@@ -48,6 +48,8 @@ class EncodeSettings:
     # data.<dataset> as JSON: reader settings (depth scale, units, intrinsics...) change the decoded frames
     # without changing any file, so they are part of every shard's resume key
     reader_params: str
+    # preprocess.withhold_intrinsics: the field of view every sequence's K is assumed from instead (None: its own)
+    withheld_fov_deg: Optional[float] = None
 
 
 @dataclass(frozen=True)
@@ -82,6 +84,7 @@ def encode_settings(dataset: str, params: Params) -> EncodeSettings:
         depth_unit=DEPTH_UNIT_CM.get(dataset, DEPTH_UNIT_CM["simcol"]),
         depth_only=dataset in DEPTH_ONLY_DATASETS,
         reader_params=json.dumps(params_to_dict(getattr(params.data, dataset)), sort_keys=True),
+        withheld_fov_deg=params.data.assumed_fov_deg if preprocess.withhold_intrinsics else None,
     )
 
 

@@ -2,7 +2,7 @@
 
 A sample's files are the stored-size RGB of ``prev`` / ``cur`` / ``next`` (:mod:`endoflow.data.frame_encoding`),
 the target's depth in counts of ``EncodeSettings.depth_unit`` cm (0 where unknown, where the dataset has no
-depth, or beyond the encodable range ``65535 * depth_unit``) and ``meta.json`` (K at the stored size, the poses
+depth, or beyond the encodable range ``65535 * depth_unit``) and ``meta.json`` (K at the stored size, or the assumed one where ``preprocess.withhold_intrinsics`` says so, the poses
 ``T_world_cam``, null where a frame has none: a non-finite value is never written as a pose); depth-only
 datasets store only ``depth.png`` and ``meta.json``. Member names and decoding are
 :mod:`endoflow.data.shard_format`'s. Each shard decodes and resizes a frame once even though three samples use
@@ -21,6 +21,7 @@ import webdataset as wds
 
 from endoflow.data.base import Sequence
 from endoflow.data.field_of_view import resized_field_of_view
+from endoflow.data.intrinsics import assumed_intrinsics
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.data.shard_format import (
     DEPTH_MEMBER,
@@ -134,6 +135,8 @@ def sample_meta(
     spec: SampleSpec, sequence: Sequence, positions: dict[str, int], settings: EncodeSettings
 ) -> dict:
     names = IMAGE_NAMES
+    withheld = settings.withheld_fov_deg
+    native_K = sequence.K if withheld is None else assumed_intrinsics(sequence.image_size, withheld)
     poses = {name: _pose_list(sequence, positions[name]) if name in positions else None for name in names}
     frame_ids = {name: int(sequence.frame_ids[positions[name]]) if name in positions else None for name in names}
     return {
@@ -144,11 +147,11 @@ def sample_meta(
         "frame": spec.frame,
         "frame_ids": frame_ids,
         "neighbour_offset": None if settings.depth_only else spec.offset,
-        "K": stored_intrinsics(sequence.K, sequence.image_size, settings.size).tolist(),
+        "K": stored_intrinsics(native_K, sequence.image_size, settings.size).tolist(),
         "T_world_cam": poses,
         "depth_unit": settings.depth_unit,
         "native_size": [int(sequence.image_size[0]), int(sequence.image_size[1])],
-        "intrinsics_known": bool(sequence.intrinsics_known),
+        "intrinsics_known": bool(sequence.intrinsics_known) and withheld is None,
         "ground_truth": {"depth": sequence.load_depth is not None, "pose": sequence.poses is not None},
     }
 

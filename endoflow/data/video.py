@@ -5,7 +5,7 @@ The footage a user has: an endoscope's video with no depth, no poses and often n
 after it (``clip.mp4`` and ``clip/`` are both ``clip``; having both is an error). Its intrinsics, in pixels of the
 native frames and in any form :mod:`endoflow.data.intrinsics` reads, come from a sidecar file
 ``<name>.intrinsics.{json,yaml,yml,txt}`` beside it, else from ``data.video.intrinsics``, else they are unknown:
-K is then assumed from ``data.video.assumed_fov_deg`` (a pinhole of that diagonal field of view, centred), and the
+K is then assumed from ``data.assumed_fov_deg`` (a pinhole of that diagonal field of view, centred), and the
 sequence says so (``Sequence.intrinsics_known``), as do its shards. ``data.video.crop`` cuts every frame to a
 region first (one view of a side-by-side recording, a burnt-in overlay left out), ``data.video.fps`` keeps every
 n-th frame for a target frame rate. Splits: sequences named in ``val`` or ``test`` go there whole; of every other
@@ -34,7 +34,7 @@ from endoflow.config import VideoConfig
 from endoflow.data.base import DatasetReader, Sequence
 from endoflow.data.crop import Crop, crop_image, crop_intrinsics, frame_region
 from endoflow.data.imageio import read_rgb
-from endoflow.data.intrinsics import check_intrinsics, pinhole, read_intrinsics
+from endoflow.data.intrinsics import assumed_intrinsics, check_intrinsics, read_intrinsics
 from endoflow.data.layout import natural_key
 from endoflow.errors import DataFormatError
 
@@ -230,9 +230,12 @@ class VideoReader(DatasetReader):
 
     name = "video"
 
-    def __init__(self, root: str | Path, cfg: VideoConfig) -> None:
+    def __init__(self, root: str | Path, cfg: VideoConfig, assumed_fov_deg: float,
+                 intrinsics: Optional[str] = None) -> None:
         super().__init__(root)
         self.cfg = cfg
+        self.assumed_fov_deg = assumed_fov_deg
+        self.override = intrinsics  # given by the user for these frames: before a sidecar
 
     def sequences(self) -> list[Sequence]:
         recordings = self.recordings()
@@ -250,14 +253,8 @@ class VideoReader(DatasetReader):
         """Every video file and frame folder directly under the root, by name."""
         found: dict[str, Recording] = {}
         for path in sorted(self.root.iterdir(), key=natural_order):
-            if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
-                video = VideoFile(path)
-                recording = Recording(path.stem, path, video, video.fps, video.size)
-            elif path.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in path.iterdir()):
-                files = image_files(path)
-                size = read_rgb(files[0]).shape[:2]
-                recording = Recording(path.name, path, files, self.cfg.folder_fps, size)
-            else:
+            recording = read_recording(path, self.cfg.folder_fps)
+            if recording is None:
                 continue
             if recording.name in found:
                 raise DataFormatError(path, f"names the same sequence as {found[recording.name].location}; rename "
@@ -268,19 +265,23 @@ class VideoReader(DatasetReader):
         return list(found.values())
 
     def _split(self, recording: Recording) -> list[Sequence]:
-        stride = frame_stride(recording.fps, self.cfg.fps)
-        frame_ids = list(range(0, recording.count, stride))
+        frame_ids = self.frame_ids(recording)
         for split, names in (("test", self.cfg.test), ("val", self.cfg.val)):
             if recording.name in names:
-                return [self._sequence(recording, recording.name, split, frame_ids)]
+                return [self.sequence(recording, recording.name, split, frame_ids)]
         held_out = math.floor(len(frame_ids) * self.cfg.val_share)
         kept = len(frame_ids) - held_out
-        parts = [self._sequence(recording, recording.name, "train", frame_ids[:kept])]
+        parts = [self.sequence(recording, recording.name, "train", frame_ids[:kept])]
         if held_out:
-            parts.append(self._sequence(recording, recording.name + VAL_SUFFIX, "val", frame_ids[kept:]))
+            parts.append(self.sequence(recording, recording.name + VAL_SUFFIX, "val", frame_ids[kept:]))
         return parts
 
-    def _sequence(self, recording: Recording, name: str, split: str, frame_ids: list[int]) -> Sequence:
+    def frame_ids(self, recording: Recording) -> list[int]:
+        """The frames kept of a recording: every ``round(native / data.video.fps)``-th."""
+        return list(range(0, recording.count, frame_stride(recording.fps, self.cfg.fps)))
+
+    def sequence(self, recording: Recording, name: str, split: str, frame_ids: list[int]) -> Sequence:
+        """The sequence of a recording's frames ``frame_ids``, cut to ``data.video.crop``, with its intrinsics."""
         region = self.region(recording)
         K, known = self.intrinsics(recording, region)
         files = (recording.location,) if isinstance(recording.frames, VideoFile) else None
@@ -307,12 +308,35 @@ class VideoReader(DatasetReader):
         """K of the cropped frames, and whether it was given (a sidecar file, ``data.video.intrinsics``) rather
         than assumed (:func:`assumed_intrinsics`)."""
         sidecars = [self.root / f"{recording.name}.intrinsics{suffix}" for suffix in INTRINSICS_SIDECARS]
-        spec = next((str(p) for p in sidecars if p.is_file()), self.cfg.intrinsics)
+        spec = self.override or next((str(p) for p in sidecars if p.is_file()), self.cfg.intrinsics)
         if spec is None:
-            return assumed_intrinsics(region.size, self.cfg.assumed_fov_deg), False
+            return assumed_intrinsics(region.size, self.assumed_fov_deg), False
         K = read_intrinsics(spec, recording.size)
         check_intrinsics(K, recording.size, spec, region)
         return crop_intrinsics(K, region), True
+
+
+def read_recording(path: Path, folder_fps: float) -> Optional[Recording]:
+    """``path`` as a recording: a video file, or a folder of images (one every ``1 / folder_fps`` s); None for
+    anything else."""
+    if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
+        video = VideoFile(path)
+        return Recording(path.stem, path, video, video.fps, video.size)
+    if path.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in path.iterdir()):
+        files = image_files(path)
+        return Recording(path.name, path, files, folder_fps, read_rgb(files[0]).shape[:2])
+    return None
+
+
+def video_sequence(path: Path, cfg: VideoConfig, assumed_fov_deg: float, intrinsics: Optional[str] = None
+                   ) -> Sequence:
+    """One video file or folder of frames as one whole sequence (split ``train``), read as the video dataset reads
+    its sequences (``data.video``'s crop, frame rate and intrinsics, the sidecar beside it; ``intrinsics`` first)."""
+    recording = read_recording(Path(path), cfg.folder_fps)
+    if recording is None:
+        raise DataFormatError(path, f"is neither a video ({', '.join(VIDEO_SUFFIXES)}) nor a folder of images")
+    reader = VideoReader(Path(path).parent, cfg, assumed_fov_deg, intrinsics)
+    return reader.sequence(recording, recording.name, "train", reader.frame_ids(recording))
 
 
 def frame_stride(native_fps: float, target_fps: Optional[float]) -> int:
@@ -320,12 +344,3 @@ def frame_stride(native_fps: float, target_fps: Optional[float]) -> int:
     if target_fps is None or target_fps >= native_fps:
         return 1
     return max(1, round(native_fps / target_fps))
-
-
-def assumed_intrinsics(size: tuple[int, int], diagonal_fov_deg: float) -> np.ndarray:
-    """The K of a pinhole with square pixels, its principal point at the centre of ``size`` ``(height, width)``
-    frames and a field of view of ``diagonal_fov_deg`` across their diagonal: what is assumed of a camera nobody
-    calibrated (endoscopes see about 140 degrees across)."""
-    height, width = size
-    focal = math.hypot(width, height) / 2 / math.tan(math.radians(diagonal_fov_deg) / 2)
-    return pinhole(focal, focal, (width - 1) / 2, (height - 1) / 2)

@@ -195,10 +195,18 @@ class SequenceEvaluator:
         images = unit_float_images(torch.stack([frame.rgb for frame in batch]))
         for frame, image, prediction, step in zip(batch, images, depth, steps):
             if step is None or frame.after_gap:  # a sequence's K is its own
-                self.tracker = KeyframeTracker(torch.from_numpy(frame.K), self.refine)
+                self.tracker = KeyframeTracker(self._camera_K(frame), self.refine)
             start = np.eye(4) if step is None else result.refined[-1] @ step
             result.refined.append(self.tracker.track(image, torch.from_numpy(prediction)[None],
                                                      torch.from_numpy(start)).numpy())
+
+    def _camera_K(self, frame: FrameRecord) -> torch.Tensor:
+        """The frame's K, or where it is assumed (a camera nobody calibrated) its camera's learned one."""
+        K = torch.from_numpy(frame.K)
+        if frame.intrinsics_known:
+            return K
+        learned = self.model.learned_K(frame.dataset, K.to(self.device), tuple(frame.rgb.shape[-2:]))
+        return learned.detach().cpu().double()
 
     def _images(self, frames: list[FrameRecord]) -> torch.Tensor:
         return images_to_device(torch.stack([f.rgb for f in frames]), self.device, self.precision)

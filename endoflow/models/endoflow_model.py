@@ -10,6 +10,9 @@ In training mode with ``pose_vae`` (and ``pose_sample``) the vector driving the 
 sample ``mean + exp(logvar / 2) * eps``; in eval mode, without ``pose_vae`` and with ``pose_sample`` false it is
 the mean (the log-variance is still predicted, so the KL still applies).
 
+Intrinsics: samples whose K is unknown use the learned K of their dataset's camera (:mod:`endoflow.models.intrinsics`,
+:meth:`EndoflowModel.camera_K`).
+
 Depth: disparity ``sigma`` in (0, 1) maps linearly to inverse depth between ``1 / max_depth`` and
 ``1 / min_depth`` (Monodepth2's ``disp_to_depth``), so depth lies in ``[min_depth, max_depth]`` cm.
 """
@@ -22,10 +25,11 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from endoflow.config import ModelConfig, Params
+from endoflow.config import DATASETS, ModelConfig, Params
 from endoflow.errors import DataFormatError
 from endoflow.geometry.pose import invert_pose, pose_vec_to_matrix
 from endoflow.models.depth_net import DepthNet
+from endoflow.models.intrinsics import CameraIntrinsics
 from endoflow.models.latent_bank import GeneratorSpec, LatentBankGenerator, load_generator
 from endoflow.models.model_file import ModelRecord, load_model_file
 from endoflow.models.pose_net import PoseNet
@@ -53,6 +57,18 @@ class EndoflowModel(nn.Module):
         self.cfg = model_cfg
         self.depth_net = DepthNet(model_cfg, generator)
         self.pose_net = PoseNet(model_cfg.pose_vae, model_cfg.encoder_weights, model_cfg.pose_logvar_init)
+        self.intrinsics = CameraIntrinsics(len(DATASETS))
+
+    def camera_K(self, batch: dict) -> torch.Tensor:
+        """``K [B, 3, 3]`` float32 of a loader batch: its own where known, else its camera's learned one."""
+        if "camera" not in batch:  # frames without the shards' camera fields: K as given
+            return batch["K"].float()
+        return self.intrinsics(batch["K"], batch["camera"], batch["intrinsics_known"], tuple(batch["cur"].shape[-2:]))
+
+    def learned_K(self, dataset: str, K_assumed: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+        """``[3, 3]``: the learned K of ``dataset``'s camera from its assumed ``K_assumed`` at ``size``."""
+        camera = torch.tensor([DATASETS.index(dataset)], device=K_assumed.device)
+        return self.intrinsics.corrected(K_assumed.float()[None], camera, size)[0]
 
     def disp_to_depth(self, disp: torch.Tensor) -> torch.Tensor:
         """Sigmoid disparity (any shape) -> z-depth in cm within ``[min_depth, max_depth]``, in float32 whatever
@@ -133,8 +149,11 @@ def load_trained_model(path: str | Path, device: torch.device) -> tuple[Endoflow
     record = load_model_file(path)
     # the bank's weights are part of the state dict: build an empty one, then load everything
     model = build_model(record.params, latent_bank_path=None)
+    state = dict(record.state)
+    # model files from before learned intrinsics: every camera as assumed
+    state.setdefault("intrinsics.corrections", model.intrinsics.corrections.detach().clone())
     try:
-        model.load_state_dict(record.state)
+        model.load_state_dict(state)
     except RuntimeError as exc:  # missing, unexpected or misshapen tensors
         raise DataFormatError(path, f"weights do not fit the architecture of its params "
                                     f"({' '.join(str(exc).split())[:300]})") from None

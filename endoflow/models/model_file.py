@@ -4,8 +4,11 @@ A plain ``torch.save`` dict, loaded with ``weights_only=True`` (tensors and plai
 cannot execute code): ``format`` (:data:`MODEL_FORMAT`), ``model`` (state dict of the best validation epoch),
 ``params`` (nested dict: the architecture is rebuilt from it), ``epoch`` (that epoch, counted from 1 as the
 training history and metrics count), ``val`` (its validation metrics),
-``mlflow_run_id`` (the training run, where ``evaluate`` logs too) and ``baselines`` (training-set statistics
-for the trivial baselines of the evaluation).
+``mlflow_run_id`` (the training run, where ``evaluate`` logs too; for an adapted model, its adaptation run),
+``baselines`` (training-set statistics for the trivial baselines of the evaluation) and, for a model ``endoflow
+adapt`` fitted to a video, ``adapted_from`` (its parent: model file, SHA-256, MLflow run; the input, steps and the
+held-out photometric error before and after). The state dict holds the learned cameras' intrinsics
+(``intrinsics.corrections``, :mod:`endoflow.models.intrinsics`).
 """
 
 from __future__ import annotations
@@ -61,6 +64,7 @@ class ModelRecord:
     val: dict[str, float]
     mlflow_run_id: Optional[str]
     baselines: TrainingBaselines
+    adapted_from: Optional[dict[str, Any]] = None
 
 
 def save_model_file(path: str | Path, record: ModelRecord) -> None:
@@ -73,6 +77,7 @@ def save_model_file(path: str | Path, record: ModelRecord) -> None:
         "val": dict(record.val),
         "mlflow_run_id": record.mlflow_run_id,
         "baselines": record.baselines.to_record(),
+        **({"adapted_from": dict(record.adapted_from)} if record.adapted_from is not None else {}),
     })
 
 
@@ -97,4 +102,5 @@ def load_model_file(path: str | Path) -> ModelRecord:
         raise DataFormatError(path, f"the params stored in the model file are not valid: {exc}") from None
     epoch = int(raw["epoch"]) + (1 if raw["format"] == 2 else 0)
     return ModelRecord(params=params, state=raw["model"], epoch=epoch, val=raw["val"],
-                       mlflow_run_id=raw["mlflow_run_id"], baselines=TrainingBaselines.from_record(raw["baselines"]))
+                       mlflow_run_id=raw["mlflow_run_id"], baselines=TrainingBaselines.from_record(raw["baselines"]),
+                       adapted_from=raw.get("adapted_from"))

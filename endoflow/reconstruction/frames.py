@@ -18,7 +18,7 @@ from endoflow.config import Params
 from endoflow.data.base import Sequence
 from endoflow.data.crop import Crop, crop_image
 from endoflow.data.imageio import read_rgb
-from endoflow.data.intrinsics import INTRINSICS_FORMS, check_intrinsics, read_intrinsics
+from endoflow.data.intrinsics import check_intrinsics, read_intrinsics
 from endoflow.data.registry import open_reader
 from endoflow.data.video import DEFAULT_FOLDER_FPS, IMAGE_SUFFIXES, VIDEO_SUFFIXES, image_files
 from endoflow.errors import DataFormatError
@@ -211,14 +211,16 @@ def refuse_dataset_root(folder: Path, params: Params) -> None:
 
 
 # ------------------------------------------------------------------------------------------- intrinsics
-def intrinsics_for(spec: Optional[str], frames: FrameSource, crop: Optional[Crop] = None) -> np.ndarray:
+def intrinsics_for(spec: Optional[str], frames: FrameSource, crop: Optional[Crop] = None) -> Optional[np.ndarray]:
     """``3 x 3`` K in pixels of ``frames``' native size, from ``spec``: a file (SimCol ``cam.txt``: K at the
     frames' size; YAML or JSON with ``fx, fy, cx, cy, width, height``), ``"fx,fy,cx,cy"`` in pixels of the
-    frames, or None for the input's own K (a dataset sequence). Checked (:func:`check_intrinsics`) against the
-    frames and the part of them the model sees (``crop``, see :mod:`endoflow.data.crop`)."""
+    frames, or None for the input's own K (a dataset sequence); None where neither gives one (a video nobody
+    calibrated: :func:`~endoflow.reconstruction.reconstruct.input_intrinsics` takes over). Checked
+    (:func:`check_intrinsics`) against the frames and the part of them the model sees (``crop``, see
+    :mod:`endoflow.data.crop`)."""
     if spec is None:
         if frames.K is None:
-            raise DataFormatError(frames.description, f"no intrinsics: pass --intrinsics with {INTRINSICS_FORMS}")
+            return None
         K, source = frames.K, f"the intrinsics of {frames.description}"
     else:
         K = read_intrinsics(spec, frames.native_size)

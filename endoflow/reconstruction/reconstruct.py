@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 import torch
 
-from endoflow.config import ModelConfig, Params
+from endoflow.config import DATASETS, ModelConfig, Params
 from endoflow.data.field_of_view import FIELD_OF_VIEW_FRAMES, NoFieldOfView, field_of_view, resized_field_of_view
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.devices import images_to_device, resolve_device
@@ -30,10 +30,11 @@ from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings
 from endoflow.geometry.pose import chain_step, invert_pose, relative_pose
 from endoflow.io import marked_output, staged_directory, write_bytes, write_json
 from endoflow.losses.photometric import view_synthesis_error
-from endoflow.models.endoflow_model import load_trained_model
+from endoflow.models.endoflow_model import EndoflowModel, load_trained_model
 from endoflow.progress import Progress, format_duration
 from endoflow.reconstruction.alignment import ground_truth_in_path_world
 from endoflow.data.crop import Crop, crop_intrinsics, crop_warning, frame_region, model_view
+from endoflow.data.intrinsics import assumed_intrinsics
 from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply
 from endoflow.reconstruction.pictures import FrameSampler, SideBySideVideo, depth_preview, write_contact_sheet
@@ -42,7 +43,8 @@ from endoflow.reconstruction.recording import RECORDING_FILE, Recording
 if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for it
     from endoflow.tracking import RunHandle
 
-NETWORK_PATH_FILE = "trajectory_network.tum"  # the pose network's own chain, beside a refined trajectory.tum
+NETWORK_PATH_FILE = "trajectory_network.tum"
+ADAPTED_MODEL = "model_adapted.pt"  # with `reconstruct --adapt`: the model fitted to the input first  # the pose network's own chain, beside a refined trajectory.tum
 # What MLflow gets of a reconstruction: what a person opens first, the path and the surface (not the depth maps).
 LOGGED_OUTPUTS = ("sheet.png", "video.mp4", RECORDING_FILE, "reconstruction.json", "trajectory.tum",
                   "trajectory.kitti", "trajectory.kitti.json", "mesh.ply")
@@ -85,16 +87,17 @@ class ReconstructOptions:
                 raise ValueError(f"{option} must be a positive number, got {value}")
 
 
-def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out_dir: Path,
+def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path: Path, out_dir: Path,
                 options: ReconstructOptions) -> dict:
     """Run the model over ``source`` and write the outputs listed in the module docstring; returns the summary
-    written to ``reconstruction.json``."""
+    written to ``reconstruction.json``. ``K_native`` None: the intrinsics are unknown (:func:`input_intrinsics`)."""
     check_frame_range(source, options.frames)
     device = resolve_device(options.device, "--device")
     model, record = load_trained_model(model_path, device)
     size = options.size or record.params.data.size
     region = frame_region(source.native_size, options.crop, source.description)
-    K = stored_intrinsics(crop_intrinsics(K_native, region), region.size, size)
+    K, intrinsics_from = input_intrinsics(K_native, region, size, model, record.params.data.assumed_fov_deg)
+    print(f"[reconstruct] intrinsics: {intrinsics_from}", file=sys.stderr)
     warning = crop_warning(source.native_size, region, source.description)
     if warning:
         print(f"[reconstruct] warning: {warning}", file=sys.stderr)
@@ -150,7 +153,7 @@ def reconstruct(source: FrameSource, K_native: np.ndarray, model_path: Path, out
             "format": RECONSTRUCTION_FORMAT, "input": source.description, "model": str(model_path),
             "frames": path.count, "frame_range": asdict(options.frames), "native_size": list(source.native_size),
             "crop": asdict(region), "model_view": asdict(model_view(region)), "size": size,
-            "K": K.tolist(), "scale": options.scale, "depth_unit_cm": unit,
+            "K": K.tolist(), "intrinsics": intrinsics_from, "scale": options.scale, "depth_unit_cm": unit,
             "seconds": seconds, "frames_per_second": path.count / seconds, "device": str(device),
             "threads": torch.get_num_threads(),
             "tsdf": {"voxel_cm": voxel, "trunc_cm": volume.trunc_cm} if volume is not None else None,
@@ -206,6 +209,32 @@ class PathPhotometry:
 
     def means(self) -> dict[str, float]:
         return {name: float(np.mean(values)) for name, values in self.errors.items() if values}
+
+
+def input_intrinsics(K_native: Optional[np.ndarray], region: Crop, size: int, model: EndoflowModel,
+                     assumed_fov_deg: float) -> tuple[np.ndarray, str]:
+    """K at the model's ``size`` of the input's view ``region``, and where it comes from: ``K_native`` (given, in
+    native pixels), else the camera the model learned intrinsics for (:func:`learned_camera`) applied to the
+    assumed K, else the assumed K itself (a centred pinhole of ``assumed_fov_deg`` across the region's diagonal)."""
+    if K_native is not None:
+        return stored_intrinsics(crop_intrinsics(K_native, region), region.size, size), "given"
+    K = stored_intrinsics(assumed_intrinsics(region.size, assumed_fov_deg), region.size, size)
+    assumed = f"a centred pinhole of {assumed_fov_deg:g} degrees across the diagonal"
+    camera = learned_camera(model)
+    if camera is None:
+        return K, f"assumed ({assumed}; no --intrinsics, and the model learned none)"
+    learned = model.learned_K(camera, torch.from_numpy(K).to(model.intrinsics.corrections.device), (size, size))
+    return (learned.detach().cpu().double().numpy(),
+            f"learned by the model for its {camera!r} camera, from {assumed} (no --intrinsics)")
+
+
+def learned_camera(model: EndoflowModel) -> Optional[str]:
+    """The camera whose learned intrinsics an input of unknown intrinsics takes: the video camera where the model
+    learned it (footage like the input), else the one camera it learned, else None."""
+    learned = [name for index, name in enumerate(DATASETS) if model.intrinsics.learned(index)]
+    if "video" in learned:
+        return "video"
+    return learned[0] if len(learned) == 1 else None
 
 
 def input_field_of_view(source: FrameSource, frames: FrameRange, region: Crop, size: int) -> np.ndarray:

@@ -58,6 +58,7 @@ from endoflow.training.checkpoint import (  # noqa: E402
 )
 from endoflow.losses.photometric import held_out_photometric_error  # noqa: E402
 from endoflow.training.objective import loss_weights, training_step_losses  # noqa: E402
+from endoflow.training.optimization import make_optimizer, make_scheduler  # noqa: E402
 from endoflow.training.worker_config import WorkerConfig  # noqa: E402
 
 
@@ -111,9 +112,12 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
     model = build_model(params, local_file(config.latent_bank) if config.latent_bank else None)
     if wants_channels_last(device, params.train.precision):
         model = model.to(memory_format=torch.channels_last)
+    # a camera's intrinsics are learned only where the train shards do not know them (no unused parameters in DDP)
+    model.intrinsics.requires_grad_(bool(config.learn_intrinsics))
     module = ray.train.torch.prepare_model(LossModule(model, params), move_to_device=True)
-    trainable = [p for p in model.parameters() if p.requires_grad]
-    optimizer = make_optimizer(trainable, params.train)
+    network = [p for name, p in model.named_parameters() if p.requires_grad and not name.startswith("intrinsics.")]
+    optimizer = make_optimizer(network, params.train, list(model.intrinsics.parameters())
+                               if config.learn_intrinsics else [])
     scheduler = make_scheduler(optimizer, params.train)
 
     state = TrainState()
@@ -140,7 +144,8 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
         scheduler.step()
         val = validate(epoch_context)
         # the history counts epochs from 1, as every output a person reads does (progress, MLflow, history.csv)
-        record = {"epoch": epoch + 1, "lr": lr, "train_loss": seen["mean_loss"], **val}
+        record = {"epoch": epoch + 1, "lr": lr, "train_loss": seen["mean_loss"], **val,
+                  **learned_intrinsics(model, config.learn_intrinsics, params.data.size)}
         state.history.append(record)
         if improves_on(val, state.best):
             state.best = BestEpoch(epoch, val, cpu_copy(model.state_dict()))
@@ -282,7 +287,7 @@ def validate(ctx: EpochContext) -> dict[str, float]:
             poses = [model.predict_pose(cur, inputs["prev"], source_is_next=False),
                      model.predict_pose(cur, inputs["next"], source_is_next=True)]
         photometric = held_out_photometric_error(cur.float(), [s.float() for s in sources], depth.float(),
-                                                 [T.float() for T in poses], inputs["K"].float(), inputs.get("valid"))
+                                                 [T.float() for T in poses], model.camera_K(inputs), inputs.get("valid"))
         sums[3] += photometric.double().sum()
         sums[4] += len(photometric)
         for gt, pred in zip(batch["depth"][:, 0].numpy(), depth.float().cpu().numpy()[:, 0]):
@@ -317,19 +322,16 @@ def report_checkpoint(ctx: EpochContext, scheduler: Any, state: TrainState, keys
 
 
 # -------------------------------------------------------------------------------------- helpers
-def make_optimizer(parameters: list[nn.Parameter], cfg: TrainConfig) -> torch.optim.Optimizer:
-    """Adam with ``train.weight_decay`` decoupled (``adamw``) or added to the gradient (``adam``)."""
-    optimizer = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
-    return optimizer(parameters, lr=cfg.lr, weight_decay=cfg.weight_decay)
-
-
-def make_scheduler(optimizer: torch.optim.Optimizer, cfg: TrainConfig) -> torch.optim.lr_scheduler.LRScheduler:
-    """Per-epoch learning-rate schedule from ``train.schedule``."""
-    if cfg.schedule == "step":
-        return torch.optim.lr_scheduler.StepLR(optimizer, step_size=cfg.step_epochs, gamma=cfg.gamma)
-    if cfg.schedule == "cosine":
-        return torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(cfg.epochs, 1))
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
+def learned_intrinsics(model: EndoflowModel, assumed: dict[str, list[list[float]]], size: int) -> dict[str, float]:
+    """``intrinsics/<dataset>/{fx,fy,cx,cy}`` (px at the stored ``size``) of each learned camera, from its assumed
+    K: what the epoch's figures log."""
+    figures = {}
+    for dataset, K in assumed.items():
+        learned = model.learned_K(dataset, torch.tensor(K, device=model.intrinsics.corrections.device),
+                                  (size, size)).detach().cpu()
+        for name, value in zip(("fx", "fy", "cx", "cy"), (learned[0, 0], learned[1, 1], learned[0, 2], learned[1, 2])):
+            figures[f"intrinsics/{dataset}/{name}"] = float(value)
+    return figures
 
 
 def broadcast_buffers(model: nn.Module, world: int) -> None:

@@ -133,6 +133,17 @@ def training_baselines(train_urls: list[str]) -> TrainingBaselines:
                              mean_step(np.concatenate(per_frame) if per_frame else np.zeros((0, 4, 4))))
 
 
+def intrinsics_to_learn(train_urls: list[str]) -> dict[str, list[list[float]]]:
+    """Each dataset of the train shards that has samples with an unknown K (a camera nobody calibrated, or K
+    withheld), with the assumed K (stored size) of its first such sample."""
+    found: dict[str, list[list[float]]] = {}
+    for sample in raw_samples(train_urls):
+        meta = decode_meta(sample[META_MEMBER], sample["__url__"])
+        if not meta["intrinsics_known"]:
+            found.setdefault(meta["dataset"], meta["K"])
+    return found
+
+
 def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
     """Run the ``train`` stage: Ray training, then the model file, metrics and plots. Returns the metrics.
 
@@ -161,7 +172,8 @@ def train(params: Params, project_root: str | Path = ".") -> dict[str, Any]:
         # the run crosses to the Ray workers by its id
         config = WorkerConfig(params, tuple(map(tuple, train_urls)), tuple(val_urls), latent_bank, run.uri,
                               run.run_id, resume_from=None, unlogged_metrics=str(run.unlogged_file()),
-                              batch_shares=tuple(shares))
+                              batch_shares=tuple(shares),
+                              learn_intrinsics=intrinsics_to_learn([u for urls in train_urls for u in urls]))
         return train_in_run(params, root, run, config, fingerprint)
 
 
@@ -314,11 +326,14 @@ def write_training_outputs(params: Params, root: Path, state: TrainState, run_id
         write_csv(folder / "history.csv", history)
         keys = [k for k in ("train_loss", "val_abs_rel", "val_rmse", "val_photometric", "lr") if k in history]
         save_figure(folder / "curves.png", plots.training_curves_figure(state.history, keys))
+    best_row = next((row for row in state.history if row["epoch"] == best_epoch), {})
     summary = {
         "epochs": int(state.epoch) + 1,
         "global_steps": int(state.global_step),
         "best_epoch": best_epoch,
         **{k: float(v) for k, v in best.val.items()},
+        # the intrinsics the model learned, where some camera's K was unknown
+        **{k: float(v) for k, v in best_row.items() if k.startswith("intrinsics/")},
         "final_train_loss": float(state.history[-1]["train_loss"]),
         "mlflow_run_id": run_id,
         "fingerprint": fingerprint,

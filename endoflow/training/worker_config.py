@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional
 
 from endoflow.config import Params
@@ -14,7 +14,9 @@ class WorkerConfig:
 
     ``train_shards`` holds the train shards of each folder trained on (``train.shards``, then those of
     ``train.mix``) and ``batch_shares`` how many samples of every batch each gives
-    (:func:`endoflow.data.loader.batch_shares`); ``val_shards`` the val shards of all of them.
+    (:func:`endoflow.data.loader.batch_shares`); ``val_shards`` the val shards of all of them. ``learn_intrinsics``
+    maps each dataset whose K is unknown in the train shards to the assumed K (``3 x 3`` rows at the stored size)
+    of its first such sample: training learns those cameras' intrinsics and logs them from that K.
     Locations are absolute paths or fsspec URLs (workers run in their own session folders); ``resume_from``
     is the newest complete checkpoint the driver found in storage, or ``None``; ``unlogged_metrics`` is where
     rank 0 keeps the metrics the MLflow store does not take (:func:`endoflow.tracking.unlogged_file`).
@@ -29,6 +31,7 @@ class WorkerConfig:
     resume_from: Optional[str]
     unlogged_metrics: Optional[str] = None
     batch_shares: tuple[int, ...] = ()
+    learn_intrinsics: dict[str, list[list[float]]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if len(self.batch_shares) != len(self.train_shards):

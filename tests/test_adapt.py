@@ -1,0 +1,115 @@
+"""``endoflow adapt``: a model fitted to one clip explains its held-out frames better, names its parent, and runs
+from the command line as ``reconstruct --adapt`` does; bad input says what to give."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from endoflow.cli import main as cli
+from endoflow.config import DATASETS
+from endoflow.io import file_sha256
+from endoflow.models.endoflow_model import build_model, load_trained_model
+from endoflow.models.model_file import ModelRecord, load_model_file, save_model_file
+from endoflow.synth.writers import synthesize_layout
+from endoflow.training.adapt import AdaptOptions, adapt, input_sequence
+from tests.small_model import small_model_params
+from tests.test_reconstruct import default_baselines
+
+SIZE = 64
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The built-in video, 40 frames a clip: the colon seen through an endoscope's circle, as ``clip_000.mp4``
+    (intrinsics unknown) and as the frames of ``clip_001/`` (with its intrinsics beside it)."""
+    root = tmp_path_factory.mktemp("clips")
+    synthesize_layout("video", root, sequences=2, frames=40, size=SIZE, seed=0, params=small_model_params(SIZE),
+                      workers=1, device="cpu")
+    return root
+
+
+@pytest.fixture(scope="module")
+def clip(clips: Path) -> Path:
+    return clips / "clip_000.mp4"
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    params = small_model_params(SIZE)
+    params.train = params.train.replace(batch_size=4, lr=3e-4)
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("model") / "endoflow.pt"
+    save_model_file(path, ModelRecord(params, build_model(params, None).state_dict(), 3, {}, "0" * 32,
+                                      default_baselines()))
+    return path
+
+
+def test_adapting_lowers_the_held_out_photometric_error_and_names_the_parent(clips: Path, model_file: Path,
+                                                                               tmp_path: Path):
+    params = load_model_file(model_file).params
+    sequence = input_sequence(clips / "clip_001", None, params)
+    assert sequence.intrinsics_known and sequence.dataset == "video"  # its intrinsics file beside it
+    out = tmp_path / "adapted.pt"
+    summary = adapt(sequence, model_file, out, AdaptOptions(steps=25, device="cpu"))
+    assert summary["held_out_photometric_after"] < 0.8 * summary["held_out_photometric_before"]
+    assert (summary["frames"], summary["held_out_frames"]) == (40, 8)
+    record = load_model_file(out)
+    assert record.adapted_from["parent"] == {"model": str(model_file), "sha256": file_sha256(model_file),
+                                             "mlflow_run_id": "0" * 32}
+    assert record.val == {"val_photometric": summary["held_out_photometric_after"]}
+    # the same input, options and seed: the same model, to the bit
+    again = tmp_path / "again.pt"
+    adapt(sequence, model_file, again, AdaptOptions(steps=25, device="cpu"))
+    first, second = load_model_file(out).state, load_model_file(again).state
+    assert all(torch.equal(first[key], second[key]) for key in first)
+
+
+def test_a_video_of_unknown_intrinsics_learns_its_cameras(clip: Path, model_file: Path, tmp_path: Path):
+    params = load_model_file(model_file).params
+    sequence = input_sequence(clip, None, params)
+    assert not sequence.intrinsics_known
+    summary = adapt(sequence, model_file, tmp_path / "adapted.pt", AdaptOptions(steps=3, device="cpu"))
+    model, _ = load_trained_model(tmp_path / "adapted.pt", torch.device("cpu"))
+    # the video camera's intrinsics were learned on the video, the others left as they were
+    assert model.intrinsics.learned(DATASETS.index("video")) and not model.intrinsics.learned(DATASETS.index("simcol"))
+    assert summary["intrinsics"] != sequence.K.tolist()
+
+
+def test_adapt_runs_from_the_command_line_and_reconstruct_adapts_first(clip: Path, model_file: Path,
+                                                                       tmp_path: Path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert cli(["adapt", str(clip), "--model", str(model_file), "--out", "adapted.pt", "--steps", "2",
+                "--no-mlflow"]) == 0
+    assert load_model_file(tmp_path / "adapted.pt").adapted_from["steps"] == 2
+    assert cli(["reconstruct", str(clip), "--model", str(model_file), "--out", "recon", "--adapt", "2",
+                "--no-fusion", "--stop", "12"]) == 0
+    adapted = load_model_file(tmp_path / "recon" / "model_adapted.pt")
+    assert adapted.adapted_from["steps"] == 2
+    summary = json.loads((tmp_path / "recon" / "reconstruction.json").read_text())
+    assert summary["frames"] == 12 and summary["intrinsics"].startswith("learned by the model for its 'video'")
+
+
+def test_too_few_frames_or_the_model_itself_as_output_are_refused(clip: Path, model_file: Path, tmp_path: Path):
+    params = load_model_file(model_file).params
+    sequence = input_sequence(clip, None, params)
+    with pytest.raises(Exception, match="5 frames selected: adapting needs at least 6"):
+        adapt(sequence, model_file, tmp_path / "a.pt", AdaptOptions(steps=1, stop=5, device="cpu"))
+    with pytest.raises(ValueError, match="is the model adapted"):
+        adapt(sequence, model_file, model_file, AdaptOptions(steps=1, device="cpu"))
+    with pytest.raises(ValueError, match="0 < held_out < 1"):
+        AdaptOptions(held_out=1.0)
+    assert cli(["adapt", str(tmp_path / "missing.mp4"), "--model", str(model_file), "--out", "x.pt"]) == 2
+
+
+def test_given_intrinsics_are_used_as_given(clip: Path, model_file: Path, tmp_path: Path):
+    params = load_model_file(model_file).params
+    sequence = input_sequence(clip, None, params, intrinsics="30,30,31.5,31.5")
+    assert sequence.intrinsics_known
+    np.testing.assert_allclose(sequence.K, [[30, 0, 31.5], [0, 30, 31.5], [0, 0, 1]])
+    summary = adapt(sequence, model_file, tmp_path / "a.pt", AdaptOptions(steps=1, device="cpu"))
+    np.testing.assert_allclose(summary["intrinsics"], [[30, 0, 31.5], [0, 30, 31.5], [0, 0, 1]])
