@@ -237,6 +237,10 @@ class SynthConfig(Section):
     workers: Count = setting(2, "processes rendering sequences in parallel (CPU)")
     device: Device = setting("cpu", "auto, cpu, cuda or cuda:N; a GPU renders in one process, its float "
                                     "arithmetic may differ from the CPU's in the last bits")
+    # what real footage differs in, to measure adaptation with exact ground truth (docs/synthetic_data.md)
+    look: Literal["built-in", "second"] = setting(
+        "built-in", "second: the same scenes in a look the default model never trains on: paler, yellower mucosa, "
+                    "darker corners, strong highlights, a circular field of view, a shorter focal length")
     simcol: SynthTubeLayoutConfig = setting(
         default_factory=lambda: SynthTubeLayoutConfig(sequences=15, frames=60, test_frames=120))
     # at most one sequence per UnityCam organ: the writers check that; with data.endoslam.split test, every one

@@ -382,3 +382,24 @@ def test_a_scripted_camera_crosses_every_change_of_motion():
         started = np.flatnonzero(swing > 0)[0]
         assert 0.3 * 120 - 1 <= started <= 0.6 * 120 + 1
         assert np.degrees(swing[-1]) >= motion.turn_deg[0] - 1e-9
+
+
+# ------------------------------------------------------------------------------------------ the second look
+def test_the_second_look_shows_the_same_scenes_through_another_camera_and_its_ground_truth_holds(tmp_path):
+    """synth.look: second keeps the scenes and paths, changes what real footage differs in (colour, light, a circular
+    field of view, a shorter focal length); its ground truth still explains the motion."""
+    from endoflow.config import params_from_dict
+    from endoflow.synth.scenes import SECOND_LOOK_FOCAL
+
+    second = params_from_dict({"synth": {"look": "second"}})
+    synthesize_layout("simcol", tmp_path / "built-in", sequences=1, frames=6, size=64, seed=0, workers=1)
+    synthesize_layout("simcol", tmp_path / "second", sequences=1, frames=6, size=64, seed=0, workers=1, params=second)
+    built_in, looked = (SimColReader(tmp_path / look, Params().data.simcol).sequences() for look in ("built-in", "second"))
+    for a, b in zip(built_in, looked):
+        np.testing.assert_allclose(b.poses, a.poses)  # the same paths
+        np.testing.assert_allclose(b.K[[0, 1], [0, 1]], SECOND_LOOK_FOCAL * a.K[[0, 1], [0, 1]])
+        rgb = b.load_rgb(2)
+        assert not rgb[0, 0].any() and not rgb[-1, -1].any() and rgb[32, 32].any()  # black corners, a scene inside
+        assert np.abs(rgb.astype(float) - a.load_rgb(2)).mean() > 20  # another look
+    report = check_dataset(tmp_path / "second", "simcol", Params(), max_ratio=0.5)
+    assert report["ok"], report

@@ -142,6 +142,7 @@ class _FrameCache:
         self.sequence = sequence
         self.rgb: dict[int, torch.Tensor] = {}
         self.depth: dict[int, torch.Tensor] = {}
+        self.in_view = torch.from_numpy(sequence.field_of_view())[None].float()  # the endoscope's circle
 
     def image(self, i: int) -> torch.Tensor:
         if i not in self.rgb:
@@ -172,8 +173,11 @@ def _pair_errors(frames: _FrameCache, sequence: Sequence, target: int, source: i
         torch.as_tensor(T_s_t, dtype=torch.float32)[None],
         torch.as_tensor(sequence.K, dtype=torch.float32)[None],
     )
-    has_depth = depth_t > 0
-    mask = (valid[0] & has_depth).float()
+    # only pixels in the field of view whose sample lands in it: a black border matches itself without a warp
+    lands_in_view = warp_frame(frames.in_view[None], depth_t[None], torch.as_tensor(T_s_t, dtype=torch.float32)[None],
+                               torch.as_tensor(sequence.K, dtype=torch.float32)[None])[0][0] > 0.999
+    has_depth = (depth_t > 0) & (frames.in_view > 0)
+    mask = (valid[0] & has_depth & lands_in_view).float()
     count = float(mask.sum())
     valid_fraction = count / max(float(has_depth.sum()), 1.0)
     if count == 0:

@@ -164,6 +164,24 @@ STYLES: dict[str, SceneStyle] = {
 }
 
 
+# The renderer's second look (synth.look: second): what real footage differs in from the built-in look, to measure
+# adaptation with exact ground truth. The scenes' shapes and paths are the built-in ones (the same random draws).
+SECOND_LOOK_MUCOSA = dict(base=(0.86, 0.72, 0.52), mottle=(0.74, 0.56, 0.40), vessel=(0.45, 0.10, 0.14),
+                          vessel_strength=0.85, grain=0.3)
+SECOND_LOOK_LIGHT = dict(specular=0.9, shininess=120.0, vignetting=3.0)
+SECOND_LOOK_EXPOSURE = 0.6  # times the built-in exposure
+SECOND_LOOK_FOCAL = 0.75  # times the built-in focal lengths: a wider view
+SECOND_LOOK_CIRCLE = 1.1  # the field of view: a circle 1.1 times the frame's side (black corners)
+
+
+def second_look(style: SceneStyle) -> SceneStyle:
+    """``style`` in the renderer's second look: its mucosa recoloured and grainier, its light darker towards the
+    corners with strong, sharp highlights."""
+    return replace(style, mucosa=replace(style.mucosa, **SECOND_LOOK_MUCOSA),
+                   light=replace(style.light, exposure=style.light.exposure * SECOND_LOOK_EXPOSURE,
+                                 **SECOND_LOOK_LIGHT))
+
+
 @dataclass
 class TubeSequence:
     scene: TubeScene

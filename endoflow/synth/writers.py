@@ -35,7 +35,14 @@ from endoflow.geometry.pose import matrix_to_quaternion_xyzw, opencv_to_unity
 from endoflow.io import files_only, staged_directory, write_text
 from endoflow.synth.render import MAX_DEPTH_CM, render_tube_frame
 from endoflow.synth.rooms import Room, camera_path, make_room, render_room
-from endoflow.synth.scenes import STYLES, TubeSequence, make_tube_sequence
+from endoflow.synth.scenes import (
+    SECOND_LOOK_CIRCLE,
+    SECOND_LOOK_FOCAL,
+    STYLES,
+    TubeSequence,
+    make_tube_sequence,
+    second_look,
+)
 
 SIMCOL_SCENES = tuple(zip(SIMCOL_SCENE_FOLDERS, ("S", "B", "O")))  # scene folder, sequence letter
 SIMCOL_SCENE_III_SEQUENCES = 3
@@ -69,6 +76,7 @@ class Job:
     endoslam_depth_full_scale_cm: float
     endoslam_translation_to_cm: float
     endoslam_fps: float
+    look: str = "built-in"  # synth.look
 
 
 def synthesize_layout(
@@ -115,7 +123,7 @@ def synthesize_layout(
     out.mkdir(parents=True, exist_ok=True)
     if layout == "simcol":
         for scene in sorted({job.group for job in jobs}):
-            write_text(out / scene / "cam.txt", SIMCOL_CAM_TXT)
+            write_text(out / scene / "cam.txt", simcol_cam_txt(params.synth.look))
 
     started = time.perf_counter()
     if workers > 1 and len(jobs) > 1 and torch.device(device).type == "cpu":
@@ -151,6 +159,7 @@ def plan_jobs(layout: str, out: Path, sequences: int, frames: int, size: int, se
         endoslam_depth_full_scale_cm=params.data.endoslam.depth_full_scale_cm,
         endoslam_translation_to_cm=params.data.endoslam.unitycam_translation_to_cm,
         endoslam_fps=params.data.endoslam.fps,
+        look=params.synth.look,
     )
     layout_id = SYNTH_LAYOUTS.index(layout)
     jobs = []
@@ -213,24 +222,49 @@ def job_rng(job: Job) -> np.random.Generator:
 
 
 def tube_sequence(job: Job) -> TubeSequence:
-    """The scene and camera poses of a SimCol or EndoSLAM job (what its files are rendered from)."""
-    return make_tube_sequence(STYLES[job.group], job.frames, job_rng(job), torch.device(job.device), job.scripted)
+    """The scene and camera poses of a SimCol or EndoSLAM job (what its files are rendered from), in its look."""
+    style = STYLES[job.group] if job.look == "built-in" else second_look(STYLES[job.group])
+    return make_tube_sequence(style, job.frames, job_rng(job), torch.device(job.device), job.scripted)
+
+
+def in_view(rgb: np.ndarray, look: str) -> np.ndarray:
+    """``rgb`` (``H x W x 3`` float) as the look's camera sees it: the second look's circle, black outside."""
+    if look == "built-in":
+        return rgb
+    return rgb * circle(rgb.shape[0], rgb.shape[1], SECOND_LOOK_CIRCLE)[..., None]
+
+
+def circle(height: int, width: int, diameter: float) -> np.ndarray:
+    """``H x W`` bool: a centred circle ``diameter`` times the frame's shorter side across."""
+    v, u = np.mgrid[:height, :width]
+    radius = diameter * min(height, width) / 2
+    return (u - (width - 1) / 2) ** 2 + (v - (height - 1) / 2) ** 2 <= radius**2
 
 
 # -------------------------------------------------------------------------------------------- SimCol3D
-def simcol_intrinsics(size: int) -> np.ndarray:
-    """The K our SimCol reader derives for ``size``-px frames: ``cam.txt`` scaled from its reference size."""
+def simcol_cam_txt(look: str = "built-in") -> str:
+    """``cam.txt``: the real file's bytes, or in the second look its focal lengths shortened."""
+    if look == "built-in":
+        return SIMCOL_CAM_TXT
     K = parse_cam_txt(SIMCOL_CAM_TXT, "cam.txt")
+    K[0, 0] *= SECOND_LOOK_FOCAL
+    K[1, 1] *= SECOND_LOOK_FOCAL
+    return " ".join(f"{value:.9g}" for value in K.ravel())
+
+
+def simcol_intrinsics(size: int, look: str = "built-in") -> np.ndarray:
+    """The K our SimCol reader derives for ``size``-px frames: ``cam.txt`` scaled from its reference size."""
+    K = parse_cam_txt(simcol_cam_txt(look), "cam.txt")
     scale = size / SimColConfig().reference_size
     return scale_intrinsics(K, scale, scale)
 
 
 def _write_simcol(job: Job, staging: Path) -> list[str]:
     sequence = tube_sequence(job)
-    K = simcol_intrinsics(job.size)
+    K = simcol_intrinsics(job.size, job.look)
     for f, pose in enumerate(sequence.poses):
         rgb, depth = render_tube_frame(sequence.scene, pose, K, job.size, job.size)
-        write_png(staging / f"FrameBuffer_{f:04d}.png", simcol_frame(rgb))
+        write_png(staging / f"FrameBuffer_{f:04d}.png", simcol_frame(in_view(rgb, job.look)))
         write_png(staging / f"Depth_{f:04d}.png", simcol_depth(depth))
     unity = opencv_to_unity(sequence.poses)
     positions = f"SavedPosition_{job.name}.txt"
@@ -268,7 +302,7 @@ def _write_endoslam(job: Job, staging: Path) -> list[str]:
         (staging / sub).mkdir()
     for f, pose in enumerate(sequence.poses):
         rgb, depth = render_tube_frame(sequence.scene, pose, K, job.size, job.size)
-        write_png(staging / "Frames" / f"image_{f:04d}.png", to_uint8(rgb))
+        write_png(staging / "Frames" / f"image_{f:04d}.png", to_uint8(in_view(rgb, job.look)))
         write_png(staging / "Pixelwise Depths" / f"aov_image_{f:04d}.png", unitycam_depth(depth, job.endoslam_depth_full_scale_cm))
     unity = opencv_to_unity(sequence.poses)
     times = np.arange(job.frames) / job.endoslam_fps
@@ -293,10 +327,8 @@ def video_frames(job: Job) -> Iterator[np.ndarray]:
     """The frames of a video job: a tube sequence rendered with SimCol's camera, seen through a circle (black
     corners, as an endoscope's image); no depth, no poses are written."""
     sequence = tube_sequence(job)
-    K = simcol_intrinsics(job.size)
-    v, u = np.mgrid[:job.size, :job.size]
-    centre, radius = (job.size - 1) / 2, VIDEO_CIRCLE_DIAMETER * job.size / 2
-    inside = ((u - centre) ** 2 + (v - centre) ** 2 <= radius**2)[..., None]
+    K = simcol_intrinsics(job.size, job.look)
+    inside = circle(job.size, job.size, VIDEO_CIRCLE_DIAMETER)[..., None]
     for pose in sequence.poses:
         rgb, _ = render_tube_frame(sequence.scene, pose, K, job.size, job.size)
         yield to_uint8(rgb) * inside.astype(np.uint8)
@@ -306,7 +338,7 @@ def _write_video_folder(job: Job, staging: Path) -> list[str]:
     """A folder of frames, and beside it the camera's intrinsics (``<name>.intrinsics.yaml``, native pixels)."""
     for f, rgb in enumerate(video_frames(job)):
         write_png(staging / f"frame_{f:04d}.png", rgb)
-    fx, fy, cx, cy = (float(v) for v in simcol_intrinsics(job.size)[[0, 1, 0, 1], [0, 1, 2, 2]])
+    fx, fy, cx, cy = (float(v) for v in simcol_intrinsics(job.size, job.look)[[0, 1, 0, 1], [0, 1, 2, 2]])
     (staging / f"{job.name}.intrinsics.yaml").write_text(
         f"fx: {fx!r}\nfy: {fy!r}\ncx: {cx!r}\ncy: {cy!r}\nwidth: {job.size}\nheight: {job.size}\n")
     return [f"{job.name}.intrinsics.yaml"]
