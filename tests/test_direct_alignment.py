@@ -108,6 +108,21 @@ def test_tracking_a_sequence_follows_the_camera_where_constant_velocity_cannot(r
     assert metrics.motion_agreement(poses, tracked_steps)["step_corr"] > 0.9
 
 
+def test_the_tracked_pose_is_rigid_whatever_the_start(rendered: dict):
+    """A start whose rotation block has shrunk (a long chain of float32 steps) gives a rigid pose: chained through
+    keyframes, a shrinking rotation would otherwise reach a singular matrix."""
+    tracker = KeyframeTracker(rendered["K"], TrackerSettings(EXACT, keyframe_every=2))
+    pose = torch.from_numpy(rendered["poses"][0])
+    tracker.track(rendered["rgb"][0], rendered["depth"][0], pose)
+    for rgb, depth in zip(rendered["rgb"][1:6], rendered["depth"][1:6]):
+        start = pose.clone()
+        start[:3, :3] *= 0.95
+        pose = tracker.track(rgb, depth, start)
+        rotation = pose[:3, :3]
+        torch.testing.assert_close(rotation @ rotation.T, torch.eye(3, dtype=rotation.dtype), rtol=0, atol=1e-9)
+        assert torch.equal(pose[3], torch.tensor([0, 0, 0, 1], dtype=pose.dtype))
+
+
 def test_modelling_the_lights_fall_off_takes_out_most_of_the_rotation_bias_with_exact_depth(rendered: dict):
     truth = relative_pose(rendered["poses"][3], rendered["poses"][0])
     error = {falloff: errors(align_to_keyframe(rendered["rgb"][0], rendered["depth"][0], rendered["rgb"][3],

@@ -304,6 +304,17 @@ def test_chain_step_is_the_inverse_step_composed_and_stays_rigid():
     assert np.linalg.det(rotation) == pytest.approx(1.0) and np.abs(rotation - step[:3, :3]).max() < 1e-3
 
 
+def test_nearest_rigid_keeps_a_rigid_pose_and_makes_a_shrunken_rotation_rigid_again():
+    from endoflow.geometry.pose import nearest_rigid
+
+    T = pose_vec_to_matrix(torch.tensor([0.3, -0.2, 0.1, 1.0, 2.0, 3.0], dtype=torch.float64))
+    torch.testing.assert_close(nearest_rigid(T), T, rtol=0, atol=1e-12)
+    shrunk = T.clone()
+    shrunk[:3, :3] *= 0.9
+    shrunk[3, 0] = 1e-3
+    torch.testing.assert_close(nearest_rigid(shrunk), T, rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("count", [1, 2, 3, 4])
 def test_a_step_repeated_count_times_has_that_step_as_its_root(count):
     rng = np.random.default_rng(count)

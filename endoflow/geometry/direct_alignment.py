@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from endoflow.config import RefineConfig
 from endoflow.geometry.camera import backproject, intrinsics_inverse, scale_intrinsics
 from endoflow.geometry.warp import sampling_grid
-from endoflow.geometry.pose import invert_pose, pose_vec_to_matrix
+from endoflow.geometry.pose import invert_pose, nearest_rigid, pose_vec_to_matrix
 from endoflow.shapes import check_shape
 
 SATURATED = 0.98  # a keyframe pixel with a channel above this is a highlight
@@ -265,9 +265,10 @@ class KeyframeTracker:
             self._make_keyframe(rgb, depth, start)
             return start
         key_rgb, key_depth, T_world_key = self.keyframe
-        T_frame_key = invert_pose(start) @ T_world_key
+        T_frame_key = invert_pose(nearest_rigid(start)) @ T_world_key
         self.last = align_to_keyframe(key_rgb, key_depth, rgb, self.K, T_frame_key, self.settings.alignment)
-        T_world_frame = T_world_key @ invert_pose(self.last.T_frame_key)
+        # rigid at every frame: otherwise rounding, compounded through keyframes, shrinks the rotations to nothing
+        T_world_frame = nearest_rigid(T_world_key @ invert_pose(self.last.T_frame_key))
         self.since_keyframe += 1
         if self.since_keyframe >= self.settings.keyframe_every or self.last.valid_share < self.settings.min_overlap:
             self._make_keyframe(rgb, depth, T_world_frame)

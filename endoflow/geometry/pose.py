@@ -94,6 +94,17 @@ def relative_pose(T_world_s: ArrayOrTensor, T_world_t: ArrayOrTensor) -> ArrayOr
     return invert_pose(T_world_s) @ T_world_t
 
 
+def nearest_rigid(T: torch.Tensor) -> torch.Tensor:
+    """``T [4, 4]`` with its rotation block replaced by the nearest rotation (:func:`nearest_rotation`) and its last
+    row exact: a pose built by chaining inverses (which assume rigidity, :func:`invert_pose`) stays rigid however
+    long the chain."""
+    check_shape("T", T, "4,4")
+    out = T.clone()
+    out[:3, :3] = torch.from_numpy(nearest_rotation(T[:3, :3].detach().cpu().double().numpy())).to(T)
+    out[3] = torch.tensor([0, 0, 0, 1], dtype=T.dtype, device=T.device)
+    return out
+
+
 # ------------------------------------------------------------------------------------------ numpy
 def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
     """The rotation closest to ``matrix`` (SVD). The network's rotations are orthonormal only to float32
