@@ -55,6 +55,7 @@ DRY_RUN_CUTS = {
     "synth.endoslam.frames": 3,  # the preset's 2 sequences stay: Colon and Small Intestine, one test set each
     "synth.scenenet.sequences": 2,  # 6 depth maps: 5 to train the bank on, 1 held out for the SWD
     "synth.scenenet.frames": 3,
+    "synth.video.frames": 15,  # the built-in unlabelled video: its last 3 frames (val_share 0.2) one val triplet
     "preprocess.workers": 2,
     # one generator step per resolution and one training step, both of batch 2 (validation, 2 samples, is then
     # one batch, and evaluation sees one target frame per sequence: train.val_batches and
@@ -279,7 +280,7 @@ def test_the_dry_run_records_time_and_peak_memory_of_every_stage(paper_repro):
     clone, resources = paper_repro
     params = load_params(clone / "params.yaml")
     expected = {"synthesize", "pretrain_latent_bank", "train", *(f"preprocess@{d}" for d in ("simcol", "endoslam",
-                "scenenet")), *(f"evaluate@{name}" for name in params.eval.test_sets),
+                "scenenet", "video")), *(f"evaluate@{name}" for name in params.eval.test_sets),
                 *(f"reconstruct@{name}" for name in params.reconstruct.sequences)}
     assert set(resources["stages"]) == expected
     assert resources["max_rss_one_process_gib"] > 0

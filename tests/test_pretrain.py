@@ -60,7 +60,8 @@ def write_depth_shards(root: Path, counts: dict[str, int], size: int = 32, seed:
                 meta = {
                     "dataset": "scenenet", "sequence": f"{split}/0/{i}", "group": "0", "split": split,
                     "frame": i, "K": np.eye(3).tolist(), "depth_unit": DEPTH_UNIT_CM, "native_size": [size, size],
-                    "T_world_cam": {"prev": None, "cur": None, "next": None},
+                    "T_world_cam": {"prev": None, "cur": None, "next": None}, "intrinsics_known": True,
+                    "ground_truth": {"depth": True, "pose": False},
                 }
                 key = f"scenenet-{split}-{i:04d}"
                 sink.write({"__key__": key, "depth.png": png.tobytes(), "meta.json": json.dumps(meta).encode()})

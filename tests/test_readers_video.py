@@ -13,6 +13,7 @@ from endoflow.config import Params, params_from_dict
 from endoflow.data.loader import raw_samples
 from endoflow.data.registry import detect_dataset, open_reader
 from endoflow.data.shard_format import decode_sample, has_ground_truth
+from endoflow.data.shard_engines import native_thread_count, pool_context
 from endoflow.data.shards import preprocess_dataset
 from endoflow.data.intrinsics import assumed_intrinsics
 from endoflow.data.video import VAL_SUFFIX, VideoFile, frame_stride
@@ -162,3 +163,21 @@ def test_the_real_clip_reads_as_a_user_points_at_it(tmp_path: Path):
     train = sequences[0]
     assert not train.intrinsics_known and train.load_rgb(479).shape == (192, 192, 3)
     assert 0.85 < train.field_of_view().mean() < 0.97  # the circle, its four corners out
+
+
+def test_a_pool_of_workers_writes_the_shards_one_process_writes_after_ffmpeg_started_its_threads(tmp_path: Path):
+    """Finding the field of view decodes frames here first; FFmpeg's decoder threads (it starts them for frames this
+    large) must not be inherited by forked workers, which would wait forever on a lock one of them held."""
+    root = tmp_path / "videos"
+    root.mkdir()
+    write_video(root / "clip_a.mp4", moving_frames(12, size=480), 30.0)
+    video = VideoFile(root / "clip_a.mp4")
+    video(0)
+    assert native_thread_count() > 1 and pool_context().get_start_method() != "fork"
+    written = {}
+    for workers in (1, 2):
+        params = video_params(root=str(root))
+        params.preprocess.workers = workers
+        preprocess_dataset("video", params, tmp_path / f"shards_{workers}")
+        written[workers] = {p.name: p.read_bytes() for p in (tmp_path / f"shards_{workers}").iterdir()}
+    assert written[1] == written[2] and len(written[1]) > 2

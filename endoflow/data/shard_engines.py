@@ -11,6 +11,7 @@ bytes; the driver (:mod:`endoflow.data.shards`) plans, keeps the resume keys and
 from __future__ import annotations
 
 import multiprocessing
+import os
 import sys
 import threading
 import time
@@ -109,19 +110,24 @@ def run_shard_writers(
 def pool_context() -> multiprocessing.context.BaseContext:
     """How worker processes start.
 
-    ``fork`` where it is safe (Linux, no other thread in this process): workers start at once with
-    everything already imported, which matters when the work takes seconds. Otherwise a fork server (a clean
-    single-threaded process, so threads of Ray or torch are never inherited in an undefined state) with
-    this module preloaded, or ``spawn`` where there is no fork server.
+    ``fork`` where it is safe (Linux, no other thread in this process, native ones included): workers start at
+    once with everything already imported, which matters when the work takes seconds. Otherwise a fork server (a
+    clean single-threaded process, so threads of Ray, torch or FFmpeg's decoders are never inherited holding a
+    lock) with this module preloaded, or ``spawn`` where there is no fork server.
     """
     methods = multiprocessing.get_all_start_methods()
-    if sys.platform.startswith("linux") and threading.active_count() == 1:
+    if sys.platform.startswith("linux") and native_thread_count() == 1:
         return multiprocessing.get_context("fork")
     if "forkserver" in methods:
         context = multiprocessing.get_context("forkserver")
         context.set_forkserver_preload([__name__])
         return context
     return multiprocessing.get_context("spawn")
+
+
+def native_thread_count() -> int:
+    """Threads of this process, those started by libraries outside Python (FFmpeg, OpenMP) included (Linux)."""
+    return len(os.listdir("/proc/self/task"))
 
 
 def _init_worker(load_sequences: Callable[[], list[Sequence]]) -> None:
