@@ -24,7 +24,7 @@ from endoflow.training.objective import reprojection, training_step_losses
 from tests.samples import SIMCOL_SAMPLE
 
 SIZE = 64
-STEPS = 60
+STEPS = 30
 TRIPLETS = 4
 
 pytestmark = pytest.mark.skipif(not SIMCOL_SAMPLE.is_dir(), reason="real SimCol3D sample folder not present")
@@ -124,13 +124,13 @@ def test_the_geometry_consistency_term_adds_its_weighted_share_and_reaches_both_
 
 
 def test_short_optimisation_learns_depth_and_motion():
-    """Sixty steps on four triplets bring the loss well below its start and below the no-motion loss.
+    """Thirty steps on four triplets bring the loss well below its start and below the no-motion loss.
 
-    (Measured: 0.071 at the start and with no motion, about 0.015 after 60 steps, 0.013 with GT.)
+    (Measured: 0.074 at the start, 0.072 with no motion, 0.017 after 30 steps, 0.013 with GT.)
     """
     torch.manual_seed(0)
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+    torch.set_num_threads(2)
     try:
         batch = {key: value[:TRIPLETS] for key, value in simcol_triplets().items()}
         params = Params()
@@ -303,7 +303,7 @@ def test_frames_with_a_black_circular_border_and_its_mask_learn_depth_and_motion
     the original frames inside the circle, the loss falls as far as without a border."""
     torch.manual_seed(0)
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+    torch.set_num_threads(2)
     try:
         batch = {key: value[:TRIPLETS] for key, value in simcol_triplets().items()}
         valid = circle_mask(SIZE).expand(TRIPLETS, 1, SIZE, SIZE)
