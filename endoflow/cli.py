@@ -135,7 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--stride", type=int, default=1, help="use every K-th frame")
     fit.add_argument("--held-out", type=float, default=None,
                      help="the last share of the frames, never trained on, that measures the fit (default: 0.2)")
-    fit.add_argument("--lr", type=float, default=None, help="learning rate (default: the model's train.lr)")
+    fit.add_argument("--lr", type=float, default=None,
+                     help="learning rate (default: a tenth of the model's train.lr)")
     fit.add_argument("--batch-size", type=_positive_int, default=None,
                      help="triplets per step (default: the model's train.batch_size)")
     fit.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")

@@ -43,15 +43,19 @@ if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for 
     from endoflow.tracking import RunHandle
 
 MIN_FRAMES = 3  # a triplet
+# Fine-tuning starts Adam's moments afresh, so its first steps move every weight by about the learning rate whatever
+# its gradient. At the peak rate of training (train.lr) 300 steps on the real clip flattened the default model's
+# depth; a tenth of it, about where the cosine schedule ends, lowered the held-out error most (docs/results.md).
+LR_SHARE = 0.1
 EVAL_BATCH = 16
 
 
 @dataclass(frozen=True)
 class AdaptOptions:
-    """``steps`` of ``batch_size`` triplets (None: the model's ``train.batch_size``) at ``lr`` (None: the model's
-    ``train.lr``); frames ``start, start + stride, ...`` below ``stop`` (None: to the end), of which the last
-    ``held_out`` share is held out; ``seed`` (None: the model's) fixes the draw; ``device``: ``auto``, ``cpu``,
-    ``cuda``."""
+    """``steps`` of ``batch_size`` triplets (None: the model's ``train.batch_size``) at ``lr`` (None:
+    :data:`LR_SHARE` of the model's ``train.lr``); frames ``start, start + stride, ...`` below ``stop`` (None: to
+    the end), of which the last ``held_out`` share is held out; ``seed`` (None: the model's) fixes the draw;
+    ``device``: ``auto``, ``cpu``, ``cuda``."""
 
     steps: int = 300
     batch_size: Optional[int] = None
@@ -167,7 +171,7 @@ def adapt(sequence: Sequence, model_path: Path, out_path: Path, options: AdaptOp
         "parent": {"model": str(model_path), "sha256": file_sha256(model_path), "mlflow_run_id": record.mlflow_run_id},
         "input": sequence.name, "frames": len(positions), "held_out_frames": held_out, "size": size,
         "steps": options.steps, "batch_size": options.batch_size or params.train.batch_size,
-        "lr": options.lr or params.train.lr, "seed": params.seed if options.seed is None else options.seed,
+        "lr": adapt_lr(options, params), "seed": params.seed if options.seed is None else options.seed,
         "held_out_photometric_before": before, "held_out_photometric_after": after,
         "final_loss": losses[-1] if losses else None, "intrinsics": learned_K_rows(model, frames, size),
     }
@@ -184,7 +188,7 @@ def adapt(sequence: Sequence, model_path: Path, out_path: Path, options: AdaptOp
 def fine_tune(model: EndoflowModel, frames: Frames, targets: torch.Tensor, options: AdaptOptions, params: Params,
               device: torch.device, run: Optional["RunHandle"]) -> list[float]:
     """``options.steps`` optimiser steps on triplets drawn (seeded) from ``targets``; returns each step's loss."""
-    cfg = params.train.replace(lr=options.lr or params.train.lr)
+    cfg = params.train.replace(lr=adapt_lr(options, params))
     batch_size = min(options.batch_size or cfg.batch_size, len(targets))
     learn_K = not frames.intrinsics_known
     model.intrinsics.requires_grad_(learn_K)
@@ -211,6 +215,11 @@ def fine_tune(model: EndoflowModel, frames: Frames, targets: torch.Tensor, optio
             print(f"[adapt] step {progress.update(step)} | loss {np.mean(losses[-10:]):.4f}", file=sys.stderr)
     model.eval()
     return losses
+
+
+def adapt_lr(options: AdaptOptions, params: Params) -> float:
+    """The learning rate of the adaptation: ``options.lr``, else :data:`LR_SHARE` of the model's ``train.lr``."""
+    return options.lr or params.train.lr * LR_SHARE
 
 
 @torch.no_grad()
