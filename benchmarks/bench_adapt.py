@@ -85,7 +85,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--figure", type=Path)
-    parser.add_argument("--frames", type=int, default=4, help="held-out frames drawn")
+    parser.add_argument("--frames", type=int, default=4, choices=range(1, 33), metavar="1..32",
+                        help="held-out frames drawn")
     parser.add_argument("--rgb", action="store_true", help="draw the frames above their depth")
     args = parser.parse_args()
     use_cpu_threads(args.threads)
@@ -93,10 +94,11 @@ def main() -> None:
     sequence = input_sequence(args.video, None, record.params, args.crop)
     adapted = args.adapted
     if adapted is None:
-        adapted = Path(tempfile.mkdtemp()) / "adapted.pt"
+        adapted = Path(tempfile.mkdtemp(prefix="endoflow-bench-adapt-")) / "adapted.pt"  # kept: it is printed
         started, cpu = time.monotonic(), cpu_seconds()
         adapt(sequence, args.model, adapted, AdaptOptions(steps=args.steps, device="cpu"))
         wall, cpu = time.monotonic() - started, cpu_seconds() - cpu
+        print(f"adapted model: {adapted}")
         print(f"adaptation: {args.steps} steps in {wall:.0f} s ({args.steps / wall:.2f} steps/s), {cpu:.0f} CPU s, "
               f"{args.threads} threads, {len(sequence)} frames")
     count = len(sequence)

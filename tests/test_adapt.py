@@ -57,7 +57,7 @@ def test_adapting_lowers_the_held_out_photometric_error_and_names_the_parent(cli
     out = tmp_path / "adapted.pt"
     summary = adapt(sequence, model_file, out, AdaptOptions(steps=25, device="cpu"))
     assert summary["held_out_photometric_after"] < 0.8 * summary["held_out_photometric_before"]
-    assert (summary["frames"], summary["held_out_frames"]) == (40, 8)
+    assert (summary["frames"], summary["held_out_frames"]) == (40, 8) and summary["lr"] == pytest.approx(3e-4)
     record = load_model_file(out)
     assert record.adapted_from["parent"] == {"model": str(model_file), "sha256": file_sha256(model_file),
                                              "mlflow_run_id": "0" * 32}

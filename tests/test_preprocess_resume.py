@@ -28,7 +28,8 @@ from tests.fixtures_native import (
 )
 
 SCENE = "SyntheticColon_I"
-DAMAGED_TEST_FRAME = ("SyntheticColon_III", "O1", 4)  # read when the test sequence's field of view is found
+DAMAGED_TEST_DEPTH = ("SyntheticColon_III", "O1", 4)  # read only by the last test shard (the field of view is
+# found from the frames, not the depth maps)
 
 
 def staged_shards(out_dir: Path) -> set[str]:
@@ -51,12 +52,11 @@ def assert_same_files(a: Path, b: Path) -> None:
 @pytest.fixture
 def interrupted(tmp_path: Path) -> tuple[Path, Path, Params]:
     """A SimCol root (S1 train, S4 val, O1 test; 6 frames, 2 samples per shard) and a preprocessing run of
-    it that stopped at a damaged test frame, after the train and val shards were finished (the test sequence's field
-    of view is found from its frames before its first shard is written)."""
+    it that stopped at a damaged test depth map, after the train, val and first test shards were finished."""
     root = tmp_path / "simcol"
     write_simcol(root, frames=6, size=16)
-    scene, name, number = DAMAGED_TEST_FRAME
-    frame = root / scene / f"Frames_{name}" / f"FrameBuffer_{number:04d}.png"
+    scene, name, number = DAMAGED_TEST_DEPTH
+    frame = root / scene / f"Frames_{name}" / f"Depth_{number:04d}.png"
     intact = frame.read_bytes()
     frame.write_bytes(intact[: len(intact) // 2])
     params = preprocess_params("simcol", root)
@@ -64,7 +64,7 @@ def interrupted(tmp_path: Path) -> tuple[Path, Path, Params]:
     with pytest.raises(DataFormatError, match=frame.name):
         preprocess_dataset("simcol", params, out_dir)
     frame.write_bytes(intact)
-    assert not out_dir.exists() and len(staged_shards(out_dir)) == 4
+    assert not out_dir.exists() and len(staged_shards(out_dir)) == 5
     return root, out_dir, params
 
 
@@ -84,7 +84,7 @@ def test_a_changed_image_rebuilds_the_shards_built_from_it_and_reuses_the_others
     summary = preprocess_dataset("simcol", params, out_dir)
     read_frame_1 = shards_with_targets(out_dir, "S1", {1, 2})  # frame 1 is cur of target 1, prev of 2
     assert read_frame_1 and read_frame_1 <= finished
-    assert summary["shards_reused"] == len(finished - read_frame_1) == 3
+    assert summary["shards_reused"] == len(finished - read_frame_1) == 4
     assert_same_files(out_dir, clean_run(root, tmp_path))
 
 
@@ -96,7 +96,7 @@ def test_a_changed_pose_rebuilds_only_the_shards_that_store_it(
     replace_line(root / SCENE / "SavedPosition_S1.txt", 5, "1.5 2.5 3.5")
     summary = preprocess_dataset("simcol", params, out_dir)
     stored_frame_5 = shards_with_targets(out_dir, "S1", {4})  # frame 5 is only next of target 4
-    assert summary["shards_reused"] == len(finished - stored_frame_5) == 3
+    assert summary["shards_reused"] == len(finished - stored_frame_5) == 4
     assert_same_files(out_dir, clean_run(root, tmp_path))
 
 
@@ -105,7 +105,7 @@ def test_an_unchanged_input_reuses_every_finished_shard(
 ) -> None:
     root, out_dir, params = interrupted
     summary = preprocess_dataset("simcol", params, out_dir)
-    assert summary["shards_reused"] == 4
+    assert summary["shards_reused"] == 5
     assert_same_files(out_dir, clean_run(root, tmp_path))
     assert [p.name for p in out_dir.parent.iterdir() if p.name.startswith(".")] == []
 

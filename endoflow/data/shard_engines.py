@@ -110,13 +110,14 @@ def run_shard_writers(
 def pool_context() -> multiprocessing.context.BaseContext:
     """How worker processes start.
 
-    ``fork`` where it is safe (Linux, no other thread in this process, native ones included): workers start at
-    once with everything already imported, which matters when the work takes seconds. Otherwise a fork server (a
-    clean single-threaded process, so threads of Ray, torch or FFmpeg's decoders are never inherited holding a
-    lock) with this module preloaded, or ``spawn`` where there is no fork server.
+    ``fork`` where it is safe (Linux, and no thread started in this process since this module was imported, native
+    ones included; numpy's BLAS pool, started on import, prepares for a fork): workers start at once with
+    everything already imported, which matters when the work takes seconds. Otherwise a fork server (a clean
+    process, so threads of Ray, torch or FFmpeg's decoders are never inherited holding a lock) with this module
+    preloaded, or ``spawn`` where there is no fork server.
     """
     methods = multiprocessing.get_all_start_methods()
-    if sys.platform.startswith("linux") and native_thread_count() == 1:
+    if sys.platform.startswith("linux") and native_thread_count() <= THREADS_AT_IMPORT:
         return multiprocessing.get_context("fork")
     if "forkserver" in methods:
         context = multiprocessing.get_context("forkserver")
@@ -128,6 +129,9 @@ def pool_context() -> multiprocessing.context.BaseContext:
 def native_thread_count() -> int:
     """Threads of this process, those started by libraries outside Python (FFmpeg, OpenMP) included (Linux)."""
     return len(os.listdir("/proc/self/task"))
+
+
+THREADS_AT_IMPORT = native_thread_count() if sys.platform.startswith("linux") else 0
 
 
 def _init_worker(load_sequences: Callable[[], list[Sequence]]) -> None:

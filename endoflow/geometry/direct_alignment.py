@@ -258,14 +258,14 @@ class KeyframeTracker:
 
     def track(self, rgb: torch.Tensor, depth: torch.Tensor, T_world_start: torch.Tensor) -> torch.Tensor:
         """``T_world_frame [4, 4]`` (float64) of the next frame (``rgb [3, H, W]`` in [0, 1], its depth
-        ``[1, H, W]``), refined from ``T_world_start``; the first frame keeps its start and becomes a keyframe."""
+        ``[1, H, W]``), refined from ``T_world_start`` (made rigid); the first frame keeps its start and becomes a keyframe."""
         check_shape("T_world_start", T_world_start, "4,4")
-        start = T_world_start.to(torch.float64)
+        start = nearest_rigid(T_world_start.to(torch.float64))
         if self.keyframe is None:
             self._make_keyframe(rgb, depth, start)
             return start
         key_rgb, key_depth, T_world_key = self.keyframe
-        T_frame_key = invert_pose(nearest_rigid(start)) @ T_world_key
+        T_frame_key = invert_pose(start) @ T_world_key
         self.last = align_to_keyframe(key_rgb, key_depth, rgb, self.K, T_frame_key, self.settings.alignment)
         # rigid at every frame: otherwise rounding, compounded through keyframes, shrinks the rotations to nothing
         T_world_frame = nearest_rigid(T_world_key @ invert_pose(self.last.T_frame_key))

@@ -45,7 +45,8 @@ if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for 
 MIN_FRAMES = 3  # a triplet
 # Fine-tuning starts Adam's moments afresh, so its first steps move every weight by about the learning rate whatever
 # its gradient. At the peak rate of training (train.lr) 300 steps on the real clip flattened the default model's
-# depth; a tenth of it, about where the cosine schedule ends, lowered the held-out error most (docs/results.md).
+# depth; a tenth of it, about where the cosine schedule ends, lowered the held-out error most of 2e-4, 5e-5 and 2e-5
+# (docs/results.md). The learned intrinsics keep train.intrinsics_lr: an assumed focal length can be far off.
 LR_SHARE = 0.1
 EVAL_BATCH = 16
 
