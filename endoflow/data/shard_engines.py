@@ -110,14 +110,15 @@ def run_shard_writers(
 def pool_context() -> multiprocessing.context.BaseContext:
     """How worker processes start.
 
-    ``fork`` where it is safe (Linux, and no thread started in this process since this module was imported, native
-    ones included; numpy's BLAS pool, started on import, prepares for a fork): workers start at once with
+    ``fork`` where it is safe (Linux, no other Python thread, and no native thread started in this process since
+    this module was imported; numpy's BLAS pool, started on import, prepares for a fork): workers start at once with
     everything already imported, which matters when the work takes seconds. Otherwise a fork server (a clean
     process, so threads of Ray, torch or FFmpeg's decoders are never inherited holding a lock) with this module
     preloaded, or ``spawn`` where there is no fork server.
     """
     methods = multiprocessing.get_all_start_methods()
-    if sys.platform.startswith("linux") and native_thread_count() <= THREADS_AT_IMPORT:
+    quiet = threading.active_count() == 1 and native_thread_count() <= THREADS_AT_IMPORT
+    if sys.platform.startswith("linux") and quiet:
         return multiprocessing.get_context("fork")
     if "forkserver" in methods:
         context = multiprocessing.get_context("forkserver")

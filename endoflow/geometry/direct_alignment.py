@@ -258,7 +258,8 @@ class KeyframeTracker:
 
     def track(self, rgb: torch.Tensor, depth: torch.Tensor, T_world_start: torch.Tensor) -> torch.Tensor:
         """``T_world_frame [4, 4]`` (float64) of the next frame (``rgb [3, H, W]`` in [0, 1], its depth
-        ``[1, H, W]``), refined from ``T_world_start`` (made rigid); the first frame keeps its start and becomes a keyframe."""
+        ``[1, H, W]``), refined from ``T_world_start`` (made rigid); the first frame keeps its start and becomes a
+        keyframe."""
         check_shape("T_world_start", T_world_start, "4,4")
         start = nearest_rigid(T_world_start.to(torch.float64))
         if self.keyframe is None:
