@@ -17,6 +17,7 @@ import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
+from pathlib import PurePosixPath
 from typing import Any, Callable, Iterator
 
 import cv2
@@ -28,6 +29,7 @@ from endoflow.data.shard_plan import EncodeSettings, ShardSpec
 from endoflow.data.shard_staging import folder_entries
 from endoflow.data.shard_writer import ShardResult, write_shard
 from endoflow.errors import DataFormatError
+from endoflow.io import TEMPORARY_MARK
 from endoflow.progress import Progress
 from endoflow.ray_runtime import connect_ray
 
@@ -232,8 +234,19 @@ def _shard_tasks(
             results.append(_next_task_result(pending, progress))
     except BaseException:
         stop_tasks(pending)
+        remove_temporaries(staging)
         raise
     return results
+
+
+def remove_temporaries(staging: str) -> None:
+    """Remove the temporaries of shards whose task was stopped mid-write (a cancel's interrupt can land between a
+    temporary's creation and the block that removes it); only once every task of the run has ended."""
+    fs, folder = fsspec.core.url_to_fs(staging)
+    if fs.exists(folder):
+        for path in fs.ls(folder, detail=False):
+            if TEMPORARY_MARK in PurePosixPath(path).name:
+                fs.rm(path)
 
 
 def stop_tasks(pending: list) -> None:
