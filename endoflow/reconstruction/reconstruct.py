@@ -43,8 +43,8 @@ from endoflow.reconstruction.recording import RECORDING_FILE, Recording
 if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for it
     from endoflow.tracking import RunHandle
 
-NETWORK_PATH_FILE = "trajectory_network.tum"
-ADAPTED_MODEL = "model_adapted.pt"  # with `reconstruct --adapt`: the model fitted to the input first  # the pose network's own chain, beside a refined trajectory.tum
+NETWORK_PATH_FILE = "trajectory_network.tum"  # the pose network's own chain, beside a refined trajectory.tum
+ADAPTED_MODEL = "model_adapted.pt"  # with `reconstruct --adapt`: the model fitted to the input first
 # What MLflow gets of a reconstruction: what a person opens first, the path and the surface (not the depth maps).
 LOGGED_OUTPUTS = ("sheet.png", "video.mp4", RECORDING_FILE, "reconstruction.json", "trajectory.tum",
                   "trajectory.kitti", "trajectory.kitti.json", "mesh.ply")
