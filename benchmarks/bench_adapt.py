@@ -31,11 +31,11 @@ from endoflow.data.crop import Crop  # noqa: E402
 from endoflow.devices import use_cpu_threads  # noqa: E402
 from endoflow.models.endoflow_model import load_trained_model  # noqa: E402
 from endoflow.training.adapt import (  # noqa: E402
-    MIN_FRAMES,
     AdaptOptions,
     adapt,
     held_out_error,
     input_sequence,
+    kept_frames,
     load_frames,
 )
 
@@ -102,7 +102,7 @@ def main() -> None:
         print(f"adaptation: {args.steps} steps in {wall:.0f} s ({args.steps / wall:.2f} steps/s), {cpu:.0f} CPU s, "
               f"{args.threads} threads, {len(sequence)} frames")
     count = len(sequence)
-    kept = count - max(MIN_FRAMES, int(np.ceil(count * AdaptOptions().held_out)))
+    kept = kept_frames(count, AdaptOptions().held_out)
     frames = load_frames(sequence, list(range(count)), record.params.data.size)
     held_out = torch.arange(kept + 1, count - 1)  # the targets `endoflow adapt` scores
     drawn = torch.linspace(kept + 1, count - 2, args.frames).round().long()

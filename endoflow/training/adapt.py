@@ -154,12 +154,12 @@ def adapt(sequence: Sequence, model_path: Path, out_path: Path, options: AdaptOp
     params = record.params
     size = params.data.size
     positions = list(range(options.start, min(options.stop or len(sequence), len(sequence)), options.stride))
-    held_out = max(MIN_FRAMES, math.ceil(len(positions) * options.held_out))
-    if len(positions) - held_out < MIN_FRAMES:
+    kept = kept_frames(len(positions), options.held_out)
+    held_out = len(positions) - kept
+    if kept < MIN_FRAMES:
         raise DataFormatError(sequence.name, f"{len(positions)} frames selected: adapting needs at least "
                                              f"{held_out + MIN_FRAMES} ({MIN_FRAMES} to train on, {held_out} held out)")
     frames = load_frames(sequence, positions, size)
-    kept = len(positions) - held_out
     train_targets = torch.arange(1, kept - 1)
     held_out_targets = torch.arange(kept + 1, len(positions) - 1)
     before = held_out_error(model, frames, held_out_targets, device)
@@ -216,6 +216,12 @@ def fine_tune(model: EndoflowModel, frames: Frames, targets: torch.Tensor, optio
             print(f"[adapt] step {progress.update(step)} | loss {np.mean(losses[-10:]):.4f}", file=sys.stderr)
     model.eval()
     return losses
+
+
+def kept_frames(count: int, held_out: float) -> int:
+    """How many of ``count`` selected frames are trained on: all but the last ``held_out`` share (at least a
+    triplet's :data:`MIN_FRAMES` held out)."""
+    return count - max(MIN_FRAMES, math.ceil(count * held_out))
 
 
 def adapt_lr(options: AdaptOptions, params: Params) -> float:
