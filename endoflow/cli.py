@@ -8,13 +8,16 @@ import json
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Iterator, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Optional, Sequence
 
 from endoflow.config import SYNTH_LAYOUTS, ConfigError, load_params
 from endoflow.data.base import DATASETS
 from endoflow.errors import DataFormatError
 from endoflow.io import OutputFolderError, write_bytes
 from endoflow.sweep import STUDIES
+
+if TYPE_CHECKING:  # the commands import what they run when they run: `endoflow --help` stays quick
+    from endoflow.reconstruction.reconstruct import ReconstructOptions
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -73,13 +76,18 @@ def build_parser() -> argparse.ArgumentParser:
     export.set_defaults(handler=_model_export)
 
     rec = commands.add_parser("reconstruct", help="depth, camera path and fused surface of a video, an image "
-                                                  "folder or a dataset sequence, from a trained model")
-    rec.add_argument("input", type=Path, help="video file, folder of images, or dataset root (with --sequence)")
+                                                  "folder or a dataset sequence, from a trained model; of many "
+                                                  "videos as Ray tasks")
+    rec.add_argument("input", type=Path, nargs="+",
+                     help="video file, folder of images, or dataset root (with --sequence); or several videos and "
+                          "folders of videos: one Ray task each (on params.yaml's ray.address, else a local Ray), "
+                          "one folder each under --out, a rerun keeping those done with the same settings")
     rec.add_argument("--model", default="models/endoflow.pt",
                      help="model file of the train stage, or an MLflow model: models:/<name>/<version> (the store "
                           "of params.yaml's tracking.uri)")
     rec.add_argument("--out", type=Path, required=True,
-                     help="output folder: new, empty or an earlier reconstruction (replaced when the run completes)")
+                     help="output folder: new, empty or an earlier reconstruction (replaced when the run completes); "
+                          "for many videos the folder of their folders, each named after its video")
     rec.add_argument("--force", action="store_true",
                      help="replace --out even if it holds other files (never when it is or holds the input or model)")
     rec.add_argument("--sequence", default=None, help="a sequence of the dataset at INPUT (ground truth comes along)")
@@ -266,23 +274,68 @@ def _run_adaptation(args: argparse.Namespace, model_path: Path, out: Path, optio
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
-    from endoflow.devices import use_cpu_threads
-    from endoflow.models.model_file import load_model_file
-    from endoflow.data.crop import Crop
-    from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
-    from endoflow.geometry.direct_alignment import tracker_settings
-    from endoflow.reconstruction.reconstruct import ADAPTED_MODEL, ReconstructOptions, log_reconstruction, reconstruct
-    from endoflow.training.adapt import AdaptOptions
+    from endoflow.reconstruction.many import holds_videos
 
-    refine = _params_if_present(args.params).refine
     try:
-        options = ReconstructOptions(FrameRange(args.start, args.stop, args.stride), args.size, args.scale,
-                                     args.voxel_cm, args.trunc_cm, args.npy, args.fuse, args.device, args.force,
-                                     Crop.parse(args.crop) if args.crop else None,
-                                     tracker_settings(refine) if args.refine and refine.enabled else None)
+        options = _reconstruct_options(args)
     except ValueError as exc:
         print(f"endoflow reconstruct: error: {exc}", file=sys.stderr)
         return 2
+    # a dataset root with --sequence, or a folder whose images --pattern picks, is one input even if it holds videos
+    one_input = args.sequence is not None or args.pattern is not None
+    if len(args.input) > 1 or (not one_input and holds_videos(args.input[0])):
+        return _reconstruct_many(args, options)
+    # from here on one input, as `endoflow adapt` (run first for --adapt) takes it
+    return _reconstruct_one(argparse.Namespace(**{**vars(args), "input": args.input[0]}), options)
+
+
+def _reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
+    """``ReconstructOptions`` of the arguments (and params.yaml's refine section); a ValueError says what is wrong."""
+    from endoflow.data.crop import Crop
+    from endoflow.geometry.direct_alignment import tracker_settings
+    from endoflow.reconstruction.frames import FrameRange
+    from endoflow.reconstruction.reconstruct import ReconstructOptions
+
+    refine = _params_if_present(args.params).refine
+    return ReconstructOptions(FrameRange(args.start, args.stop, args.stride), args.size, args.scale,
+                              args.voxel_cm, args.trunc_cm, args.npy, args.fuse, args.device, args.force,
+                              Crop.parse(args.crop) if args.crop else None,
+                              tracker_settings(refine) if args.refine and refine.enabled else None)
+
+
+def _reconstruct_many(args: argparse.Namespace, options: ReconstructOptions) -> int:
+    """Several videos, one Ray task and one folder under ``--out`` each; 1 when a video failed (the others'
+    folders are written)."""
+    from endoflow.models.model_file import load_model_file
+    from endoflow.reconstruction.many import ManySettings, format_outcome, reconstruct_videos, video_files
+
+    for given, option in ((args.sequence, "--sequence"), (args.pattern, "--pattern"), (args.adapt, "--adapt"),
+                          (args.mlflow, "--mlflow")):
+        if given:
+            print(f"endoflow reconstruct: error: {option} takes one input; reconstruct the videos that need it one "
+                  f"at a time", file=sys.stderr)
+            return 2
+    videos = video_files(args.input)
+    with _model_file(args.model, args.params) as model_path:
+        threads = args.threads or load_model_file(model_path).params.threads
+        outcome = reconstruct_videos(videos, args.out, ManySettings(model_path, args.intrinsics, options, threads),
+                                     _params_if_present(args.params).ray)
+    print(format_outcome(outcome))
+    if outcome.failed:
+        print(f"endoflow reconstruct: error: {len(outcome.failed)} of {outcome.total} videos failed (named above; "
+              f"their folders are as they were); rerun the command to retry them, the others are kept",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def _reconstruct_one(args: argparse.Namespace, options: ReconstructOptions) -> int:
+    from endoflow.devices import use_cpu_threads
+    from endoflow.models.model_file import load_model_file
+    from endoflow.reconstruction.frames import intrinsics_for, open_frames
+    from endoflow.reconstruction.reconstruct import ADAPTED_MODEL, log_reconstruction, reconstruct
+    from endoflow.training.adapt import AdaptOptions
+
     with _model_file(args.model, args.params) as model_path, tempfile.TemporaryDirectory() as scratch:
         record = load_model_file(model_path)
         use_cpu_threads(args.threads or record.params.threads)

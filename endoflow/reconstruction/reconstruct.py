@@ -88,9 +88,11 @@ class ReconstructOptions:
 
 
 def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path: Path, out_dir: Path,
-                options: ReconstructOptions) -> dict:
+                options: ReconstructOptions, resume_key: Optional[str] = None) -> dict:
     """Run the model over ``source`` and write the outputs listed in the module docstring; returns the summary
-    written to ``reconstruction.json``. ``K_native`` None: the intrinsics are unknown (:func:`input_intrinsics`)."""
+    written to ``reconstruction.json``. ``K_native`` None: the intrinsics are unknown (:func:`input_intrinsics`).
+    ``resume_key``, where given, is recorded in the summary: what a run over many videos keeps a folder by
+    (:mod:`endoflow.reconstruction.many`)."""
     check_frame_range(source, options.frames)
     device = resolve_device(options.device, "--device")
     model, record = load_trained_model(model_path, device)
@@ -165,6 +167,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                      **({"keyframes": tracker.keyframes} if tracker is not None else {}),
                      "photometric_error": explained.means()},
             **path.ground_truth_scale(),
+            **({"resume_key": resume_key} if resume_key is not None else {}),
         }
         write_json(stage / "reconstruction.json", summary)
         write_contact_sheet(stage / "sheet.png", sampler.samples, shown, np.stack(path.poses),
