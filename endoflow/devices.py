@@ -2,15 +2,23 @@
 
 A device key's value (``auto``, ``cpu``, ``cuda``, ``cuda:N``) as a torch device, failing with the key's name;
 a precision key's value as bf16 autocast or float32 (channels-last with bf16 on CUDA); torch's CPU thread count;
-8-bit images to float in [0, 1] (:func:`unit_float_images`). See docs/method.md, "Devices and precision".
+8-bit images to float in [0, 1] (:func:`unit_float_images`); whether a step runs compiled (:func:`compiled`). See
+docs/method.md, "Devices and precision".
 """
 
 from __future__ import annotations
 
+import functools
+import logging
+from typing import Callable, TypeVar
+
 import torch
 from torch import nn
 
-from endoflow.config import DEVICE_NAME, ConfigError, Precision
+from endoflow.config import DEVICE_NAME, Compile, ConfigError, Precision
+
+Step = TypeVar("Step", bound=Callable)
+_log = logging.getLogger(__name__)
 
 # The first CUDA compute capability with native bf16 arithmetic (Ampere); older GPUs emulate it slowly.
 NATIVE_BF16_CAPABILITY = (8, 0)
@@ -100,3 +108,40 @@ def batch_to_device(batch: dict, device: torch.device, precision: Precision) -> 
 def _is_image(value: object) -> bool:
     # masks (the field of view) are [B, 1, H, W] too, but bool: moved as they are
     return isinstance(value, torch.Tensor) and value.dim() == 4 and value.dtype != torch.bool
+
+
+def compiles(device: torch.device, setting: Compile) -> bool:
+    """Whether ``setting`` compiles a step on ``device``: ``auto`` does on CUDA only. On a CPU, inductor's C++
+    backend needs a compiler and minutes of warm-up on 2 cores, which a short run never earns back."""
+    return setting == "on" or (setting == "auto" and device.type == "cuda")
+
+
+def compiled(step: Step, device: torch.device, setting: Compile) -> Step:
+    """``step`` through ``torch.compile`` where :func:`compiles` says so, else ``step`` itself.
+
+    Random draws inside the step (the pose VAE's samples, the bank's noise) come from torch's own generator as in
+    eager mode (inductor's ``fallback_random``), so a seed gives the same draws compiled or not and a resumed run
+    continues the same sequence. Under ``auto``, a compiler that fails on the first call (none installed, an
+    unsupported device) leaves the step eager with one warning; under ``on`` its error is raised.
+    """
+    if not compiles(device, setting):
+        return step
+    import torch._inductor.config as inductor_config
+
+    inductor_config.fallback_random = True
+    fast = torch.compile(step)
+    if setting == "on":
+        return fast  # type: ignore[return-value]
+    state = {"eager": False}
+
+    @functools.wraps(step)
+    def first_compiled_else_eager(*args, **kwargs):
+        if not state["eager"]:
+            try:
+                return fast(*args, **kwargs)
+            except torch._dynamo.exc.BackendCompilerFailed as error:
+                state["eager"] = True
+                _log.warning("torch.compile failed (%s); this run's steps stay eager", " ".join(str(error).split())[:300])
+        return step(*args, **kwargs)
+
+    return first_compiled_else_eager  # type: ignore[return-value]

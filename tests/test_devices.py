@@ -20,6 +20,8 @@ from endoflow.config import ConfigError, Params
 from endoflow.devices import (
     autocast,
     batch_to_device,
+    compiled,
+    compiles,
     compute_dtype,
     images_to_device,
     resolve_device,
@@ -199,15 +201,20 @@ def test_bf16_autocast_training_steps_stay_finite_and_close_to_float32(one_threa
 
 
 def test_geometry_stays_float32_inside_a_bf16_training_step(monkeypatch: pytest.MonkeyPatch, one_thread: None) -> None:
-    seen = []
-    project = warp.project
+    grids, landings = [], []
+    pixel_grid, project_target_pixels = warp.pixel_grid, warp.project_target_pixels
 
-    def spying_project(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-        pixels = project(points, K)
-        seen.append((points.dtype, K.dtype, pixels.dtype, torch.is_autocast_enabled("cpu")))
-        return pixels
+    def spying_pixel_grid(height: int, width: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+        grids.append((dtype, torch.is_autocast_enabled("cpu")))  # the projection's arithmetic, as it runs
+        return pixel_grid(height, width, device, dtype)
 
-    monkeypatch.setattr(warp, "project", spying_project)
+    def spying_projection(depth: torch.Tensor, T: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        pixels, z = project_target_pixels(depth, T, K)
+        landings.append((pixels.dtype, z.dtype))
+        return pixels, z
+
+    monkeypatch.setattr(warp, "pixel_grid", spying_pixel_grid)
+    monkeypatch.setattr(warp, "project_target_pixels", spying_projection)
     params = small_params()
     torch.manual_seed(0)
     model = build_model(params, None).train()
@@ -216,9 +223,9 @@ def test_geometry_stays_float32_inside_a_bf16_training_step(monkeypatch: pytest.
     with autocast(CPU, "bf16"):
         training_step_losses(model, shifted_triplets(batch=2, seed=0), params.loss)
     assert disparities == [torch.bfloat16]  # the network did run in bf16
-    assert len(seen) == 2 * params.model.scales  # both neighbours at every scale
-    assert set(seen) == {(torch.float32, torch.float32, torch.float32, False)}
-
+    assert len(grids) == len(landings) == 2 * params.model.scales  # both neighbours at every scale
+    assert set(grids) == {(torch.float32, False)}
+    assert set(landings) == {(torch.float32, torch.float32)}
 
 
 def test_depth_pose_and_kl_leave_a_bf16_network_in_float32(one_thread: None) -> None:
@@ -287,3 +294,41 @@ def test_bf16_evaluation_writes_float32_depth_close_to_float32(tmp_path: Path, o
         depth[precision] = np.stack(evaluator.sequences[0].depth_pred).astype(np.float32)
         assert len(evaluator.sequences[0].predicted_relative) == 2
     np.testing.assert_allclose(depth["bf16"], depth["float32"], rtol=2e-2)
+
+
+@pytest.mark.parametrize("setting, on_cpu, on_cuda", [("auto", False, True), ("on", True, True), ("off", False, False)])
+def test_auto_compiles_the_step_on_a_gpu_only_on_everywhere_and_off_nowhere(setting: str, on_cpu: bool,
+                                                                            on_cuda: bool) -> None:
+    assert (compiles(CPU, setting), compiles(CUDA, setting)) == (on_cpu, on_cuda)
+
+
+def test_a_step_left_uncompiled_is_the_function_itself() -> None:
+    assert compiled(training_step_losses, CPU, "auto") is training_step_losses
+    assert compiled(training_step_losses, CUDA, "off") is training_step_losses
+
+
+def test_a_compiler_that_fails_under_auto_leaves_the_step_eager_with_a_warning(monkeypatch: pytest.MonkeyPatch,
+                                                                             caplog: pytest.LogCaptureFixture) -> None:
+    def failing_compile(step):
+        def fails(*args, **kwargs):
+            raise torch._dynamo.exc.BackendCompilerFailed(failing_compile, RuntimeError("no C++ compiler"), None)
+        return fails
+
+    monkeypatch.setattr(torch, "compile", failing_compile)
+    doubled = compiled(lambda x: 2 * x, CUDA, "auto")  # auto compiles on CUDA: the failure is what is tested
+    assert [float(doubled(torch.tensor(3.0))) for _ in range(2)] == [6.0, 6.0]
+    assert "torch.compile failed" in caplog.text and "no C++ compiler" in caplog.text
+    with pytest.raises(torch._dynamo.exc.BackendCompilerFailed):  # asked for by name: the error is the user's
+        compiled(lambda x: 2 * x, CPU, "on")(torch.tensor(3.0))
+
+
+def test_a_compiled_step_computes_the_eager_values_with_the_eager_random_draws(one_thread: None) -> None:
+    def noisy(x: torch.Tensor) -> torch.Tensor:
+        return (x * 3 + torch.randn_like(x)).exp().sum(dim=1)
+
+    x = torch.rand(4, 8)
+    torch.manual_seed(5)
+    eager = noisy(x)
+    torch.manual_seed(5)
+    fast = compiled(noisy, CPU, "on")(x)
+    assert torch.allclose(fast, eager, rtol=1e-5)

@@ -8,12 +8,15 @@ from pathlib import Path
 
 import pytest
 import torch
+import torch.nn.functional as F
+from torch import nn
 
 from endoflow.cli import main as cli_main
 from endoflow.config import Params, load_params
 from endoflow.errors import DataFormatError
 from endoflow.geometry.pose import invert_pose, pose_vec_to_matrix
 from endoflow.models.critic import Critic
+from endoflow.models.edge_padding import EdgePaddedConv2d, edge_pad
 from endoflow.models.endoflow_model import build_model
 from endoflow.models.latent_bank import (
     GeneratorSpec,
@@ -398,3 +401,24 @@ def test_the_paper_preset_bank_has_the_released_codes_scale_and_works_at_480():
     assert [tuple(d.shape) for d in disps] == [(1, 1, 480 // 2**s, 480 // 2**s) for s in range(4)]
     assert bank_maps == [(1, c, 15 * 2**k, 15 * 2**k) for k, c in enumerate((1024, 1024, 1024, 512, 256))]
     assert abs(frozen / (RELEASED_CODE_MILLIONS["latent_bank"] * 1e6) - 1) < 0.1  # 79.8 M against 75.8 M
+
+
+@pytest.mark.parametrize("width", [1, 2])
+def test_edge_padding_is_replicate_padding_to_the_bit_in_values_and_gradients(width: int) -> None:
+    x = torch.randn(2, 5, 7, 9, dtype=torch.float64, requires_grad=True)
+    padded, reference = edge_pad(x, width), F.pad(x, (width,) * 4, mode="replicate")
+    assert torch.equal(padded, reference)
+    upstream = torch.randn_like(reference)
+    assert torch.allclose(torch.autograd.grad(padded, x, upstream)[0], torch.autograd.grad(reference, x, upstream)[0],
+                          rtol=0, atol=1e-15)
+    assert torch.equal(edge_pad(x.to(memory_format=torch.channels_last), width), reference)
+
+
+def test_an_edge_padded_convolution_is_a_replicate_padded_one_with_the_same_weights_and_names() -> None:
+    ours = EdgePaddedConv2d(5, 4, 3)
+    theirs = nn.Conv2d(5, 4, 3, padding=1, padding_mode="replicate")
+    theirs.load_state_dict(ours.state_dict())  # the same names: model files of either load into the other
+    x = torch.randn(2, 5, 6, 7)
+    assert torch.allclose(ours(x), theirs(x), atol=1e-6)
+    with pytest.raises(ValueError, match="odd"):
+        EdgePaddedConv2d(5, 4, 2)

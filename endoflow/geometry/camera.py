@@ -16,6 +16,8 @@ import torch
 from endoflow.shapes import check_shape
 
 ArrayOrTensor = TypeVar("ArrayOrTensor", np.ndarray, torch.Tensor)
+# the least depth a projection divides by, so points on or behind the camera plane stay finite
+PROJECTION_EPS = 1e-6
 
 
 def scale_intrinsics(K: ArrayOrTensor, sx: float, sy: float) -> ArrayOrTensor:
@@ -76,7 +78,7 @@ def backproject(depth: torch.Tensor, K_inv: torch.Tensor) -> torch.Tensor:
     return rays * depth.reshape(depth.shape[0], 1, -1)
 
 
-def project(points: torch.Tensor, K: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+def project(points: torch.Tensor, K: torch.Tensor, eps: float = PROJECTION_EPS) -> torch.Tensor:
     """Pixel coordinates ``[B, 2, N]`` (u, v) of camera-frame points ``[B, 3, N]`` through K ``[B, 3, 3]``.
 
     ``z`` is clamped to at least ``eps`` so points on or behind the camera plane stay finite; callers that

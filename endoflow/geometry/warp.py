@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from endoflow.geometry.camera import backproject, intrinsics_inverse, project
+from endoflow.geometry.camera import PROJECTION_EPS, intrinsics_inverse, pixel_grid
 from endoflow.shapes import check_shape
 
 # Sampling in bf16/fp16 puts the grid's normalised coordinates on an 8-bit mantissa (half-pixel error at
@@ -38,18 +38,29 @@ def project_target_pixels(
     Args:
         depth_tgt: ``[B, 1, H, W]`` z-depth of the target frame.
         T_src_tgt: ``[B, 4, 4]``, maps points from the target camera frame into the source camera frame.
-        K: ``[B, 3, 3]`` pixel intrinsics shared by both frames.
+        K: ``[B, 3, 3]`` pinhole intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` shared by both frames.
 
     Returns:
         ``pixels [B, 2, H*W]`` source coordinates (u, v) and ``z [B, H*W]`` source-frame depth.
         Geometry runs in at least float32 whatever the input dtype or autocast state.
+
+    The pixel ``p = [u, v, 1]`` with depth ``d`` lands at ``K (R d K^-1 p + t) = d (K R K^-1) p + K t``, whose
+    third row is the source depth (K's third row is ``[0, 0, 1]``). The 3x3 product ``K R K^-1`` is formed once and
+    applied to the pixel grid row by row: a batched product of a 3x3 with a ``3 x H*W`` matrix is a slow
+    matrix-unit call on a GPU (2.2 ms at 480 px, batch 12, on an H200, against microseconds for the same work as
+    elementwise arithmetic).
     """
     dtype = torch.promote_types(depth_tgt.dtype, torch.float32)
     with torch.autocast(device_type=depth_tgt.device.type, enabled=False):
         depth, T, K = depth_tgt.to(dtype), T_src_tgt.to(dtype), K.to(dtype)
-        points_tgt = backproject(depth, intrinsics_inverse(K))
-        points_src = T[:, :3, :3] @ points_tgt + T[:, :3, 3:4]
-        return project(points_src, K), points_src[:, 2]
+        batch, _, height, width = depth.shape
+        rotation = K @ T[:, :3, :3] @ intrinsics_inverse(K)  # [B, 3, 3]
+        offset = K @ T[:, :3, 3:4]  # [B, 3, 1]
+        u, v, _ = pixel_grid(height, width, depth.device, dtype)  # [H*W] each
+        rays = rotation[:, :, 0:1] * u + rotation[:, :, 1:2] * v + rotation[:, :, 2:3]  # [B, 3, H*W]
+        homogeneous = depth.reshape(batch, 1, -1) * rays + offset
+        z = homogeneous[:, 2]
+        return homogeneous[:, :2] / z.clamp(min=PROJECTION_EPS)[:, None], z
 
 
 def sampling_grid(u: torch.Tensor, v: torch.Tensor, height: int, width: int) -> torch.Tensor:

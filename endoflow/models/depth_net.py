@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from endoflow.config import ModelConfig
+from endoflow.models.edge_padding import EdgePaddedConv2d
 from endoflow.models.latent_bank import AdaIN, LatentBankGenerator
 from endoflow.models.resnet_encoder import ResNetEncoder
 
@@ -24,7 +25,7 @@ class ConvELU(nn.Module):
 
     def __init__(self, in_channels: int, out_channels: int) -> None:
         super().__init__()
-        self.conv = nn.Conv2d(in_channels, out_channels, 3, padding=1, padding_mode="replicate")
+        self.conv = EdgePaddedConv2d(in_channels, out_channels, 3)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return F.elu(self.conv(x))
@@ -77,7 +78,7 @@ class DepthDecoder(nn.Module):
             c_in = DECODER_CHANNELS[i] + (skip[i - 1] if i > 0 else 0)
             self.upconv1.append(ConvELU(c_in, DECODER_CHANNELS[i]))
         self.dispconvs = nn.ModuleList(
-            [nn.Conv2d(DECODER_CHANNELS[s], 1, 3, padding=1, padding_mode="replicate") for s in range(scales)]
+            [EdgePaddedConv2d(DECODER_CHANNELS[s], 1, 3) for s in range(scales)]
         )
 
     def forward(self, skips: list[torch.Tensor]) -> list[torch.Tensor]:

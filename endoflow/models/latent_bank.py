@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from endoflow.errors import DataFormatError
+from endoflow.models.edge_padding import edge_pad
 from endoflow.io import load_plain_torch_file
 from endoflow.shapes import check_shape
 
@@ -140,7 +141,7 @@ def blur(x: torch.Tensor) -> torch.Tensor:
     the checkerboard pattern the upsampling leaves (as StyleGAN filters its upsampling)."""
     kernel = torch.tensor([1.0, 2.0, 1.0], device=x.device, dtype=x.dtype)
     kernel = (kernel[:, None] * kernel[None, :] / 16).expand(x.shape[1], 1, 3, 3)
-    return F.conv2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), kernel, groups=x.shape[1])
+    return F.conv2d(edge_pad(x), kernel, groups=x.shape[1])
 
 
 class InitScaled:

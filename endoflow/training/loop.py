@@ -36,6 +36,7 @@ from endoflow.data.shard_format import ShardEntry, shard_entries  # noqa: E402
 from endoflow.devices import (  # noqa: E402
     autocast,
     batch_to_device,
+    compiled,
     images_to_device,
     use_cpu_threads,
     wants_channels_last,
@@ -91,13 +92,15 @@ class EpochContext:
 class LossModule(nn.Module):
     """The model and its objective as one module, so DDP sees the forward pass and syncs gradients."""
 
-    def __init__(self, model: EndoflowModel, params: Params) -> None:
+    def __init__(self, model: EndoflowModel, params: Params, device: torch.device) -> None:
         super().__init__()
         self.model = model
         self.loss_cfg = params.loss
+        # the function, not the module, is compiled: the checkpoint's keys stay those of the plain model
+        self.losses = compiled(training_step_losses, device, params.train.compile)
 
     def forward(self, batch: dict) -> dict[str, torch.Tensor]:
-        return training_step_losses(self.model, batch, self.loss_cfg)
+        return self.losses(self.model, batch, self.loss_cfg)
 
 
 def train_loop_per_worker(config: WorkerConfig) -> None:
@@ -114,7 +117,7 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
         model = model.to(memory_format=torch.channels_last)
     # a camera's intrinsics are learned only where the train shards do not know them (no unused parameters in DDP)
     model.intrinsics.requires_grad_(bool(config.learn_intrinsics))
-    module = ray.train.torch.prepare_model(LossModule(model, params), move_to_device=True)
+    module = ray.train.torch.prepare_model(LossModule(model, params, device), move_to_device=True)
     network = [p for name, p in model.named_parameters() if p.requires_grad and not name.startswith("intrinsics.")]
     optimizer = make_optimizer(network, params.train, list(model.intrinsics.parameters())
                                if config.learn_intrinsics else [])
