@@ -8,21 +8,30 @@ with weight 1 per observation, as in Curless and Levoy (1996); colours are avera
 behind the observed surface (distance < -trunc) are left alone. The mesh is the zero level set, extracted with
 scikit-image's marching cubes over the allocated blocks.
 
-We write this rather than use Open3D: ``open3d-cpu`` (0.20) needs the system library ``libusb-1.0``, which a pip
-install cannot provide, so it fails to import on a clean machine.
+Integration is torch arithmetic over whole blocks at a time, on the volume's device (the GPU where reconstruct
+runs on one): the blocks a frame touches are found by sorting packed integer keys, looked up in a sorted key
+table by binary search, and updated in float32. We write this rather than use Open3D: ``open3d-cpu`` (0.20) needs
+the system library ``libusb-1.0``, which a pip install cannot provide, so it fails to import on a clean machine.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from endoflow.io import atomic_path
 
 BLOCK = 8  # voxels per block edge
 CHUNK_BLOCKS = 8  # blocks per chunk edge when extracting the mesh: 64^3 voxels at a time
+UPDATE_BLOCKS = 4096  # blocks updated at once: bounded temporaries, 4096 blocks of 512 voxels
+# A block's integer coordinates are packed into one int64 key, 21 bits per axis: +-2^20 blocks, 1.7 km at the
+# 0.02 cm voxel of 480 px input. Keys sort as their coordinates do (x, then y, then z).
+_KEY_BITS = 21
+_KEY_HALF = 1 << (_KEY_BITS - 1)
+_LOCAL_VOXELS = torch.from_numpy(np.indices((BLOCK,) * 3).reshape(3, -1).T.copy())  # [512, 3], (i, j, k) order
 
 
 @dataclass
@@ -34,94 +43,141 @@ class SurfaceMesh:
     colours: np.ndarray
 
 
-@dataclass
 class TSDFVolume:
-    """``voxel_cm``: voxel edge; ``trunc_cm``: truncation distance (a few voxels). ``blocks`` maps a block's
-    integer coordinates to its row in the voxel arrays (``[rows, BLOCK^3]``, grown by doubling)."""
+    """``voxel_cm``: voxel edge; ``trunc_cm``: truncation distance (a few voxels); ``device``: where the voxels live
+    and integration runs. Blocks are rows of the voxel arrays (``[rows, BLOCK^3]``, grown by doubling); a sorted
+    table of packed block keys gives each block's row."""
 
-    voxel_cm: float
-    trunc_cm: float
-    blocks: dict[tuple[int, int, int], int] = field(default_factory=dict)
-    _tsdf: np.ndarray = field(default_factory=lambda: np.ones((0, BLOCK**3), np.float32))
-    _weight: np.ndarray = field(default_factory=lambda: np.zeros((0, BLOCK**3), np.float32))
-    _colour: np.ndarray = field(default_factory=lambda: np.zeros((0, BLOCK**3, 3), np.float32))
+    def __init__(self, voxel_cm: float, trunc_cm: float, device: torch.device | str = "cpu") -> None:
+        if not (voxel_cm > 0 and trunc_cm >= voxel_cm):
+            raise ValueError(f"voxel size {voxel_cm} cm must be > 0 and at most the truncation {trunc_cm} cm")
+        self.voxel_cm, self.trunc_cm, self.device = float(voxel_cm), float(trunc_cm), torch.device(device)
+        self._keys = torch.zeros(0, dtype=torch.int64, device=self.device)  # sorted
+        self._rows = torch.zeros(0, dtype=torch.int64, device=self.device)  # the row of each sorted key
+        self._tsdf = torch.ones(0, BLOCK**3, device=self.device)
+        self._weight = torch.zeros(0, BLOCK**3, device=self.device)
+        self._colour = torch.zeros(0, BLOCK**3, 3, device=self.device)
+        self._local = _LOCAL_VOXELS.to(self.device, torch.float32)
 
-    def __post_init__(self) -> None:
-        if not (self.voxel_cm > 0 and self.trunc_cm >= self.voxel_cm):
-            raise ValueError(f"voxel size {self.voxel_cm} cm must be > 0 and at most the truncation "
-                             f"{self.trunc_cm} cm")
+    @property
+    def block_count(self) -> int:
+        """Blocks allocated so far (observed by some frame)."""
+        return len(self._keys)
 
+    @torch.no_grad()
     def integrate(self, depth_cm: np.ndarray, rgb: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> None:
         """Fuse one frame: ``depth_cm`` ``H x W`` z-depth (0 or non-finite: unknown), ``rgb`` ``H x W x 3``
         uint8, ``K`` its pixel intrinsics, ``T_world_cam`` its camera-to-world pose (cm). Only the blocks near
         this frame's surface are visited, so a frame costs the same however long the video has been."""
-        depth = np.where(np.isfinite(depth_cm) & (depth_cm > 0), depth_cm, 0.0).astype(np.float64)
-        touched = sorted(self._touched_blocks(depth, K, T_world_cam))
-        if not touched:
+        depth = torch.from_numpy(np.where(np.isfinite(depth_cm) & (depth_cm > 0), depth_cm, 0).astype(np.float32))
+        depth = depth.to(self.device)
+        keys = self._touched_keys(depth, K, T_world_cam)
+        if not len(keys):
             return
-        keys = np.array(touched, dtype=np.int64)
-        rows = np.array([self._row(key) for key in touched])
-        T_cam_world = np.linalg.inv(T_world_cam)
-        for start in range(0, len(keys), 4096):  # bounded temporaries: 4096 blocks of 512 voxels at a time
-            self._update(keys[start:start + 4096], rows[start:start + 4096], depth, rgb, K, T_cam_world)
+        rows = self._rows_of(keys)
+        colour = torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device)
+        T_cam_world = np.linalg.inv(np.asarray(T_world_cam, np.float64))
+        for start in range(0, len(keys), UPDATE_BLOCKS):
+            chunk = slice(start, start + UPDATE_BLOCKS)
+            self._update(keys[chunk], rows[chunk], depth, colour, np.asarray(K, np.float64), T_cam_world)
 
-    def _touched_blocks(self, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> set[tuple[int, int, int]]:
-        """Blocks within ``trunc`` of a surface point of the frame: the points at depth - trunc and + trunc along
-        each pixel's ray, and samples between them one block apart."""
-        v, u = np.nonzero(depth)
+    def _touched_keys(self, depth: torch.Tensor, K: np.ndarray, T_world_cam: np.ndarray) -> torch.Tensor:
+        """Sorted keys of the blocks within ``trunc`` of a surface point of the frame: the points at depth - trunc
+        and + trunc along each pixel's ray, and samples between them half a block apart."""
+        v, u = torch.nonzero(depth, as_tuple=True)
         if len(u) == 0:
-            return set()
+            return torch.zeros(0, dtype=torch.int64, device=self.device)
         z = depth[v, u]
-        rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(z)], axis=1)
+        rays = torch.stack([(u - float(K[0, 2])) / float(K[0, 0]), (v - float(K[1, 2])) / float(K[1, 1]),
+                            torch.ones_like(z)])  # [3, P]
         block_cm = BLOCK * self.voxel_cm
-        steps = np.arange(-self.trunc_cm, self.trunc_cm + block_cm, block_cm / 2)
-        touched: set[tuple[int, int, int]] = set()
-        for offset in np.append(steps, self.trunc_cm):
-            points = rays * (z + offset)[:, None]
-            world = points @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-            touched.update(map(tuple, np.unique(np.floor(world / block_cm).astype(np.int64), axis=0)))
-        return touched
+        offsets = np.append(np.arange(-self.trunc_cm, self.trunc_cm + block_cm, block_cm / 2), self.trunc_cm)
+        along = z[None] + torch.tensor(offsets, dtype=torch.float32, device=self.device)[:, None]  # [n, P]
+        camera = rays[:, None] * along[None]  # [3, n, P]
+        T = torch.from_numpy(T_world_cam).to(self.device, torch.float32)
+        world = [T[i, 0] * camera[0] + T[i, 1] * camera[1] + T[i, 2] * camera[2] + T[i, 3] for i in range(3)]
+        coords = torch.stack([torch.floor(axis / block_cm) for axis in world], dim=-1).long().reshape(-1, 3)
+        return torch.unique(pack_block_keys(coords))
 
-    def _row(self, key: tuple[int, int, int]) -> int:
-        """The block's row in the voxel arrays, allocated (unobserved: weight 0) on first use."""
-        if key not in self.blocks:
-            if len(self.blocks) == len(self._tsdf):
-                grow = max(64, len(self._tsdf))
-                self._tsdf = np.concatenate([self._tsdf, np.ones((grow, BLOCK**3), np.float32)])
-                self._weight = np.concatenate([self._weight, np.zeros((grow, BLOCK**3), np.float32)])
-                self._colour = np.concatenate([self._colour, np.zeros((grow, BLOCK**3, 3), np.float32)])
-            self.blocks[key] = len(self.blocks)
-        return self.blocks[key]
+    def _rows_of(self, keys: torch.Tensor) -> torch.Tensor:
+        """The rows of the blocks ``keys`` (sorted, unique), allocating (unobserved: weight 0) those not seen."""
+        position = torch.searchsorted(self._keys, keys)
+        known = position < len(self._keys)
+        known[known.clone()] = self._keys[position[known]] == keys[known]
+        rows = torch.empty_like(keys)
+        rows[known] = self._rows[position[known]]
+        new = ~known
+        new_rows = torch.arange(len(self._keys), len(self._keys) + int(new.sum()), device=self.device)
+        rows[new] = new_rows
+        if len(new_rows):
+            self._grow(len(self._keys) + len(new_rows))
+            self._insert(keys[new], new_rows)
+        return rows
 
-    def _update(self, keys: np.ndarray, rows: np.ndarray, depth: np.ndarray, rgb: np.ndarray, K: np.ndarray,
-                T_cam_world: np.ndarray) -> None:
-        centres = voxel_centres(keys, self.voxel_cm)  # [n, 512, 3]
-        cam = centres @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-        z = cam[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.round(K[0, 0] * cam[..., 0] / z + K[0, 2])
-            v = np.round(K[1, 1] * cam[..., 1] / z + K[1, 2])
+    def _grow(self, rows: int) -> None:
+        """Room for ``rows`` blocks, at least doubling, so that a long video reallocates a logarithmic number
+        of times."""
+        if rows <= len(self._tsdf):
+            return
+        grown = max(rows, 2 * len(self._tsdf), 64)
+        extra = grown - len(self._tsdf)
+        self._tsdf = torch.cat([self._tsdf, torch.ones(extra, BLOCK**3, device=self.device)])
+        self._weight = torch.cat([self._weight, torch.zeros(extra, BLOCK**3, device=self.device)])
+        self._colour = torch.cat([self._colour, torch.zeros(extra, BLOCK**3, 3, device=self.device)])
+
+    def _insert(self, keys: torch.Tensor, rows: torch.Tensor) -> None:
+        """Merge sorted new ``keys`` (and their ``rows``) into the sorted key table in one pass: each key's place
+        in the merged table is its place in its own table plus the keys of the other table before it."""
+        old, total = len(self._keys), len(self._keys) + len(keys)
+        merged_keys = torch.empty(total, dtype=torch.int64, device=self.device)
+        merged_rows = torch.empty(total, dtype=torch.int64, device=self.device)
+        new_places = torch.arange(len(keys), device=self.device) + torch.searchsorted(self._keys, keys)
+        old_places = torch.arange(old, device=self.device) + torch.searchsorted(keys, self._keys)
+        merged_keys[new_places], merged_rows[new_places] = keys, rows
+        merged_keys[old_places], merged_rows[old_places] = self._keys, self._rows
+        self._keys, self._rows = merged_keys, merged_rows
+
+    def _update(self, keys: torch.Tensor, rows: torch.Tensor, depth: torch.Tensor, colour: torch.Tensor,
+                K: np.ndarray, T_cam_world: np.ndarray) -> None:
+        """Fuse the frame into the voxels of blocks ``keys`` (at ``rows``) that it sees.
+
+        A voxel's centre is its block's first centre plus a multiple of the voxel edge, and projection before the
+        division is linear, so ``K [R | t]`` of every centre is one sum of a per-block and a per-voxel term: the
+        arithmetic over all ``n x 512`` voxels is three additions and two divisions. Only the voxels seen are then
+        gathered and written."""
+        projection = K @ T_cam_world[:3]  # [3, 4], float64: the per-block terms are large (cm times pixels)
+        firsts = (unpack_block_keys(keys).cpu().double().numpy() * BLOCK + 0.5) * self.voxel_cm
+        per_block = torch.from_numpy(firsts @ projection[:, :3].T + projection[:, 3]).to(self.device, torch.float32)
+        per_voxel = (self._local * self.voxel_cm) @ torch.from_numpy(projection[:, :3].T).to(self.device,
+                                                                                           torch.float32)
+        hu, hv, z = (per_block[:, i:i + 1] + per_voxel[:, i] for i in range(3))  # [n, 512] each
+        u, v = torch.round(hu / z), torch.round(hv / z)
         height, width = depth.shape
         inside = (z > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-        ui, vi = np.where(inside, u, 0).astype(np.int64), np.where(inside, v, 0).astype(np.int64)
-        observed = depth[vi, ui]
+        pixel = torch.where(inside, v * width + u, 0).long().view(-1)
+        observed = depth.view(-1).index_select(0, pixel).view_as(z)
         sdf = observed - z
-        block, voxel = np.nonzero(inside & (observed > 0) & (sdf >= -self.trunc_cm))
-        row = rows[block]
-        w = self._weight[row, voxel]
-        self._tsdf[row, voxel] = (self._tsdf[row, voxel] * w
-                                  + np.minimum(sdf[block, voxel] / self.trunc_cm, 1.0)) / (w + 1)
-        pixels = rgb[vi[block, voxel], ui[block, voxel]]
-        self._colour[row, voxel] = (self._colour[row, voxel] * w[:, None] + pixels) / (w + 1)[:, None]
-        self._weight[row, voxel] = w + 1
+        seen = torch.nonzero((inside & (observed > 0) & (sdf >= -self.trunc_cm)).view(-1)).squeeze(1)
+        # flat indices of the seen voxels in the voxel arrays, and their pixels (index_select: torch's fast gather)
+        fused = rows.repeat_interleave(BLOCK**3).index_select(0, seen) * BLOCK**3 + seen % BLOCK**3
+        sdf, pixel = sdf.view(-1).index_select(0, seen), pixel.index_select(0, seen)
+        tsdf, weight, colours = self._tsdf.view(-1), self._weight.view(-1), self._colour.view(-1, 3)
+        seen_before = weight.index_select(0, fused)
+        truncated = torch.clamp(sdf / self.trunc_cm, max=1.0)
+        tsdf.index_copy_(0, fused, (tsdf.index_select(0, fused) * seen_before + truncated) / (seen_before + 1))
+        rgb = colour.view(-1, 3).index_select(0, pixel).float()
+        colours.index_copy_(0, fused, (colours.index_select(0, fused) * seen_before[:, None] + rgb)
+                            / (seen_before + 1)[:, None])
+        weight.index_copy_(0, fused, seen_before + 1)
 
     def extract_mesh(self) -> SurfaceMesh:
         """The zero level set of the observed voxels as a triangle mesh, with colours of the nearest voxel.
 
         Extracted chunk by chunk (:data:`CHUNK_BLOCKS`^3 blocks, plus one voxel layer of the next blocks so that
         chunks join), so memory follows the surface, not the bounding box of a long path."""
-        parts = [self._chunk_mesh(chunk) for chunk in sorted({tuple(k // CHUNK_BLOCKS for k in key)
-                                                             for key in self.blocks})]
+        grid = _HostGrid(self)
+        parts = [grid.chunk_mesh(chunk) for chunk in sorted({tuple(k // CHUNK_BLOCKS for k in key)
+                                                             for key in grid.rows})]
         parts = [part for part in parts if len(part.vertices)]
         if not parts:
             return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
@@ -130,7 +186,21 @@ class TSDFVolume:
                            np.concatenate([part.triangles + offset for part, offset in zip(parts, offsets)]),
                            np.concatenate([part.colours for part in parts]))
 
-    def _chunk_mesh(self, chunk: tuple[int, int, int]) -> SurfaceMesh:
+
+class _HostGrid:
+    """A volume's voxels copied to host memory once, with a dict from block coordinates to rows: what marching
+    cubes reads, chunk by chunk."""
+
+    def __init__(self, volume: TSDFVolume) -> None:
+        count = volume.block_count
+        coords = unpack_block_keys(volume._keys).cpu().numpy()
+        self.rows = dict(zip(map(tuple, coords.tolist()), volume._rows.cpu().tolist()))
+        self.tsdf = volume._tsdf[:count].cpu().numpy()
+        self.weight = volume._weight[:count].cpu().numpy()
+        self.colour = volume._colour[:count].cpu().numpy()
+        self.voxel_cm = volume.voxel_cm
+
+    def chunk_mesh(self, chunk: tuple[int, int, int]) -> SurfaceMesh:
         from skimage.measure import marching_cubes
 
         empty = SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
@@ -140,14 +210,14 @@ class TSDFVolume:
         weight = np.zeros((size,) * 3, np.float32)
         colour = np.zeros((size,) * 3 + (3,), np.float32)
         for offset in np.ndindex(*(CHUNK_BLOCKS + 1,) * 3):
-            row = self.blocks.get(tuple(int(v) for v in low + offset))
+            row = self.rows.get(tuple(int(v) for v in low + offset))
             if row is None:
                 continue
             region = tuple(slice(o * BLOCK, min(o * BLOCK + BLOCK, size)) for o in offset)
             extent = tuple(r.stop - r.start for r in region)
-            tsdf[region] = self._tsdf[row].reshape(BLOCK, BLOCK, BLOCK)[:extent[0], :extent[1], :extent[2]]
-            weight[region] = self._weight[row].reshape(BLOCK, BLOCK, BLOCK)[:extent[0], :extent[1], :extent[2]]
-            colour[region] = self._colour[row].reshape(BLOCK, BLOCK, BLOCK, 3)[:extent[0], :extent[1], :extent[2]]
+            tsdf[region] = self.tsdf[row].reshape(BLOCK, BLOCK, BLOCK)[:extent[0], :extent[1], :extent[2]]
+            weight[region] = self.weight[row].reshape(BLOCK, BLOCK, BLOCK)[:extent[0], :extent[1], :extent[2]]
+            colour[region] = self.colour[row].reshape(BLOCK, BLOCK, BLOCK, 3)[:extent[0], :extent[1], :extent[2]]
         observed = weight > 0
         cubes = observed_cubes(observed)
         if not (cubes.any() and tsdf[observed].min() < 0 < tsdf[observed].max()):
@@ -178,11 +248,23 @@ def observed_cubes(observed: np.ndarray) -> np.ndarray:
     return cubes
 
 
-def voxel_centres(keys: np.ndarray, voxel_cm: float) -> np.ndarray:
-    """``[n, BLOCK^3, 3]`` world centres (cm) of the voxels of blocks ``keys`` ``[n, 3]``, voxels in the order of
-    ``np.indices((BLOCK,) * 3)`` (the order a block is stored in and reshaped from)."""
-    local = np.indices((BLOCK, BLOCK, BLOCK)).reshape(3, -1).T  # [512, 3], (i, j, k)
-    return ((keys[:, None, :] * BLOCK + local[None]) + 0.5) * voxel_cm
+def pack_block_keys(coords: torch.Tensor) -> torch.Tensor:
+    """One int64 key per block of integer coordinates ``coords [N, 3]`` (see :data:`_KEY_BITS`).
+
+    Raises:
+        ValueError: a block lies beyond the keys' range (a path kilometres long at this voxel size).
+    """
+    if len(coords) and int(coords.abs().max()) >= _KEY_HALF:
+        raise ValueError(f"a fused point lies more than {_KEY_HALF} blocks from the origin: the camera path is far "
+                         f"longer than the voxel size allows; pass a larger --voxel-cm")
+    biased = coords + _KEY_HALF
+    return (biased[:, 0] << (2 * _KEY_BITS)) | (biased[:, 1] << _KEY_BITS) | biased[:, 2]
+
+
+def unpack_block_keys(keys: torch.Tensor) -> torch.Tensor:
+    """The block coordinates ``[N, 3]`` int64 of keys made by :func:`pack_block_keys`."""
+    mask = (1 << _KEY_BITS) - 1
+    return torch.stack([(keys >> (2 * _KEY_BITS)) & mask, (keys >> _KEY_BITS) & mask, keys & mask], dim=1) - _KEY_HALF
 
 
 def write_ply(path: str | Path, vertices: np.ndarray, colours: np.ndarray, triangles: np.ndarray | None = None) -> None:

@@ -16,7 +16,7 @@ import math
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING, Iterator, Optional
 
 import numpy as np
 import torch
@@ -39,6 +39,7 @@ from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply
 from endoflow.reconstruction.pictures import FrameSampler, SideBySideVideo, depth_preview, write_contact_sheet
 from endoflow.reconstruction.recording import RECORDING_FILE, Recording
+from endoflow.reconstruction.streams import WriteBehind, read_ahead
 
 if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for it
     from endoflow.tracking import RunHandle
@@ -106,7 +107,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
     max_depth = record.params.model.max_depth * options.scale
     unit = DEPTH_UNIT_CM * max(1, math.ceil(max_depth / (DEPTH_UNIT_CM * np.iinfo(np.uint16).max)))
     voxel = options.voxel_cm or default_voxel_cm(K, record.params.model.max_depth * options.scale, size)
-    volume = TSDFVolume(voxel, options.trunc_cm or 4 * voxel) if options.fuse else None
+    volume = TSDFVolume(voxel, options.trunc_cm or 4 * voxel, device) if options.fuse else None
     valid = input_field_of_view(source, options.frames, region, size)
     path = CameraPath()
     tracker = KeyframeTracker(torch.from_numpy(K), options.refine) if options.refine is not None else None
@@ -116,12 +117,11 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
     with staged_directory(out_dir, EARLIER_RECONSTRUCTION, options.force, (source.location, model_path),
                           "--force") as stage, torch.no_grad():
         recording = Recording(stage / RECORDING_FILE, source.description)
-        with SideBySideVideo(stage / "video.mp4", source.fps / options.frames.stride, size, size) as video:
+        with SideBySideVideo(stage / "video.mp4", source.fps / options.frames.stride, size, size) as video, \
+                WriteBehind() as writes:
             previous: Optional[torch.Tensor] = None
             shown: Optional[tuple[float, float]] = None
-            for frame in source.frames(options.frames):
-                frame = frame.cropped(region)
-                rgb = resize_rgb(frame.rgb, size)
+            for frame, rgb in read_ahead(model_inputs(source, options.frames, region, size)):
                 image = images_to_device(torch.from_numpy(rgb).permute(2, 0, 1)[None].contiguous(), device,
                                          "float32")
                 depth, T_cur_prev = predict_frame(model, image, previous, options.scale, model_path, frame.index)
@@ -133,10 +133,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                 path.add(frame, pose, network_pose, depth, size)
                 explained.add(rgb, depth, path)
                 shown = shown or preview_range(depth, record.params.model, options.scale)
-                preview = write_depth(stage, frame.index, depth, unit, options.npy, shown)
-                video.add(rgb, preview)
-                recording.add_frame(frame.index, rgb, depth, unit, K, pose)
-                sampler.add(frame.index, rgb, preview)
+                writes.submit(write_frame_outputs, stage, frame.index, rgb, depth, pose,
+                              FrameOutputs(unit, options.npy, shown, K, video, recording, sampler))
                 if volume is not None:
                     volume.integrate(depth, rgb, K, pose)
                 previous = image
@@ -160,7 +158,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             "threads": torch.get_num_threads(),
             "tsdf": {"voxel_cm": voxel, "trunc_cm": volume.trunc_cm} if volume is not None else None,
             "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
-                     "blocks": len(volume.blocks)} if mesh is not None else None,
+                     "blocks": volume.block_count} if mesh is not None else None,
             "field_of_view": {"share": float(valid.mean()), "frames_looked_at": FIELD_OF_VIEW_FRAMES},
             # a refined path's translations come from the keyframes' depth: it has the depth's scale
             "path": {"refined": tracker is not None, "scale_from": "depth" if tracker is not None else "pose network",
@@ -278,6 +276,38 @@ def predict_frame(model: torch.nn.Module, image: torch.Tensor, previous: Optiona
             raise DataFormatError(model_path, f"the model predicts a {name} with NaN or infinity for frame {index}: "
                                               f"its weights are damaged or its training diverged; use another model")
     return depth, T_cur_prev
+
+
+def model_inputs(source: FrameSource, frames: FrameRange, region: Crop, size: int
+                 ) -> Iterator[tuple[InputFrame, np.ndarray]]:
+    """Each selected frame cropped to ``region``, with its RGB resized to the model's ``size`` x ``size``."""
+    for frame in source.frames(frames):
+        cropped = frame.cropped(region)
+        yield cropped, resize_rgb(cropped.rgb, size)
+
+
+@dataclass(frozen=True)
+class FrameOutputs:
+    """Where and how each frame's outputs are written: the depth PNGs' unit and preview range, float depth or
+    not, the intrinsics, and the side-by-side video, recording and contact-sheet sampler that take each frame."""
+
+    unit: float
+    npy: bool
+    shown: tuple[float, float]
+    K: np.ndarray
+    video: SideBySideVideo
+    recording: Recording
+    sampler: FrameSampler
+
+
+def write_frame_outputs(stage: Path, index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray,
+                        outputs: FrameOutputs) -> None:
+    """Frame ``index``'s depth files and its entries in the video, the recording and the contact sheet's sample:
+    work for the write-behind thread, in frame order."""
+    preview = write_depth(stage, index, depth, outputs.unit, outputs.npy, outputs.shown)
+    outputs.video.add(rgb, preview)
+    outputs.recording.add_frame(index, rgb, depth, outputs.unit, outputs.K, pose)
+    outputs.sampler.add(index, rgb, preview)
 
 
 def default_voxel_cm(K: np.ndarray, max_depth_cm: float, size: int) -> float:

@@ -1,0 +1,167 @@
+"""`reconstruct` of an earlier version of the code against this one, in one run: frames/s of the whole call.
+
+    python benchmarks/bench_reconstruct_versions.py --baseline DIR [--frames 60] [--device cpu|cuda]
+                                                    [--rounds 1] [--threads 2] [--cases video64 data480 ...]
+
+``DIR`` holds an earlier ``endoflow`` package (``git archive <commit> endoflow | tar -x -C DIR``); ``before`` runs
+it, ``after`` this tree, each case in a fresh process with ``--threads`` torch threads. The inputs are made once
+by the baseline's code (its model file is one both versions read): the default model (latent bank on, ``data.size`` 64) randomly initialised and saved as a model file
+(weights do not change speed); sequence S1 of a synthetic SimCol3D layout rendered at 480 px (``--frames``
+frames); and the same frames upscaled to 1920 x 1080 in an H.264 MP4. Cases (the whole ``reconstruct()`` call:
+model load, field of view, decoding, inference, path refinement off, fusion, every output written; frames/s is
+frames over the call's wall time, after an untimed 3-frame warm-up call):
+
+- ``video64``: the 1080p video at the model's 64 px, fused (decoding large frames on the critical path or not);
+- ``data64``: the 480 px dataset sequence at 64 px, fused;
+- ``data480``: the dataset sequence at 480 px, fused (the TSDF at the pixel footprint's voxel);
+- ``data480-nofusion``: the same without fusion.
+
+With ``--rounds`` > 1 the two versions alternate so that load from other processes hits both alike, and the
+median is printed. Figures are printed, not asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CASES = {"video64": ("video", 64, True), "data64": ("data", 64, True), "data480": ("data", 480, True),
+         "data480-nofusion": ("data", 480, False)}
+VIDEO_SIZE = (1080, 1920)
+WARM_UP_FRAMES = 3
+
+
+def parse_args() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--baseline", type=Path, required=True, help="folder holding the earlier endoflow package")
+    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--rounds", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--cases", nargs="+", choices=tuple(CASES), default=list(CASES))
+    parser.add_argument("--worker", nargs=3, metavar=("CASE", "WORK", "OUT"), help=argparse.SUPPRESS)
+    parser.add_argument("--make-inputs", type=Path, metavar="WORK", help=argparse.SUPPRESS)
+    return parser.parse_args()
+
+
+def run_worker(args: argparse.Namespace) -> dict:
+    """One case with whichever endoflow this process's PYTHONPATH names: frames/s of the timed call."""
+    import contextlib
+
+    import torch
+
+    from endoflow.config import Params
+    from endoflow.reconstruction.frames import FrameRange, open_frames
+    from endoflow.reconstruction.reconstruct import ReconstructOptions, reconstruct
+
+    torch.set_num_threads(args.threads)
+    case, work, out = args.worker[0], Path(args.worker[1]), Path(args.worker[2])
+    kind, size, fuse = CASES[case]
+    source = (open_frames(work / "video.mp4", None, Params()) if kind == "video"
+              else open_frames(work / "scene", "S1", Params()))
+    K = getattr(source, "K", None)
+
+    def call(frames: FrameRange, folder: Path) -> dict:
+        options = ReconstructOptions(frames=frames, size=size, fuse=fuse, device=args.device)
+        with open(os.devnull, "w") as nowhere, contextlib.redirect_stderr(nowhere):
+            return reconstruct(source, K, work / "model.pt", folder, options)
+
+    call(FrameRange(stop=WARM_UP_FRAMES), out / "warm-up")
+    started = time.perf_counter()
+    summary = call(FrameRange(), out / "timed")
+    seconds = time.perf_counter() - started
+    shutil.rmtree(out)
+    return {"frames": summary["frames"], "seconds": seconds}
+
+
+def make_inputs(work: Path, frames: int, threads: int) -> None:
+    """The model file, the 480 px scene and the 1080p video (see the module docstring)."""
+    import av
+    import cv2
+    import numpy as np
+    import torch
+
+    from endoflow.config import Params
+    from endoflow.models.endoflow_model import build_model
+    from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
+    from endoflow.reconstruction.frames import FrameRange, open_frames
+    from endoflow.synth.writers import synthesize_layout
+
+    params = Params()
+    torch.manual_seed(0)
+    size = params.data.size
+    baselines = TrainingBaselines(mean_depth_cm=7.0, mean_depth_map=np.full((size, size), 7.0, np.float32),
+                                  mean_relative_pose=np.eye(4))
+    save_model_file(work / "model.pt", ModelRecord(params=params, state=build_model(params, None).state_dict(),
+                                                   epoch=0, val={}, mlflow_run_id=None, baselines=baselines))
+    synthesize_layout("simcol", work / "scene", sequences=1, frames=frames, size=480, seed=0, params=params,
+                      workers=threads, device="cpu")
+    height, width = VIDEO_SIZE
+    with av.open(str(work / "video.mp4"), "w", format="mp4") as container:
+        stream = container.add_stream("libx264", rate=25, options={"preset": "ultrafast"})
+        stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
+        for frame in open_frames(work / "scene", "S1", params).frames(FrameRange()):
+            large = cv2.resize(frame.rgb, (width, height), interpolation=cv2.INTER_LINEAR)
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(large, format="rgb24")))
+        container.mux(stream.encode())
+
+
+def in_version(args: argparse.Namespace, version: str, arguments: list[str]) -> str:
+    """This script run with ``arguments`` in a fresh process importing ``version``'s endoflow; its output."""
+    tree = args.baseline.resolve() if version == "before" else ROOT
+    if not (tree / "endoflow" / "__init__.py").is_file():
+        raise SystemExit(f"{tree}: no endoflow package there (expected {tree / 'endoflow' / '__init__.py'})")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])}
+    command = [sys.executable, __file__, "--baseline", str(args.baseline), "--device", args.device,
+               "--threads", str(args.threads), "--frames", str(args.frames), *arguments]
+    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    if done.returncode:
+        raise SystemExit(f"{version} {' '.join(arguments)} failed:\n{done.stderr[-3000:]}")
+    return done.stdout
+
+
+def run_case(args: argparse.Namespace, version: str, case: str, work: Path) -> dict:
+    output = in_version(args, version, ["--worker", case, str(work), str(work / f"out-{version}")])
+    return json.loads(output.strip().splitlines()[-1])
+
+
+def main() -> None:
+    args = parse_args()
+    if args.worker:
+        print(json.dumps(run_worker(args)))
+        return
+    if args.make_inputs:
+        make_inputs(args.make_inputs, args.frames, args.threads)
+        return
+    with tempfile.TemporaryDirectory(prefix="bench_reconstruct_versions_") as folder:
+        work = Path(folder)
+        started = time.perf_counter()
+        in_version(args, "before", ["--make-inputs", str(work)])
+        print(f"inputs made in {time.perf_counter() - started:.0f} s", flush=True)
+        rates: dict[tuple[str, str], list[float]] = {}
+        for round_index in range(args.rounds):
+            for case in args.cases:
+                for version in ("before", "after"):
+                    run = run_case(args, version, case, work)
+                    rates.setdefault((case, version), []).append(run["frames"] / run["seconds"])
+                    print(f"round {round_index + 1}/{args.rounds} {case:17s} {version:6s} "
+                          f"{rates[(case, version)][-1]:7.2f} frames/s", flush=True)
+    print(f"\nreconstruct, {args.frames} frames, {args.device}, {args.threads} torch threads, {args.rounds} round(s); "
+          f"before: {args.baseline}")
+    print(f"{'case':17s} {'before':>9s} {'after':>9s} {'after/before':>13s}   (frames/s)")
+    for case in args.cases:
+        before, after = (statistics.median(rates[(case, v)]) for v in ("before", "after"))
+        print(f"{case:17s} {before:9.2f} {after:9.2f} {after / before:13.2f}")
+
+
+if __name__ == "__main__":
+    main()

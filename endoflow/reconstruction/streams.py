@@ -1,0 +1,92 @@
+"""Work beside the model's: frames read ahead in one thread, per-frame outputs written behind in another.
+
+A frame's decoding (PyAV, OpenCV's PNG reader and resize) and its outputs' encoding (PNG, H.264, the recording)
+release the GIL, so on two cores they overlap the model and the fusion of the frame in hand instead of adding
+to it. Torch work stays in the calling thread: a second thread's torch ops would start a second pool of torch
+threads, and two pools on two cores wait on each other.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Callable, Iterable, Iterator, TypeVar
+
+Item = TypeVar("Item")
+READ_AHEAD = 4  # frames decoded ahead of the model: enough to smooth a slow decode, few enough for 1080p memory
+WRITE_BEHIND = 4  # frames whose outputs may wait to be written before the next frame waits for them
+_POLL_SECONDS = 0.1
+
+
+def read_ahead(items: Iterable[Item], count: int = READ_AHEAD) -> Iterator[Item]:
+    """``items`` as they are, produced by a background thread up to ``count`` ahead of the consumer.
+
+    An error raised while producing an item is raised here, in its place; leaving the loop early (an error in
+    the consumer, a ``break``) stops the thread before this generator closes."""
+    slots: queue.Queue = queue.Queue(maxsize=count)
+    stopped = threading.Event()
+
+    def offer(entry: tuple) -> bool:
+        while not stopped.is_set():
+            try:
+                slots.put(entry, timeout=_POLL_SECONDS)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if not offer(("item", item)):
+                    return
+            offer(("end", None))
+        except BaseException as error:  # handed to the consumer, which raises it
+            offer(("error", error))
+
+    thread = threading.Thread(target=produce, name="read-ahead", daemon=True)
+    thread.start()
+    try:
+        while True:
+            kind, value = slots.get()
+            if kind == "end":
+                return
+            if kind == "error":
+                raise value
+            yield value
+    finally:
+        stopped.set()
+        thread.join()
+
+
+class WriteBehind:
+    """Calls run in submission order on one background thread, at most :data:`WRITE_BEHIND` waiting.
+
+    Use as a context manager: leaving it waits for every call submitted (or, on an error, cancels those not
+    started and waits for the one running), so nothing is written after the caller has moved on. The first error
+    of a call is raised by the next :meth:`submit` or by leaving the block."""
+
+    def __init__(self, waiting: int = WRITE_BEHIND) -> None:
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="write-behind")
+        self._pending: deque[Future] = deque()
+        self._waiting = waiting
+
+    def submit(self, call: Callable[..., object], *args: object) -> None:
+        while self._pending and (self._pending[0].done() or len(self._pending) >= self._waiting):
+            self._pending.popleft().result()  # re-raises a failed write here
+        self._pending.append(self._pool.submit(call, *args))
+
+    def __enter__(self) -> "WriteBehind":
+        return self
+
+    def __exit__(self, error_type, error, traceback) -> None:
+        if error_type is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            return
+        try:
+            while self._pending:
+                self._pending.popleft().result()
+        finally:
+            self._pool.shutdown(wait=True, cancel_futures=True)

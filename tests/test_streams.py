@@ -1,0 +1,77 @@
+"""Reading ahead and writing behind (endoflow/reconstruction/streams.py): the same items in the same order as
+without the threads, errors raised where they belong, and nothing left running after an early stop."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from endoflow.reconstruction.streams import WriteBehind, read_ahead
+
+
+def test_read_ahead_yields_every_item_in_order() -> None:
+    assert list(read_ahead(iter(range(100)), count=3)) == list(range(100))
+
+
+def test_an_error_while_reading_is_raised_in_its_place_after_the_items_before_it() -> None:
+    def items():
+        yield from range(5)
+        raise ValueError("frame 5 is damaged")
+
+    seen = []
+    with pytest.raises(ValueError, match="frame 5 is damaged"):
+        for item in read_ahead(items()):
+            seen.append(item)
+    assert seen == list(range(5))
+
+
+def test_stopping_early_stops_the_reading_thread() -> None:
+    produced = []
+
+    def endless():
+        while True:
+            produced.append(len(produced))
+            yield produced[-1]
+
+    for item in read_ahead(endless(), count=2):
+        if item == 3:
+            break
+    count = len(produced)
+    time.sleep(0.3)
+    assert len(produced) == count <= 3 + 2 + 2  # the consumer's items, the queue's and the one being offered
+    assert not [t for t in threading.enumerate() if t.name == "read-ahead"]
+
+
+def test_writes_run_in_submission_order_and_all_finish_before_the_block_is_left() -> None:
+    written = []
+    with WriteBehind(waiting=2) as writes:
+        for index in range(20):
+            writes.submit(lambda i: (time.sleep(0.001), written.append(i)), index)
+    assert written == list(range(20))
+
+
+def test_a_failed_write_is_raised_by_the_next_submit_and_later_writes_do_not_run() -> None:
+    written = []
+
+    def write(index: int) -> None:
+        if index == 2:
+            raise OSError("disk full")
+        written.append(index)
+
+    with pytest.raises(OSError, match="disk full"):
+        with WriteBehind(waiting=1) as writes:
+            for index in range(10):
+                writes.submit(write, index)
+    assert written == [0, 1]
+
+
+def test_leaving_on_an_error_cancels_the_writes_not_started() -> None:
+    started = []
+    with pytest.raises(KeyboardInterrupt):
+        with WriteBehind(waiting=50) as writes:
+            for index in range(20):
+                writes.submit(lambda i: (started.append(i), time.sleep(0.05)), index)
+            raise KeyboardInterrupt
+    assert len(started) < 20
