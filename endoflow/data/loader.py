@@ -18,8 +18,13 @@ epoch is one pass over the first folder, the others cycling through their own sa
 
 Loader processes (``train.loader_workers``): a rank's batches can be read, checked, decoded and collated by
 worker processes of a torch ``DataLoader`` (:class:`RankEpoch`), so that the training thread only moves
-finished batches to its device; their images stay 8-bit until there. The rank's epoch is a run of samples of its own shards; each loader process
-takes a contiguous part of whole batches (:func:`worker_batches`) and reads only the shards that part lies in.
+finished batches to its device; their images stay 8-bit until there. The rank's epoch is a run of samples of its
+own shards; each loader process takes a contiguous part of whole batches (:func:`worker_batches`) and reads only
+the shards that part lies in.
+
+Loader processes in order (:func:`ordered_loader`): evaluation needs its frames in sequence order; its dataset's
+process ``w`` of ``W`` yields items ``w, w + W, ...`` (:func:`loader_turn`), and the ``DataLoader``, which takes
+one item from each process in turn, gives them back in that order.
 """
 
 from __future__ import annotations
@@ -228,12 +233,44 @@ def epoch_loader(epoch_data: RankEpoch | MixedEpoch, loader_workers: int, pin_me
                       generator=torch.Generator().manual_seed(epoch_data.seed))
 
 
+def ordered_loader(dataset: IterableDataset, loader_workers: int) -> Iterator:
+    """The items of ``dataset``, read by ``loader_workers`` processes of a torch ``DataLoader`` (0: this process),
+    handed over as the dataset yields them (tensors through shared memory, nothing collated).
+
+    In the dataset's own order where its process ``w`` of ``W`` yields items ``w, w + W, ...`` (:func:`loader_turn`).
+    An error of the data a loader process meets (:func:`failures_passed_on`) is raised here as it was raised there.
+    Like :func:`epoch_loader`, it draws nothing from this process's torch random state.
+    """
+    loader = DataLoader(dataset, batch_size=None, num_workers=loader_workers,
+                        prefetch_factor=PREFETCH_BATCHES if loader_workers else None,
+                        generator=torch.Generator().manual_seed(0))
+    return _raising_failures(loader)
+
+
+def loader_turn() -> tuple[int, int]:
+    """``(w, W)``: the calling code runs in loader process ``w`` of ``W``; ``(0, 1)`` outside loader processes."""
+    info = get_worker_info()
+    return (0, 1) if info is None else (info.id, info.num_workers)
+
+
+def failures_passed_on(items: Iterable) -> Iterator:
+    """``items``; in a loader process, a ``ValueError`` (a damaged shard's ``DataFormatError``, a sample refused)
+    ends them as a :class:`ShardFailure` handed over like an item, which :func:`ordered_loader` raises."""
+    try:
+        yield from items
+    except ValueError as error:
+        if get_worker_info() is None:
+            raise
+        yield ShardFailure(error)
+
+
 @dataclass(frozen=True)
 class ShardFailure:
-    """A damaged shard met in a loader process, passed on as a batch would be: torch re-raises a worker's
-    error as a ``RuntimeError`` when its type takes more than a message, as ``DataFormatError`` does."""
+    """An error of the data (a damaged shard; a sample evaluation refuses) met in a loader process, passed on as a
+    batch would be: torch re-raises a worker's error as a ``RuntimeError`` when its type takes more than a message,
+    as ``DataFormatError`` does, and with the worker's traceback in the message otherwise."""
 
-    error: DataFormatError
+    error: ValueError
 
 
 @dataclass(frozen=True)
@@ -264,8 +301,7 @@ class RankEpoch(IterableDataset):
 
     def sample_groups(self) -> Iterator[list[dict]]:
         """The decoded samples of each batch of this loader process's part (:func:`worker_batches`)."""
-        info = get_worker_info()
-        worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+        worker, workers = loader_turn()
         share = worker_batches(self.batches, worker, workers)
         samples = _sample_run(self.shards, self.entries, share.start * self.batch_size, share.stop * self.batch_size)
         buffer = max(1, self.shuffle_buffer // workers)

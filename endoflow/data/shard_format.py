@@ -45,7 +45,7 @@ import stat
 import tarfile
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import IO, Iterable, Iterator, Mapping
+from typing import IO, Collection, Iterable, Iterator, Mapping
 
 import cv2
 import fsspec
@@ -416,12 +416,13 @@ def check_complete(sample: Mapping[str, object], url: str) -> None:
 
 
 # -------------------------------------------------------------------------------------- decoding
-def decode_sample(sample: Mapping[str, object], rgb8: bool = False) -> dict:
+def decode_sample(sample: Mapping[str, object], rgb8: bool = False, images: Collection[str] = IMAGE_NAMES) -> dict:
     """A raw sample to tensors (shapes per sample; a batch adds a leading ``B``):
 
     - ``prev``, ``cur``, ``next``: ``[3, H, W]`` float32 RGB in [0, 1] (absent for depth-only samples); with
       ``rgb8``, ``uint8`` RGB 0..255 as stored, for :func:`endoflow.devices.images_to_device` to scale on the
-      device (:func:`endoflow.devices.unit_float_images`);
+      device (:func:`endoflow.devices.unit_float_images`); only those named in ``images`` (the others are left
+      encoded: a reader that needs one frame of the triplet decodes one PNG, not three);
     - ``depth``: ``[1, H, W]`` float32 z-depth of ``cur`` in cm, 0 where unknown or outside the field of view;
     - ``valid``: ``[1, H, W]`` bool, the field of view (triplets only);
     - ``K``: ``[3, 3]`` float32 pixel intrinsics of the stored size; ``intrinsics_known``: ``[]`` bool, False where
@@ -438,7 +439,7 @@ def decode_sample(sample: Mapping[str, object], rgb8: bool = False) -> dict:
     meta = decode_meta(sample[META_MEMBER], source)
     out: dict = {"key": str(sample.get("__key__", "?")), "meta": meta}
     for name in IMAGE_NAMES:
-        if f"{name}.png" in sample:
+        if name in images and f"{name}.png" in sample:
             rgb = decode_rgb8(sample[f"{name}.png"], f"{source}: {name}.png")
             out[name] = rgb if rgb8 else unit_float_images(rgb)
     out["depth"] = torch.from_numpy(decode_depth(sample[DEPTH_MEMBER], meta["depth_unit"], source))[None]

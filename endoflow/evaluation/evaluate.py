@@ -7,19 +7,29 @@ paper's and SimCol3D's protocols beside ``constant_depth`` and ``mean_depth_map`
 and the motion protocol beside ``constant_velocity``, and the model's scale consistency
 (:mod:`endoflow.evaluation.metrics`, :mod:`endoflow.evaluation.baselines`); every figure goes into one long table
 (:mod:`endoflow.evaluation.scores`). What is written, with units: docs/outputs.md, "evaluate@<test set>".
+
+Fed like training (:func:`evaluate_test_set`): ``train.loader_workers`` loader processes read the shards, decode
+each frame's one image and depth and score the depth baselines, which need no model (:class:`EvaluationFeed`);
+this thread runs the networks on batches of ``eval.batch_size`` frames; on a GPU a second thread records each
+batch (refined path, the model's scores, challenge files) while the next is predicted, its per-frame scoring
+spread over ``threads`` threads. Batches come, are predicted and are recorded in sequence order, so every output
+is the same whatever the number of processes and threads.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
-from typing import Collection, Iterable, Iterator, Optional
+from typing import Callable, Collection, Iterable, Iterator, Optional, TypeVar
 
 import cv2
 import numpy as np
 import pandas as pd
 import torch
+from torch.utils.data import IterableDataset
 
 from endoflow import tracking
 from endoflow.config import Params, EvalSetConfig, Precision
@@ -38,8 +48,9 @@ from endoflow.evaluation.results import EVALUATION_FILE, dvc_metrics, figure_row
 from endoflow.io import FIGURE_FOLDER, marked_output, save_figure, staged_directory, write_csv, write_json
 from endoflow.data.base import slug
 from endoflow.data.trajectory_files import write_simcol_relative_pose
-from endoflow.data.sequences import FrameRecord, sequence_frames
-from endoflow.data.shard_format import has_ground_truth, manifest_location, read_manifest
+from endoflow.data.loader import failures_passed_on, loader_turn, ordered_loader
+from endoflow.data.sequences import FrameRecord, frame_sources, read_frame
+from endoflow.data.shard_format import ShardEntry, has_ground_truth, manifest_location, read_manifest, shard_entries
 from endoflow.devices import (autocast, images_to_device, resolve_device, to_compute_layout, unit_float_images,
                               use_cpu_threads)
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings, tracker_settings
@@ -48,6 +59,7 @@ from endoflow.models.endoflow_model import load_trained_model
 from endoflow.models.mlflow_model import is_model_uri, local_model_file
 from endoflow.models.model_file import TrainingBaselines
 
+Frame = TypeVar("Frame")  # anything with the ``sequence`` it belongs to: a frame, or where one is
 
 
 @dataclass
@@ -123,9 +135,9 @@ def refuse_unlabelled(meta: dict, test_set: EvalSetConfig) -> None:
 
 
 # ------------------------------------------------------------------------------------------- frames
-def batches_within_sequences(frames: Iterable[FrameRecord], size: int) -> Iterator[list[FrameRecord]]:
+def batches_within_sequences(frames: Iterable[Frame], size: int) -> Iterator[list[Frame]]:
     """Consecutive frames in lists of at most ``size``, never mixing two sequences."""
-    batch: list[FrameRecord] = []
+    batch: list[Frame] = []
     for frame in frames:
         if batch and (len(batch) == size or frame.sequence != batch[0].sequence):
             yield batch
@@ -135,14 +147,101 @@ def batches_within_sequences(frames: Iterable[FrameRecord], size: int) -> Iterat
         yield batch
 
 
+@dataclass(frozen=True)
+class FrameBatch:
+    """Consecutive frames of one sequence with what is scored of them without the model: per frame with GT depth,
+    the depth baselines' paper-protocol errors (method -> figures, in :func:`baseline_depths`' order), else None."""
+
+    frames: list[FrameRecord]
+    baseline_errors: list[Optional[dict[str, dict[str, float]]]]
+
+    def __reduce__(self) -> tuple:
+        # From a loader process as two tensors (the images, the GT depth maps), which torch hands over through
+        # shared memory; a tensor per frame and the maps copied through a pipe took four times as long (35 against
+        # 9 ms a batch of 16 frames of 480 px on 2 cores)
+        return _unpacked_frame_batch, _packed_frame_batch(self)
+
+
+def _packed_frame_batch(batch: FrameBatch) -> tuple:
+    with_depth = [index for index, frame in enumerate(batch.frames) if frame.depth_cm is not None]
+    images = torch.stack([frame.rgb for frame in batch.frames])
+    depth = torch.from_numpy(np.stack([batch.frames[index].depth_cm for index in with_depth])) if with_depth else None
+    bare = [replace(frame, rgb=None, depth_cm=None) for frame in batch.frames]
+    return bare, images, depth, with_depth, batch.baseline_errors
+
+
+def _unpacked_frame_batch(bare: list[FrameRecord], images: torch.Tensor, depth: Optional[torch.Tensor],
+                          with_depth: list[int], baseline_errors: list) -> FrameBatch:
+    depths = dict(zip(with_depth, depth.numpy())) if depth is not None else {}
+    return FrameBatch([replace(frame, rgb=image, depth_cm=depths.get(index))
+                       for index, (frame, image) in enumerate(zip(bare, images))], baseline_errors)
+
+
+def frame_batch(frames: list[FrameRecord], baselines: TrainingBaselines) -> FrameBatch:
+    """``frames`` with their baselines' depth errors."""
+    return FrameBatch(frames, [None if frame.depth_cm is None else baseline_depth_errors(frame.depth_cm, baselines)
+                               for frame in frames])
+
+
+def baseline_depth_errors(gt_cm: np.ndarray, baselines: TrainingBaselines) -> dict[str, dict[str, float]]:
+    """The paper-protocol errors of each depth baseline against one GT depth map."""
+    return {method: metrics.paper_depth_errors(gt_cm, depth)
+            for method, depth in baseline_depths(baselines, gt_cm.shape).items()}
+
+
+@dataclass(frozen=True)
+class EvaluationFeed(IterableDataset):
+    """A test set's frames in batches (:class:`FrameBatch`) of at most ``batch_size`` consecutive frames of one
+    sequence (:func:`batches_within_sequences`), in sequence order, for :func:`~endoflow.data.loader.ordered_loader`.
+
+    Loader process ``w`` of ``W`` hands over batches ``w, w + W, ...``: it reads every shard whole (each is checked
+    to its end), plans the frame order from the samples' ``meta.json`` and decodes and scores only its own batches.
+    Frames come with 8-bit RGB. ``keep`` as :func:`~endoflow.data.sequences.sequence_frames` takes it; ``entries``:
+    the shards' manifest entries.
+    """
+
+    urls: list[str]
+    entries: dict[str, ShardEntry]
+    keep: Callable[[dict], bool]
+    max_frames: Optional[int]
+    batch_size: int
+    baselines: TrainingBaselines
+
+    def __iter__(self) -> Iterator[FrameBatch]:
+        worker, workers = loader_turn()
+        sources = frame_sources(self.urls, self.keep, self.max_frames, self.entries)
+        own = (frame_batch([read_frame(source) for source in batch], self.baselines)
+               for index, batch in enumerate(batches_within_sequences(sources, self.batch_size))
+               if index % workers == worker)
+        yield from failures_passed_on(own)
+
+
+@dataclass(frozen=True)
+class BatchPrediction:
+    """The networks' answers for one batch: ``depth [B, H, W]`` (float32, cm) of its frames; ``relative
+    [len(pairs), 4, 4]`` (float64), ``T_earlier_later`` of each ``(earlier, later)`` pair of consecutive frames (the
+    first pair's earlier frame ends the previous batch where the sequence goes on); per frame, where the refined
+    path starts anew (a sequence's first frame, a frame after missing ones), the K it is tracked with, else None."""
+
+    depth: np.ndarray
+    pairs: list[tuple[FrameRecord, FrameRecord]]
+    relative: np.ndarray
+    tracker_K: list[Optional[torch.Tensor]]
+
+
 # ------------------------------------------------------------------------------------- prediction
 class SequenceEvaluator:
     """Runs the model over ordered frames, writes challenge predictions and gathers per-sequence results; the
-    per-image depth errors go straight into ``scores``, rows of :mod:`endoflow.evaluation.scores`' table."""
+    per-image depth errors go straight into ``scores``, rows of :mod:`endoflow.evaluation.scores`' table.
+
+    A batch is predicted (:meth:`predict`: the networks, on ``device``), then recorded (:meth:`record`: the refined
+    path, scores, files; ``scoring`` threads score its frames, else this one); :meth:`process` does both. Batches are
+    predicted in order and recorded in that order, recording in another thread than predicting if need be.
+    """
 
     def __init__(self, model: torch.nn.Module, baselines: TrainingBaselines, predictions_dir: Path,
                  device: torch.device, precision: Precision, max_examples: int,
-                 refine: Optional[TrackerSettings] = None) -> None:
+                 refine: Optional[TrackerSettings] = None, scoring: Optional[Executor] = None) -> None:
         self.model = model
         self.refine = refine
         self.tracker: Optional[KeyframeTracker] = None
@@ -151,53 +250,70 @@ class SequenceEvaluator:
         self.predictions_dir = predictions_dir
         self.device = device
         self.precision = precision
+        self.scoring = scoring
         self.sequences: list[SequenceResult] = []
         self.scores: list[dict] = []
         self.examples: list[dict] = []
         self._carry: Optional[FrameRecord] = None
         self.frames_done = 0
 
-    @torch.inference_mode()
     def process(self, batch: list[FrameRecord]) -> None:
-        """One batch of consecutive frames of one sequence."""
-        result = self._sequence_for(batch[0])
-        rgb = self._images(batch)
+        """One batch of consecutive frames of one sequence, predicted and recorded."""
+        self.record(frame_batch(batch, self.baselines), self.predict(batch))
+
+    @torch.inference_mode()
+    def predict(self, frames: list[FrameRecord]) -> BatchPrediction:
+        """The networks on one batch, the frames copied to the device once: the depth of each frame and the poses
+        between consecutive frames, the first from the previous batch's last frame where the sequence goes on."""
+        if self._carry is not None and self._carry.sequence != frames[0].sequence:
+            self._carry = None
+        carried = [self._carry] if self._carry is not None else []
+        chain = carried + frames
+        images = self._images(chain)
         with autocast(self.device, self.precision):
-            depth = self.model.predict_depth(rgb)
+            depth = self.model.predict_depth(images[len(carried):])
         depth = depth[:, 0].float().cpu().numpy()
-        earlier = [self._carry] + batch[:-1] if self._carry is not None else batch[:-1]
-        later = batch if self._carry is not None else batch[1:]
         relative = np.zeros((0, 4, 4))
-        if later:
-            source, target = self._images(earlier), self._images(later)
+        if len(chain) > 1:
             # T_earlier_later = inv(P_earlier) @ P_later: the challenge's relative pose
             with autocast(self.device, self.precision):
-                relative = self.model.predict_pose(target, source, source_is_next=False)
+                relative = self.model.predict_pose(images[1:], images[:-1], source_is_next=False)
             relative = relative.double().cpu().numpy()
-            for first, second, pose in zip(earlier, later, relative):
-                if not second.after_gap:  # no challenge pose across missing frames; never scored either
-                    self._write_pose(first, second, pose)
-                result.predicted_relative.append(pose)
-        if self.refine is not None:
-            # the step into each frame of the batch; the sequence's first frame has none
-            steps = [None] * (len(batch) - len(relative)) + list(relative)
-            self._track(result, batch, depth, steps)
-        for frame, prediction in zip(batch, depth):
-            self._add_frame(result, frame, prediction)
-        self._carry = batch[-1]
-        self.frames_done += len(batch)
+        starts = [frame.after_gap or (index == 0 and not carried) for index, frame in enumerate(frames)]
+        tracker_K = [self._camera_K(frame) if start and self.refine is not None else None
+                     for frame, start in zip(frames, starts)]
+        self._carry = frames[-1]
+        return BatchPrediction(depth, list(zip(chain[:-1], chain[1:])), relative, tracker_K)
 
-    def _track(self, result: SequenceResult, batch: list[FrameRecord], depth: np.ndarray,
-               steps: list[Optional[np.ndarray]]) -> None:
+    @torch.inference_mode()
+    def record(self, batch: FrameBatch, prediction: BatchPrediction) -> None:
+        """What one predicted batch leaves: challenge files, the refined path, per-frame scores."""
+        frames = batch.frames
+        result = self._sequence_for(frames[0])
+        for (earlier, later), pose in zip(prediction.pairs, prediction.relative):
+            if not later.after_gap:  # no challenge pose across missing frames; never scored either
+                self._write_pose(earlier, later, pose)
+            result.predicted_relative.append(pose)
+        if self.refine is not None:
+            self._track(result, frames, prediction)
+        spread = self.scoring.map if self.scoring is not None else map
+        scored = list(spread(self._score_frame, frames, prediction.depth))
+        for frame, depth, model, baselines in zip(frames, prediction.depth, scored, batch.baseline_errors):
+            self._add_frame(result, frame, depth, model, baselines)
+        self.frames_done += len(frames)
+
+    def _track(self, result: SequenceResult, frames: list[FrameRecord], prediction: BatchPrediction) -> None:
         """Each frame's refined pose, aligned to the tracker's keyframe from the pose network's step; the tracker
         starts anew with each sequence and after missing frames."""
         # the frames as read, not the device's copy (bf16 under autocast on a GPU)
-        images = unit_float_images(torch.stack([frame.rgb for frame in batch]))
-        for frame, image, prediction, step in zip(batch, images, depth, steps):
-            if step is None or frame.after_gap:  # a sequence's K is its own
-                self.tracker = KeyframeTracker(self._camera_K(frame), self.refine)
+        images = unit_float_images(torch.stack([frame.rgb for frame in frames]))
+        # the step into each frame of the batch; the sequence's first frame has none
+        steps = [None] * (len(frames) - len(prediction.relative)) + list(prediction.relative)
+        for image, depth, step, K in zip(images, prediction.depth, steps, prediction.tracker_K):
+            if K is not None:  # a sequence's K is its own
+                self.tracker = KeyframeTracker(K, self.refine)
             start = np.eye(4) if step is None else result.refined[-1] @ step
-            result.refined.append(self.tracker.track(image, torch.from_numpy(prediction)[None],
+            result.refined.append(self.tracker.track(image, torch.from_numpy(depth)[None],
                                                      torch.from_numpy(start)).numpy())
 
     def _camera_K(self, frame: FrameRecord) -> torch.Tensor:
@@ -216,30 +332,38 @@ class SequenceEvaluator:
             if any(s.name == frame.sequence for s in self.sequences):
                 raise ValueError(f"sequence {frame.sequence} appears twice in the test shards")
             self.sequences.append(SequenceResult(frame.sequence, frame.group))
-            self._carry = None
         return self.sequences[-1]
 
-    def _add_frame(self, result: SequenceResult, frame: FrameRecord, prediction: np.ndarray) -> None:
+    def _score_frame(self, frame: FrameRecord, prediction: np.ndarray) -> Optional[tuple[dict, np.ndarray]]:
+        """Writes the frame's challenge depth file; with GT depth, the model's paper-protocol errors and its depth as
+        that file holds it. Frames may be scored in any order and at once."""
+        self._write_depth(frame, prediction)
+        if frame.depth_cm is None:
+            return None
+        return (metrics.paper_depth_errors(frame.depth_cm, prediction),
+                metrics.depth_to_simcol_unit(prediction).astype(np.float16))
+
+    def _add_frame(self, result: SequenceResult, frame: FrameRecord, prediction: np.ndarray,
+                   model: Optional[tuple[dict, np.ndarray]], baselines: Optional[dict[str, dict]]) -> None:
+        """One frame into its sequence's results, in order: ``model`` from :meth:`_score_frame`, ``baselines`` from
+        :func:`baseline_depth_errors`."""
         if frame.after_gap:
             result.gaps.add(len(result.frames))
         result.frames.append(frame.frame)
         result.poses.append(frame.pose)
         result.depth_ratios.append(None)
-        self._write_depth(frame, prediction)
-        if frame.depth_cm is None:
+        if model is None or baselines is None:
             return
+        errors, challenge_depth = model
         result.depth_frames.append(frame.frame)
-        result.depth_pred.append(metrics.depth_to_simcol_unit(prediction).astype(np.float16))
+        result.depth_pred.append(challenge_depth)
         result.depth_gt.append(frame.depth_cm)
-        baselines = baseline_depths(self.baselines, frame.depth_cm.shape)
-        for method, pred in (("model", prediction), *baselines.items()):
-            errors = metrics.paper_depth_errors(frame.depth_cm, pred)
-            self.scores += score_rows(frame.sequence, frame.frame, method, "depth_paper", errors)
-            if method == "model":
-                result.depth_ratios[-1] = errors["ratio"]
+        for method, figures in (("model", errors), *baselines.items()):
+            self.scores += score_rows(frame.sequence, frame.frame, method, "depth_paper", figures)
+        result.depth_ratios[-1] = errors["ratio"]
         if len(result.depth_frames) == 1 and len(self.examples) < self.max_examples:
             self.examples.append({"label": f"{frame.sequence} #{frame.frame}", "gt": frame.depth_cm,
-                                  "rgb": frame.rgb.permute(1, 2, 0).numpy(), "pred": prediction})
+                                  "rgb": unit_float_images(frame.rgb).permute(1, 2, 0).numpy(), "pred": prediction})
 
     def _frame_folder(self, frame: FrameRecord) -> Path:
         return self.predictions_dir / f"{slug(frame.group or 'test')}_Test" / f"Frames_{slug(frame.sequence)}_OP"
@@ -353,6 +477,9 @@ def evaluate_test_set(params: Params, name: str, urls: list[str], model_path: st
     """Evaluate the model in ``model_path`` on test set ``name``, read from its shards ``urls`` (in order, as
     :func:`eval_set_shards` lists them); write all outputs.
 
+    The frames are read by ``train.loader_workers`` loader processes (0: this process) and, on a GPU, recorded
+    beside the networks by ``threads`` threads (the module docstring); neither count changes any output.
+
     Returns the full result (with ``mlflow_run_id`` of the training run), written to
     ``<out_predictions>/evaluation.json``; ``out_metrics`` gets its headline (:mod:`endoflow.evaluation.results`).
     """
@@ -362,14 +489,16 @@ def evaluate_test_set(params: Params, name: str, urls: list[str], model_path: st
     model = to_compute_layout(model, device, params.eval.precision)
     started = time.perf_counter()
     earlier = marked_output(f"the predictions of test set {name}", EVALUATION_FILE, test_set=name)
-    with staged_directory(out_predictions, earlier) as predictions_dir:
+    # On a CPU the networks' threads (``threads``) already take the cores: a recording thread beside them would gain
+    # no core of its own, only make their OpenMP threads wait for one another whenever one is descheduled
+    overlapped = device.type != "cpu"
+    with staged_directory(out_predictions, earlier) as predictions_dir, ThreadPoolExecutor(params.threads) as scoring:
         refine = tracker_settings(params.refine) if params.refine.enabled else None
         evaluator = SequenceEvaluator(model, record.baselines, predictions_dir, device, params.eval.precision,
-                                      params.eval.depth_examples, refine)
-        frames = sequence_frames(urls, lambda meta: belongs_to(meta, test_set),
-                                 params.eval.max_frames_per_sequence)
-        for batch in batches_within_sequences(frames, params.eval.batch_size):
-            evaluator.process(batch)
+                                      params.eval.depth_examples, refine, scoring if overlapped else None)
+        feed = EvaluationFeed(urls, shard_entries(urls), partial(belongs_to, test_set=test_set),
+                              params.eval.max_frames_per_sequence, params.eval.batch_size, record.baselines)
+        predict_then_record(evaluator, ordered_loader(feed, params.train.loader_workers), overlapped)
         if not evaluator.sequences:
             raise ValueError(f"test set {name}: no frames found in the selected shards")
         elapsed = time.perf_counter() - started
@@ -389,6 +518,25 @@ def evaluate_test_set(params: Params, name: str, urls: list[str], model_path: st
     write_plots(name, out_plots, evaluator, frames_table, trajectories)
     write_json(out_metrics, dvc_metrics(name, result))
     return result
+
+
+def predict_then_record(evaluator: SequenceEvaluator, batches: Iterable[FrameBatch], overlapped: bool) -> None:
+    """Each batch through the networks in this thread, then recorded: ``overlapped``, in a second thread while the
+    next is predicted, so that the device does not wait for the scoring (one batch recorded at a time, in order; an
+    error in either thread is raised here once the batch being recorded is done), else here."""
+    if not overlapped:
+        for batch in batches:
+            evaluator.record(batch, evaluator.predict(batch.frames))
+        return
+    with ThreadPoolExecutor(1, thread_name_prefix="evaluation-record") as recorder:
+        recording: Optional[Future] = None
+        for batch in batches:
+            prediction = evaluator.predict(batch.frames)
+            if recording is not None:
+                recording.result()
+            recording = recorder.submit(evaluator.record, batch, prediction)
+        if recording is not None:
+            recording.result()
 
 
 def write_tables(folder: Path, frames_table: pd.DataFrame, sequences_table: pd.DataFrame,
