@@ -9,12 +9,18 @@ by the baseline's code (its model file is one both versions read): the default m
 (weights do not change speed); sequence S1 of a synthetic SimCol3D layout rendered at 480 px (``--frames``
 frames); and the same frames upscaled to 1920 x 1080 in an H.264 MP4. Cases (the whole ``reconstruct()`` call:
 model load, field of view, decoding, inference, path refinement off, fusion, every output written; frames/s is
-frames over the call's wall time, after an untimed 3-frame warm-up call):
+frames over the call's wall time, after an untimed 3-frame warm-up call; "per frame" is the rate of the frames a
+call of all of them takes beyond one of the first half, without the start-up and the end of a call: model load,
+the field-of-view pass, the contact sheet):
 
 - ``video64``: the 1080p video at the model's 64 px, fused (decoding large frames on the critical path or not);
 - ``data64``: the 480 px dataset sequence at 64 px, fused;
 - ``data480``: the dataset sequence at 480 px, fused (the TSDF at the pixel footprint's voxel);
-- ``data480-nofusion``: the same without fusion.
+- ``data480-nofusion``: the same without fusion;
+- ``core64``, ``core480``: the model and the fusion alone, as each version's ``reconstruct`` runs them (the earlier
+  one frame by frame with its numpy TSDF; this one in batches of ``frames_per_call`` with the TSDF on the device),
+  on frames decoded and resized beforehand, nothing written: what a GPU can be timed on where PyAV and rerun
+  (the outputs' video and recording) are not installed. Per frame only (the start-up is left out).
 
 With ``--rounds`` > 1 the two versions alternate so that load from other processes hits both alike, and the
 median is printed. Figures are printed, not asserted.
@@ -35,7 +41,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = {"video64": ("video", 64, True), "data64": ("data", 64, True), "data480": ("data", 480, True),
-         "data480-nofusion": ("data", 480, False)}
+         "data480-nofusion": ("data", 480, False), "core64": ("core", 64, True), "core480": ("core", 480, True)}
 VIDEO_SIZE = (1080, 1920)
 WARM_UP_FRAMES = 3
 
@@ -55,6 +61,8 @@ def parse_args() -> argparse.Namespace:
 
 def run_worker(args: argparse.Namespace) -> dict:
     """One case with whichever endoflow this process's PYTHONPATH names: frames/s of the timed call."""
+    if CASES[args.worker[0]][0] == "core":
+        return run_core(args)
     import contextlib
 
     import torch
@@ -76,11 +84,70 @@ def run_worker(args: argparse.Namespace) -> dict:
             return reconstruct(source, K, work / "model.pt", folder, options)
 
     call(FrameRange(stop=WARM_UP_FRAMES), out / "warm-up")
-    started = time.perf_counter()
-    summary = call(FrameRange(), out / "timed")
-    seconds = time.perf_counter() - started
+    timed = {}
+    for name, frames in (("half", FrameRange(stop=args.frames // 2)), ("all", FrameRange())):
+        started = time.perf_counter()
+        summary = call(frames, out / name)
+        timed[name] = {"frames": summary["frames"], "seconds": time.perf_counter() - started}
     shutil.rmtree(out)
-    return {"frames": summary["frames"], "seconds": seconds}
+    return timed
+
+
+def run_core(args: argparse.Namespace) -> dict:
+    """A ``core`` case: depth, pose and fusion of every frame, timed after three frames of warm-up."""
+    import numpy as np
+    import torch
+
+    from endoflow.config import Params
+    from endoflow.data.crop import frame_region
+    from endoflow.data.frame_encoding import resize_rgb
+    from endoflow.devices import images_to_device, resolve_device
+    from endoflow.geometry.pose import invert_pose
+    from endoflow.models.endoflow_model import load_trained_model
+    from endoflow.reconstruction import reconstruct as steps
+    from endoflow.reconstruction.frames import FrameRange, open_frames
+    from endoflow.reconstruction.fusion import TSDFVolume
+
+    torch.set_num_threads(args.threads)
+    _, size, _ = CASES[args.worker[0]]
+    work = Path(args.worker[1])
+    device = resolve_device(args.device, "--device")
+    source = open_frames(work / "scene", "S1", Params())
+    rgbs = [resize_rgb(frame.rgb, size) for frame in source.frames(FrameRange())]
+    model, record = load_trained_model(work / "model.pt", device)
+    region = frame_region(source.native_size, None, source.description)
+    K, _ = steps.input_intrinsics(source.K, region, size, model, record.params.data.assumed_fov_deg)
+    voxel = steps.default_voxel_cm(K, record.params.model.max_depth, size)
+    batched = hasattr(steps, "predict_frames")  # this version; the earlier one predicts frame by frame
+    batch = steps.frames_per_call(size, device) if batched else 1
+
+    def fuse(frames: list) -> None:
+        volume = TSDFVolume(voxel, 4 * voxel, device) if batched else TSDFVolume(voxel, 4 * voxel)
+        pose, previous = np.eye(4), None
+        with torch.no_grad():
+            for start in range(0, len(frames), batch):
+                chunk = frames[start:start + batch]
+                images = images_to_device(torch.from_numpy(np.stack(chunk)).permute(0, 3, 1, 2).contiguous(),
+                                          device, "float32")
+                if batched:
+                    predicted = steps.predict_frames(model, images, previous, 1.0, work / "model.pt",
+                                                     list(range(start, start + len(chunk))))
+                else:
+                    predicted = [steps.predict_frame(model, images, previous, 1.0, work / "model.pt", start)]
+                for rgb, (depth, T_cur_prev) in zip(chunk, predicted):
+                    pose = pose if T_cur_prev is None else pose @ invert_pose(T_cur_prev)
+                    volume.integrate(depth, rgb, K, pose)
+                previous = images[-1:]
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    fuse(rgbs[:WARM_UP_FRAMES])
+    timed = {}
+    for name, frames in (("half", rgbs[:len(rgbs) // 2]), ("all", rgbs)):
+        started = time.perf_counter()
+        fuse(frames)
+        timed[name] = {"frames": len(frames), "seconds": time.perf_counter() - started}
+    return timed
 
 
 def make_inputs(work: Path, frames: int, threads: int) -> None:
@@ -147,20 +214,27 @@ def main() -> None:
         started = time.perf_counter()
         in_version(args, "before", ["--make-inputs", str(work)])
         print(f"inputs made in {time.perf_counter() - started:.0f} s", flush=True)
-        rates: dict[tuple[str, str], list[float]] = {}
+        rates: dict[tuple[str, str, str], list[float]] = {}
         for round_index in range(args.rounds):
             for case in args.cases:
                 for version in ("before", "after"):
                     run = run_case(args, version, case, work)
-                    rates.setdefault((case, version), []).append(run["frames"] / run["seconds"])
-                    print(f"round {round_index + 1}/{args.rounds} {case:17s} {version:6s} "
-                          f"{rates[(case, version)][-1]:7.2f} frames/s", flush=True)
+                    whole = run["all"]["frames"] / run["all"]["seconds"]
+                    extra = (run["all"]["frames"] - run["half"]["frames"]) / (run["all"]["seconds"]
+                                                                              - run["half"]["seconds"])
+                    rates.setdefault((case, version, "call"), []).append(whole)
+                    rates.setdefault((case, version, "frame"), []).append(extra)
+                    print(f"round {round_index + 1}/{args.rounds} {case:17s} {version:6s} {whole:7.2f} frames/s "
+                          f"({extra:.2f} per frame)", flush=True)
     print(f"\nreconstruct, {args.frames} frames, {args.device}, {args.threads} torch threads, {args.rounds} round(s); "
           f"before: {args.baseline}")
-    print(f"{'case':17s} {'before':>9s} {'after':>9s} {'after/before':>13s}   (frames/s)")
+    print(f"{'case':17s} {'before':>9s} {'after':>9s} {'after/before':>13s} {'per frame: before':>18s} "
+          f"{'after':>9s} {'after/before':>13s}   (frames/s)")
     for case in args.cases:
-        before, after = (statistics.median(rates[(case, v)]) for v in ("before", "after"))
-        print(f"{case:17s} {before:9.2f} {after:9.2f} {after / before:13.2f}")
+        call, frame = ([statistics.median(rates[(case, v, kind)]) for v in ("before", "after")]
+                       for kind in ("call", "frame"))
+        print(f"{case:17s} {call[0]:9.2f} {call[1]:9.2f} {call[1] / call[0]:13.2f} {frame[0]:18.2f} "
+              f"{frame[1]:9.2f} {frame[1] / frame[0]:13.2f}")
 
 
 if __name__ == "__main__":

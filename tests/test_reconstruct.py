@@ -28,6 +28,8 @@ from endoflow.reconstruction.reconstruct import (
     RECONSTRUCTION_FORMAT,
     ReconstructOptions,
     default_voxel_cm,
+    frames_per_call,
+    predict_frames,
     reconstruct,
 )
 from endoflow.synth.writers import synthesize_layout
@@ -414,3 +416,24 @@ def test_the_black_border_of_a_circular_field_of_view_gets_no_depth(scene: Path,
     assert 0.53 < summary["field_of_view"]["share"] < 0.57
     depth = depth_of(tmp_path / "out", 0)
     assert (depth[~inside] == 0).all() and (depth[24:40, 24:40] > 0).all()
+
+
+def test_frames_predicted_in_batches_are_the_frames_predicted_one_by_one() -> None:
+    torch.manual_seed(0)
+    model = build_model(small_model_params(SIZE), None).eval()
+    images = torch.rand(7, 3, SIZE, SIZE)
+    with torch.no_grad():
+        one_by_one = [predict_frames(model, images[i:i + 1], images[i - 1:i] if i else None, 2.0, Path("m.pt"), [i])[0]
+                      for i in range(7)]
+        batched = (predict_frames(model, images[:4], None, 2.0, Path("m.pt"), [0, 1, 2, 3])
+                   + predict_frames(model, images[4:], images[3:4], 2.0, Path("m.pt"), [4, 5, 6]))
+    assert batched[0][1] is None and one_by_one[0][1] is None  # the video's first frame has no step
+    for (depth, step), (alone, alone_step) in zip(batched, one_by_one):
+        assert np.allclose(depth, alone, rtol=1e-4)
+        assert step is None or np.allclose(step, alone_step, atol=1e-5)
+
+
+def test_small_frames_share_a_network_call_on_a_cpu_and_large_ones_go_alone() -> None:
+    cpu, gpu = torch.device("cpu"), torch.device("cuda")
+    assert frames_per_call(64, cpu) == 8 and frames_per_call(128, cpu) == 2 and frames_per_call(480, cpu) == 1
+    assert frames_per_call(480, gpu) == frames_per_call(64, gpu) > 1
