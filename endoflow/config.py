@@ -35,7 +35,7 @@ RAY_MIN_OBJECT_STORE_MB = 75
 # What a device key may say; endoflow/devices.py turns it into a torch device.
 DEVICE_NAME = re.compile(r"auto|cpu|cuda(:[0-9]+)?")
 Precision = Literal["auto", "bf16", "float32"]
-Compile = Literal["auto", "on", "off"]
+Compile = Union[Literal["auto"], bool]
 Split = Literal["train", "val", "test"]
 
 
@@ -410,9 +410,10 @@ class TrainConfig(Section):
     val_batches: Optional[Count] = setting(None, "cap on validation batches per epoch; null: the whole val split")
     precision: Precision = setting("auto", "auto: bf16 autocast (and channels-last) on a GPU with native bf16, "
                                            "float32 elsewhere; bf16 also runs on the CPU (endoflow.devices)")
+    # compiled code rounds differently from eager (a few 1e-6 of a loss), so the setting is part of the run
     compile: Compile = setting("auto", "torch.compile the training step (losses and networks): auto on a GPU, not "
-                                       "on a CPU, whose compiler warm-up outlasts a short run (endoflow.devices)",
-                               training=False)
+                                       "on a CPU, whose compiler warm-up outlasts a short run; true, false "
+                                       "(endoflow.devices)")
     image_examples: int = setting(3, "fixed val frames whose depth is logged beside GT each epoch", ge=0,
                                   training=False)
     # each holds the best epoch's weights too, so the model is never lost; Ray refuses to keep none

@@ -8,8 +8,6 @@ docs/method.md, "Devices and precision".
 
 from __future__ import annotations
 
-import functools
-import logging
 from typing import Callable, TypeVar
 
 import torch
@@ -18,7 +16,6 @@ from torch import nn
 from endoflow.config import DEVICE_NAME, Compile, ConfigError, Precision
 
 Step = TypeVar("Step", bound=Callable)
-_log = logging.getLogger(__name__)
 
 # The first CUDA compute capability with native bf16 arithmetic (Ampere); older GPUs emulate it slowly.
 NATIVE_BF16_CAPABILITY = (8, 0)
@@ -113,7 +110,7 @@ def _is_image(value: object) -> bool:
 def compiles(device: torch.device, setting: Compile) -> bool:
     """Whether ``setting`` compiles a step on ``device``: ``auto`` does on CUDA only. On a CPU, inductor's C++
     backend needs a compiler and minutes of warm-up on 2 cores, which a short run never earns back."""
-    return setting == "on" or (setting == "auto" and device.type == "cuda")
+    return setting is True or (setting == "auto" and device.type == "cuda")
 
 
 def compiled(step: Step, device: torch.device, setting: Compile) -> Step:
@@ -121,27 +118,9 @@ def compiled(step: Step, device: torch.device, setting: Compile) -> Step:
 
     Random draws inside the step (the pose VAE's samples, the bank's noise) come from torch's own generator as in
     eager mode (inductor's ``fallback_random``), so a seed gives the same draws compiled or not and a resumed run
-    continues the same sequence. Under ``auto``, a compiler that fails on the first call (none installed, an
-    unsupported device) leaves the step eager with one warning; under ``on`` its error is raised.
+    continues the same sequence. The compiler runs on the first call (the backward's on the first backward); where
+    it fails, its error says so, and ``train.compile: false`` runs the step eager.
     """
     if not compiles(device, setting):
         return step
-    import torch._inductor.config as inductor_config
-
-    inductor_config.fallback_random = True
-    fast = torch.compile(step)
-    if setting == "on":
-        return fast  # type: ignore[return-value]
-    state = {"eager": False}
-
-    @functools.wraps(step)
-    def first_compiled_else_eager(*args, **kwargs):
-        if not state["eager"]:
-            try:
-                return fast(*args, **kwargs)
-            except torch._dynamo.exc.BackendCompilerFailed as error:
-                state["eager"] = True
-                _log.warning("torch.compile failed (%s); this run's steps stay eager", " ".join(str(error).split())[:300])
-        return step(*args, **kwargs)
-
-    return first_compiled_else_eager  # type: ignore[return-value]
+    return torch.compile(step, options={"fallback_random": True})  # type: ignore[return-value]

@@ -35,13 +35,16 @@ def test_stopping_early_stops_the_reading_thread() -> None:
             produced.append(len(produced))
             yield produced[-1]
 
-    for item in read_ahead(endless(), count=2):
+    before = set(threading.enumerate())
+    items = read_ahead(endless(), count=2)
+    for item in items:
         if item == 3:
             break
+    items.close()  # what reconstruct's closing() does on leaving the loop
     count = len(produced)
     time.sleep(0.3)
     assert len(produced) == count <= 3 + 2 + 2  # the consumer's items, the queue's and the one being offered
-    assert not [t for t in threading.enumerate() if t.name == "read-ahead"]
+    assert not [t for t in set(threading.enumerate()) - before if t.name == "read-ahead"]
 
 
 def test_writes_run_in_submission_order_and_all_finish_before_the_block_is_left() -> None:
@@ -52,7 +55,7 @@ def test_writes_run_in_submission_order_and_all_finish_before_the_block_is_left(
     assert written == list(range(20))
 
 
-def test_a_failed_write_is_raised_by_the_next_submit_and_later_writes_do_not_run() -> None:
+def test_a_failed_write_is_raised_by_the_submit_that_waits_for_it_and_no_write_after_that_runs() -> None:
     written = []
 
     def write(index: int) -> None:

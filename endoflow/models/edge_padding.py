@@ -23,12 +23,12 @@ def edge_pad(x: torch.Tensor, width: int = 1) -> torch.Tensor:
 
 
 class EdgePaddedConv2d(nn.Conv2d):
-    """A ``kernel_size`` x ``kernel_size`` (odd) convolution keeping the map's size, padded by :func:`edge_pad`:
+    """A ``kernel_size`` x ``kernel_size`` (odd, at least 3) convolution keeping the map's size, padded by :func:`edge_pad`:
     ``nn.Conv2d(..., padding=kernel_size // 2, padding_mode="replicate")`` with the same parameters and names."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int = 3) -> None:
-        if kernel_size % 2 != 1:
-            raise ValueError(f"kernel_size must be odd to keep the map's size, got {kernel_size}")
+        if kernel_size < 3 or kernel_size % 2 != 1:
+            raise ValueError(f"kernel_size must be odd and at least 3 (a padded map keeps its size), got {kernel_size}")
         super().__init__(in_channels, out_channels, kernel_size)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

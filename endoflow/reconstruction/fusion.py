@@ -145,7 +145,9 @@ class TSDFVolume:
         division is linear, so ``K [R | t]`` of every centre is one sum of a per-block and a per-voxel term: the
         arithmetic over all ``n x 512`` voxels is three additions and two divisions. Only the voxels seen are then
         gathered and written."""
-        projection = K @ T_cam_world[:3]  # [3, 4], float64: the per-block terms are large (cm times pixels)
+        # [3, 4], float64: the per-block terms are large (cm times pixels); skew ignored, as _touched_keys does
+        pinhole = np.array([[K[0, 0], 0, K[0, 2]], [0, K[1, 1], K[1, 2]], [0, 0, 1]])
+        projection = pinhole @ T_cam_world[:3]
         firsts = (unpack_block_keys(keys).cpu().double().numpy() * BLOCK + 0.5) * self.voxel_cm
         per_block = torch.from_numpy(firsts @ projection[:, :3].T + projection[:, 3]).to(self.device, torch.float32)
         per_voxel = (self._local * self.voxel_cm) @ torch.from_numpy(projection[:, :3].T).to(self.device,

@@ -11,6 +11,7 @@ docs/reconstruction.md.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import sys
@@ -39,7 +40,7 @@ from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply
 from endoflow.reconstruction.pictures import FrameSampler, SideBySideVideo, depth_preview, write_contact_sheet
 from endoflow.reconstruction.recording import RECORDING_FILE, Recording
-from endoflow.reconstruction.streams import WriteBehind, read_ahead
+from endoflow.reconstruction.streams import READ_AHEAD, WriteBehind, read_ahead
 
 if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for it
     from endoflow.tracking import RunHandle
@@ -124,11 +125,13 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                           "--force") as stage, torch.no_grad():
         recording = Recording(stage / RECORDING_FILE, source.description)
         with SideBySideVideo(stage / "video.mp4", source.fps / options.frames.stride, size, size) as video, \
-                WriteBehind() as writes:
+                WriteBehind() as writes, contextlib.ExitStack() as stack:
             previous: Optional[torch.Tensor] = None
             shown: Optional[tuple[float, float]] = None
-            inputs = read_ahead(model_inputs(source, options.frames, region, size))
-            for batch in in_batches(inputs, frames_per_call(size, device)):
+            per_call = frames_per_call(size, device)
+            inputs = stack.enter_context(contextlib.closing(
+                read_ahead(model_inputs(source, options.frames, region, size), per_call + READ_AHEAD)))
+            for batch in in_batches(inputs, per_call):
                 images = images_to_device(torch.from_numpy(np.stack([rgb for _, rgb in batch])).permute(0, 3, 1, 2)
                                           .contiguous(), device, "float32")
                 predicted = predict_frames(model, images, previous, options.scale, model_path,
@@ -281,7 +284,8 @@ def predict_frames(model: torch.nn.Module, images: torch.Tensor, previous: Optio
     """
     depths = model.predict_depth(images)[:, 0].float().cpu().numpy() * scale
     earlier = images[:-1] if previous is None else torch.cat([previous, images[:-1]])
-    steps = list(model.predict_pose(earlier, images[len(images) - len(earlier):]).cpu().double().numpy())
+    steps = list(model.predict_pose(earlier, images[len(images) - len(earlier):]).cpu().double().numpy()
+                 ) if len(earlier) else []
     steps = [None] * (len(images) - len(steps)) + steps
     for index, depth, T_cur_prev in zip(indices, depths, steps):
         for name, values in (("depth", depth), ("pose", T_cur_prev)):

@@ -66,7 +66,8 @@ class WriteBehind:
 
     Use as a context manager: leaving it waits for every call submitted (or, on an error, cancels those not
     started and waits for the one running), so nothing is written after the caller has moved on. The first error
-    of a call is raised by the next :meth:`submit` or by leaving the block."""
+    of a call is raised by the next :meth:`submit` that waits for it or by leaving the block; calls already waiting
+    behind the failed one may still run (their outputs go to a folder the error then discards)."""
 
     def __init__(self, waiting: int = WRITE_BEHIND) -> None:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="write-behind")
