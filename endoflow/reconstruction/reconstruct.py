@@ -1,7 +1,8 @@
 """``endoflow reconstruct``: depth per frame, the camera path and a fused surface from a trained model.
 
-Frames stream through the model one at a time (centre-cropped and resized as preprocessing does, K following):
-each frame's depth and the pose network's step from the previous frame, chained into camera-to-world poses from
+Frames stream through the model in small batches (:func:`frames_per_call`; centre-cropped and resized as
+preprocessing does, K following, a batch ahead in a thread, :mod:`endoflow.reconstruction.streams`): each frame's
+depth and the pose network's step from the previous frame, chained into camera-to-world poses from
 the identity at the first frame (``T_world_cur = T_world_prev @ inv(T_cur_prev)``), then refined against
 keyframes with the depth (:mod:`endoflow.geometry.direct_alignment`, unless ``refine`` is None); the depth is
 fused along the path. The outputs go into a staged folder that replaces ``out_dir`` whole, only where it is new,
