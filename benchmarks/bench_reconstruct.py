@@ -338,6 +338,7 @@ class ResidentSetProbe(FrameSource):
     def __init__(self, inner: FrameSource, early: int) -> None:
         self.inner, self.early = inner, early
         self.description, self.native_size, self.K = inner.description, inner.native_size, inner.K
+        self.location = inner.location
         self.length, self.fps = inner.length, inner.fps
         self.early_mib = self.last_mib = self.startup_peak_mib = float("nan")
 
