@@ -40,6 +40,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from code_versions import environment_importing
+
 ROOT = Path(__file__).resolve().parents[1]
 SIDES = ("before", "after")
 CALLS = ("cold", "warm")
@@ -162,9 +164,7 @@ def write_model(params, path: Path) -> None:
 # ------------------------------------------------------------------------------------------ in the driver
 def run_worker(args: argparse.Namespace, role: str, tree: Path, round_index: int = 0) -> dict:
     """``role`` in a fresh process whose ``endoflow`` is the one in ``tree``; its figures (evaluations)."""
-    if not (tree / "endoflow" / "__init__.py").is_file():
-        raise SystemExit(f"{tree}: no endoflow package there (expected {tree / 'endoflow' / '__init__.py'})")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])}
+    env = environment_importing(tree)
     command = [sys.executable, __file__, "--worker", role, "--work", str(args.work), "--round", str(round_index),
                "--baseline", str(args.baseline), "--preset", str(args.preset), "--device", args.device,
                "--sequences", str(args.sequences), "--frames", str(args.frames)]
@@ -207,7 +207,7 @@ def default_frames(args: argparse.Namespace) -> int:
 
 
 def run_python(args: argparse.Namespace, code: str, *argv: str) -> str:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(args.candidate), os.environ.get("PYTHONPATH", "")])}
+    env = environment_importing(args.candidate)
     return subprocess.run([sys.executable, "-c", code, *argv], env=env, capture_output=True, text=True,
                           check=True).stdout.strip()
 

@@ -39,6 +39,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from code_versions import environment_importing
+
 ROOT = Path(__file__).resolve().parents[1]
 CASES = {"video64": ("video", 64, True), "data64": ("data", 64, True), "data480": ("data", 480, True),
          "data480-nofusion": ("data", 480, False), "core64": ("core", 64, True), "core480": ("core", 480, True)}
@@ -185,9 +187,7 @@ def make_inputs(work: Path, frames: int, threads: int) -> None:
 def in_version(args: argparse.Namespace, version: str, arguments: list[str]) -> str:
     """This script run with ``arguments`` in a fresh process importing ``version``'s endoflow; its output."""
     tree = args.baseline.resolve() if version == "before" else ROOT
-    if not (tree / "endoflow" / "__init__.py").is_file():
-        raise SystemExit(f"{tree}: no endoflow package there (expected {tree / 'endoflow' / '__init__.py'})")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])}
+    env = environment_importing(tree)
     command = [sys.executable, __file__, "--baseline", str(args.baseline), "--device", args.device,
                "--threads", str(args.threads), "--frames", str(args.frames), *arguments]
     done = subprocess.run(command, env=env, capture_output=True, text=True)

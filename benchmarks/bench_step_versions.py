@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
 from pathlib import Path
+
+from code_versions import environment_importing
 
 ROOT = Path(__file__).resolve().parents[1]
 VARIANTS = ("before", "after", "compiled")
@@ -134,9 +135,7 @@ def peak_gib(device) -> float:
 def run_variant(args: argparse.Namespace, variant: str) -> dict:
     """``variant``'s figures from a fresh process (``before`` with the baseline's package first on the path)."""
     tree = args.baseline.resolve() if variant == "before" else ROOT
-    if not (tree / "endoflow" / "__init__.py").is_file():
-        raise SystemExit(f"{tree}: no endoflow package there (expected {tree / 'endoflow' / '__init__.py'})")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])}
+    env = environment_importing(tree)
     command = [sys.executable, __file__, "--worker", variant, "--baseline", str(args.baseline), "--preset",
                args.preset, "--size", str(args.size), "--batch", str(args.batch), "--device", args.device,
                "--precision", args.precision, "--steps", str(args.steps), "--threads", str(args.threads)]
