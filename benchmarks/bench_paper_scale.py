@@ -115,7 +115,7 @@ def profile_training_step(params: Params, urls: list[str], device: torch.device,
     """torch.profiler's table of the ``rows`` operators taking most device (else CPU) time in one bf16 training
     step, after two warm-up steps."""
     torch.manual_seed(params.seed)
-    model = to_compute_layout(build_model(params, None), device, "bf16").train()
+    model = to_compute_layout(build_model(params, None), device, "bf16", params.data.size).train()
     batches = rank_batches(urls, 0, 1, batch_size, epoch=0, seed=params.seed)
     activities = [torch.profiler.ProfilerActivity.CPU]
     if device.type == "cuda":
@@ -139,7 +139,7 @@ def measure_training(params: Params, urls: list[str], device: torch.device, prec
                      steps: int, loader_workers: int) -> TrainingFigures:
     """``steps`` timed training steps after one warm-up, fed by the training loader as the loop feeds them."""
     torch.manual_seed(params.seed)
-    model = to_compute_layout(build_model(params, None), device, precision).train()
+    model = to_compute_layout(build_model(params, None), device, precision, params.data.size).train()
     optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=params.train.lr)
     batches = rank_batches(urls, 0, 1, batch_size, epoch=0, seed=params.seed,
                            loader_workers=loader_workers, pin_memory=device.type == "cuda")
@@ -187,7 +187,7 @@ def evaluation_frames_per_second(params: Params, urls: list[str], device: torch.
                                  batches: int) -> float:
     """Depth and pose (as ``evaluate`` computes them) of ``batches`` loader batches, after one warm-up."""
     precision = params.eval.precision
-    model = to_compute_layout(build_model(params, None), device, precision).eval()
+    model = to_compute_layout(build_model(params, None), device, precision, params.data.size).eval()
     loader = rank_batches(urls, 0, 1, batch_size, epoch=0, seed=params.seed)
     frames, seconds = 0, 0.0
     for index in range(batches + 1):

@@ -122,6 +122,10 @@ def run_core(args: argparse.Namespace) -> dict:
     voxel = steps.default_voxel_cm(K, record.params.model.max_depth, size)
     batched = hasattr(steps, "predict_frames")  # this version; the earlier one predicts frame by frame
     batch = steps.frames_per_call(size, device) if batched else 1
+    if batched:  # the networks' layout for frames of this size, as this version's reconstruct chooses it
+        from endoflow.devices import to_compute_layout
+
+        model = to_compute_layout(model, device, "float32", size)
 
     def fuse(frames: list) -> None:
         volume = TSDFVolume(voxel, 4 * voxel, device) if batched else TSDFVolume(voxel, 4 * voxel)

@@ -65,7 +65,12 @@ def run_worker(args: argparse.Namespace) -> dict:
     device = torch.device(args.device)
     params = Params() if args.preset == "defaults" else load_params(ROOT / args.preset)
     torch.manual_seed(0)
-    model = to_compute_layout(build_model(params, None), device, args.precision).train()
+    model = build_model(params, None)
+    try:  # this tree: the layout depends on the frames' size; an earlier one's did not
+        model = to_compute_layout(model, device, args.precision, args.size)
+    except TypeError:
+        model = to_compute_layout(model, device, args.precision)
+    model = model.train()
     losses_of = training_step_losses
     if args.worker == "compiled":
         from endoflow.devices import compiled

@@ -1,7 +1,8 @@
 """Where a stage computes and in what precision: the one home of both choices.
 
 A device key's value (``auto``, ``cpu``, ``cuda``, ``cuda:N``) as a torch device, failing with the key's name;
-a precision key's value as bf16 autocast or float32 (channels-last with bf16 on CUDA); torch's CPU thread count;
+a precision key's value as bf16 autocast or float32; the memory layout of the networks (:func:`wants_channels_last`);
+torch's CPU thread count;
 8-bit images to float in [0, 1] (:func:`unit_float_images`); whether a step runs compiled (:func:`compiled`). See
 docs/method.md, "Devices and precision".
 """
@@ -19,6 +20,10 @@ Step = TypeVar("Step", bound=Callable)
 
 # The first CUDA compute capability with native bf16 arithmetic (Ampere); older GPUs emulate it slowly.
 NATIVE_BF16_CAPABILITY = (8, 0)
+# The smallest frame side (px) whose float32 convolutions run channels-last on a CPU. Measured on 2 cores
+# (docs/benchmarks.md): depth inference 1.6x faster from 128 px up, the paper preset's 480 px step 1.43x; at 64 px the
+# default step is 5 % slower and inference the same, so the default run keeps its contiguous layout.
+CPU_CHANNELS_LAST_MIN_PX = 128
 
 
 def use_cpu_threads(count: int) -> None:
@@ -63,15 +68,19 @@ def autocast(device: torch.device, precision: Precision) -> torch.autocast:
     return torch.autocast(device.type, dtype=torch.bfloat16, enabled=dtype == torch.bfloat16)
 
 
-def wants_channels_last(device: torch.device, precision: Precision) -> bool:
-    """Channels-last helps bf16 convolutions on CUDA (tensor cores) and nothing else."""
-    return device.type == "cuda" and compute_dtype(device, precision) == torch.bfloat16
+def wants_channels_last(device: torch.device, precision: Precision, size: int) -> bool:
+    """Whether the networks compute channels-last for frames whose smaller side is ``size`` px: bf16 convolutions on
+    CUDA (tensor cores), and float32 ones on a CPU from :data:`CPU_CHANNELS_LAST_MIN_PX` up (oneDNN)."""
+    if device.type == "cuda":
+        return compute_dtype(device, precision) == torch.bfloat16
+    return compute_dtype(device, precision) == torch.float32 and size >= CPU_CHANNELS_LAST_MIN_PX
 
 
-def to_compute_layout(module: nn.Module, device: torch.device, precision: Precision) -> nn.Module:
-    """``module`` on ``device``, its 4-d weights channels-last where :func:`wants_channels_last` says so."""
+def to_compute_layout(module: nn.Module, device: torch.device, precision: Precision, size: int) -> nn.Module:
+    """``module`` on ``device``, its 4-d weights channels-last where :func:`wants_channels_last` says so for frames
+    of ``size`` px."""
     module = module.to(device)
-    if wants_channels_last(device, precision):
+    if wants_channels_last(device, precision, size):
         module = module.to(memory_format=torch.channels_last)
     return module
 
@@ -87,9 +96,9 @@ def unit_float_images(images: torch.Tensor) -> torch.Tensor:
 
 def images_to_device(images: torch.Tensor, device: torch.device, precision: Precision) -> torch.Tensor:
     """Images ``[B, C, H, W]`` (8-bit or float) on ``device`` as float in [0, 1] (:func:`unit_float_images`, after
-    the copy), channels-last where the weights are (:func:`to_compute_layout`)."""
+    the copy), channels-last where the weights are (:func:`to_compute_layout` for frames of their size)."""
     images = unit_float_images(images.to(device, non_blocking=True))
-    if wants_channels_last(device, precision):
+    if wants_channels_last(device, precision, min(images.shape[-2:])):
         images = images.contiguous(memory_format=torch.channels_last)
     return images
 

@@ -106,12 +106,17 @@ def test_auto_precision_is_bf16_on_gpus_with_native_bf16_and_float32_elsewhere(
     assert compute_dtype(CUDA, "float32") == torch.float32
     monkeypatch.setattr(torch.cuda, "get_device_capability", lambda device=None: (8, 0))  # Ampere
     assert compute_dtype(CUDA, "auto") == torch.bfloat16
-    assert wants_channels_last(CUDA, "auto") and wants_channels_last(CUDA, "bf16")
+    assert wants_channels_last(CUDA, "auto", 64) and wants_channels_last(CUDA, "bf16", 64)
     monkeypatch.setattr(torch.cuda, "get_device_capability", lambda device=None: (7, 0))  # Volta: emulated bf16
     assert compute_dtype(CUDA, "auto") == torch.float32
-    assert not wants_channels_last(CUDA, "auto")
-    # channels-last only helps tensor-core convolutions: never on the CPU, whatever the precision
-    assert not wants_channels_last(CPU, "bf16") and not wants_channels_last(CUDA, "float32")
+    assert not wants_channels_last(CUDA, "auto", 480)
+    assert not wants_channels_last(CUDA, "float32", 480)
+
+
+def test_on_a_cpu_float32_networks_go_channels_last_from_128_px_up() -> None:
+    assert not wants_channels_last(CPU, "float32", 64) and not wants_channels_last(CPU, "auto", 127)
+    assert wants_channels_last(CPU, "float32", 128) and wants_channels_last(CPU, "auto", 480)
+    assert not wants_channels_last(CPU, "bf16", 480)  # measured for float32 only
 
 
 def test_autocast_computes_products_in_bf16_only_when_precision_says_so() -> None:
@@ -123,10 +128,15 @@ def test_autocast_computes_products_in_bf16_only_when_precision_says_so() -> Non
             assert (a @ b).dtype == torch.float32
 
 
-def test_the_cpu_layout_is_left_as_it_is() -> None:
-    conv = torch.nn.Conv2d(3, 8, 3)
-    moved = to_compute_layout(conv, CPU, "bf16")
-    assert moved.weight.is_contiguous() and moved.weight.dtype == torch.float32
+def test_the_cpu_layout_follows_the_frame_size_and_images_follow_their_weights() -> None:
+    small = to_compute_layout(torch.nn.Conv2d(3, 8, 3), CPU, "float32", 64)
+    assert small.weight.is_contiguous() and small.weight.dtype == torch.float32
+    large = to_compute_layout(torch.nn.Conv2d(3, 8, 3), CPU, "float32", 128)
+    assert large.weight.is_contiguous(memory_format=torch.channels_last) and not large.weight.is_contiguous()
+    for side, weights in ((64, small), (128, large)):
+        images = images_to_device(torch.zeros(2, 3, side, side, dtype=torch.uint8), CPU, "float32")
+        assert images.is_contiguous(memory_format=torch.channels_last) == (side >= 128)
+        assert weights(images).shape == (2, 8, side - 2, side - 2)
 
 
 def test_8_bit_images_become_float_in_the_unit_range_on_their_device_and_float_images_stay() -> None:

@@ -486,7 +486,7 @@ def evaluate_test_set(params: Params, name: str, urls: list[str], model_path: st
     test_set = eval_set(params, name)
     device = resolve_device(params.eval.device, "eval.device")
     model, record = load_trained_model(model_path, device)
-    model = to_compute_layout(model, device, params.eval.precision)
+    model = to_compute_layout(model, device, params.eval.precision, params.data.size)
     started = time.perf_counter()
     earlier = marked_output(f"the predictions of test set {name}", EVALUATION_FILE, test_set=name)
     # On a CPU the networks' threads (``threads``) already take the cores: a recording thread beside them would gain

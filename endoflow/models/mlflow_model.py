@@ -49,10 +49,12 @@ class EndoflowPyfunc:
     def load_context(self, context: Any) -> None:
         import torch
 
+        from endoflow.devices import to_compute_layout
         from endoflow.models.endoflow_model import load_trained_model
 
         self.device = torch.device("cpu")
-        self.model, _ = load_trained_model(context.artifacts[MODEL_FILE_ARTIFACT], self.device)
+        model, record = load_trained_model(context.artifacts[MODEL_FILE_ARTIFACT], self.device)
+        self.model = to_compute_layout(model, self.device, "float32", record.params.data.size)
 
     def predict(self, context: Any, model_input: np.ndarray, params: Optional[dict] = None) -> dict[str, np.ndarray]:
         import torch

@@ -26,7 +26,7 @@ import torch
 from endoflow.config import DATASETS, ModelConfig, Params
 from endoflow.data.field_of_view import FIELD_OF_VIEW_FRAMES, NoFieldOfView, field_of_view, resized_field_of_view
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
-from endoflow.devices import images_to_device, resolve_device
+from endoflow.devices import images_to_device, resolve_device, to_compute_layout
 from endoflow.errors import DataFormatError
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings
 from endoflow.geometry.pose import chain_step, invert_pose, relative_pose
@@ -106,6 +106,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
     device = resolve_device(options.device, "--device")
     model, record = load_trained_model(model_path, device)
     size = options.size or record.params.data.size
+    model = to_compute_layout(model, device, "float32", size)
     region = frame_region(source.native_size, options.crop, source.description)
     K, intrinsics_from = input_intrinsics(K_native, region, size, model, record.params.data.assumed_fov_deg)
     print(f"[reconstruct] intrinsics: {intrinsics_from}", file=sys.stderr)
@@ -213,6 +214,9 @@ class PathPhotometry:
                           "network": relative_pose(path.network_poses[-1], path.network_poses[-2]),
                           "constant_velocity": invert_pose(self.constant_step)}
             for name, T in T_cur_prev.items():
+                if name == "network" and np.array_equal(T, T_cur_prev["path"]):  # the path written is the network's
+                    self.errors[name].append(self.errors["path"][-1])
+                    continue
                 self.errors[name].append(self._error(prev_image, prev_depth, image,
                                                      torch.from_numpy(T).float()[None]))
         self.previous = (image, torch.from_numpy(depth).float()[None, None])

@@ -29,7 +29,7 @@ from endoflow.data.frame_encoding import resize_rgb, stored_intrinsics
 from endoflow.data.intrinsics import check_intrinsics, read_intrinsics
 from endoflow.data.registry import open_reader
 from endoflow.data.video import video_sequence
-from endoflow.devices import images_to_device, resolve_device
+from endoflow.devices import images_to_device, resolve_device, to_compute_layout
 from endoflow.errors import DataFormatError
 from endoflow.io import file_sha256
 from endoflow.losses.photometric import held_out_photometric_error
@@ -153,6 +153,7 @@ def adapt(sequence: Sequence, model_path: Path, out_path: Path, options: AdaptOp
     model, record = load_trained_model(model_path, device)
     params = record.params
     size = params.data.size
+    model = to_compute_layout(model, device, "float32", size)
     positions = list(range(options.start, min(options.stop or len(sequence), len(sequence)), options.stride))
     kept = kept_frames(len(positions), options.held_out)
     held_out = len(positions) - kept

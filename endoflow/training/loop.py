@@ -113,7 +113,7 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
     torch.manual_seed(params.seed)  # identical initial weights on every rank (DDP also broadcasts them)
 
     model = build_model(params, local_file(config.latent_bank) if config.latent_bank else None)
-    if wants_channels_last(device, params.train.precision):
+    if wants_channels_last(device, params.train.precision, params.data.size):
         model = model.to(memory_format=torch.channels_last)
     # a camera's intrinsics are learned only where the train shards do not know them (no unused parameters in DDP)
     model.intrinsics.requires_grad_(bool(config.learn_intrinsics))

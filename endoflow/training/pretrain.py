@@ -157,8 +157,8 @@ def train_gan(
     spec = generator_spec(params)
     # Built on the CPU from the global seed, then moved: the same initial weights on every device.
     generator, critic = LatentBankGenerator(spec), Critic(spec)
-    generator = to_compute_layout(generator, device, cfg.precision)
-    critic = to_compute_layout(critic, device, cfg.precision)
+    generator = to_compute_layout(generator, device, cfg.precision, spec.resolution)
+    critic = to_compute_layout(critic, device, cfg.precision, spec.resolution)
     ema = EMA(generator, cfg.ema_decay)
     opt_g = torch.optim.Adam(generator.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
     opt_c = torch.optim.Adam(critic.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
