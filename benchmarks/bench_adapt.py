@@ -2,11 +2,13 @@
 photometric error before and after, and the depth of held-out frames drawn before and after.
 
     python benchmarks/bench_adapt.py VIDEO --model models/endoflow.pt [--crop X,Y,W,H] [--steps 300]
-                                     [--adapted ADAPTED.pt] [--figure depth.png] [--frames 4] [--rgb]
+                                     [--adapted ADAPTED.pt] [--also LABEL=MODEL ...] [--figure depth.png]
+                                     [--frames 4] [--rgb]
 
 Without ``--adapted`` it adapts ``--model`` to ``VIDEO`` as `endoflow adapt` does (into a temporary file) and
-prints steps per second and the CPU seconds this process used; with it, it only compares the two models. The
-figure has one row per model, the depth of evenly spaced held-out frames in cm at the model's scale (black outside
+prints steps per second and the CPU seconds this process used; with it, it only compares the two models.
+``--also`` adds models to compare (a model trained with the video in its training data, say), each under its label.
+The figure has one row per model, the depth of evenly spaced held-out frames in cm at the model's scale (black outside
 the field of view), one colour scale per row; ``--rgb`` adds the frames above (leave them out for footage whose
 licence does not let you publish it).
 """
@@ -76,6 +78,13 @@ def depth_figure(rows: dict[str, np.ndarray], valid: np.ndarray, rgb: np.ndarray
     return figure
 
 
+def labelled_model(text: str) -> tuple[str, Path]:
+    label, separator, path = text.partition("=")
+    if not separator or not label or not path:
+        raise argparse.ArgumentTypeError(f"expected LABEL=MODEL, got {text!r}")
+    return label, Path(path)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("video", type=Path)
@@ -88,6 +97,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=4, choices=range(1, 33), metavar="1..32",
                         help="held-out frames drawn")
     parser.add_argument("--rgb", action="store_true", help="draw the frames above their depth")
+    parser.add_argument("--also", nargs="+", default=[], type=labelled_model, metavar="LABEL=MODEL",
+                        help="more models to compare, e.g. trained-on-clip=clip.pt")
     args = parser.parse_args()
     use_cpu_threads(args.threads)
     _, record = load_trained_model(args.model, torch.device("cpu"))
@@ -107,7 +118,7 @@ def main() -> None:
     held_out = torch.arange(kept + 1, count - 1)  # the targets `endoflow adapt` scores
     drawn = torch.linspace(kept + 1, count - 2, args.frames).round().long()
     depths = {}
-    for name, path in (("default", args.model), ("adapted", adapted)):
+    for name, path in (("default", args.model), ("adapted", adapted), *args.also):
         depths[name], error = held_out_depth(path, frames, held_out, drawn)
         print(f"{name}: held-out photometric error {error:.4f} ({path})")
     if args.figure:
