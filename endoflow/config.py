@@ -397,6 +397,9 @@ class TrainConfig(Section):
     # An assumed focal length can be off by a factor of two: at train.lr the corrections would move too slowly.
     intrinsics_lr: Number = setting(2e-3, "learning rate of the intrinsics learned for cameras whose K is unknown "
                                           "(models/intrinsics.py)", gt=0)
+    intrinsics_principal_point: bool = setting(True, "learn the principal point of a camera whose K is unknown beside "
+                                                     "its focal lengths; false: held at the assumed centre (forward "
+                                                     "motion confounds it with the direction of travel)")
     # adam adds the decay to the gradient (L2), which Adam's normalisation inflates wherever the photometric
     # gradient is small; on the default data it stalls learning.
     optimizer: Literal["adam", "adamw"] = setting("adamw", "adamw: decoupled weight decay; adam: L2 decay")

@@ -41,6 +41,29 @@ def test_an_untrained_camera_is_the_assumed_one_and_a_calibrated_one_is_left_alo
     assert not known.requires_grad  # all calibrated: no graph through the corrections
 
 
+def test_with_the_principal_point_held_only_the_focal_lengths_learn_and_switching_back_frees_it():
+    cameras = CameraIntrinsics(len(DATASETS))
+    K = torch.tensor([[20.0, 0, 15.5], [0, 20.0, 15.5], [0, 0, 1]]).expand(2, 3, 3)
+    camera = torch.tensor([DATASETS.index("video")] * 2)
+    unknown = torch.tensor([False, False])
+    optimiser = torch.optim.Adam(cameras.parameters(), lr=0.1)
+
+    def step() -> torch.Tensor:
+        optimiser.zero_grad()
+        cameras(K, camera, unknown, (32, 32)).sum().backward()  # every entry of K pulled down
+        optimiser.step()
+        return cameras.corrections.detach()[DATASETS.index("video")].clone()
+
+    cameras.learn(True, principal_point=False)
+    held = step()
+    assert held[0] < 0 and held[1] < 0 and torch.equal(held[2:], torch.zeros(2))
+    cameras.learn(True)
+    freed = step()
+    assert freed[2] < 0 and freed[3] < 0
+    cameras.learn(False)
+    assert not cameras.corrections.requires_grad
+
+
 def rendered_triplets(lateral: bool, size: int = 64) -> dict[str, torch.Tensor]:
     """Built-in colon frames with exact depth, poses and K: the camera moving forward, or (``lateral``) also
     sideways and turning, as triplets."""

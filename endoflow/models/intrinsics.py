@@ -12,11 +12,15 @@ depends on the data and every model file holds it:
   image, so one camera's numbers hold at every image size.
 
 All four start at 0 (the assumed K). Only samples whose K is unknown take the learned one (``intrinsics_known``
-False); a calibrated camera's K is used as given. Why parameters rather than a head predicting K from frames, and
+False); a calibrated camera's K is used as given. :meth:`CameraIntrinsics.learn` says whether training moves them,
+and whether the principal point too (``train.intrinsics_principal_point``: under forward motion it is confounded
+with the direction of travel, docs/results.md). Why parameters rather than a head predicting K from frames, and
 what it recovers: docs/method.md, "Intrinsics learned from the video".
 """
 
 from __future__ import annotations
+
+from typing import Optional
 
 import torch
 from torch import nn
@@ -30,6 +34,18 @@ class CameraIntrinsics(nn.Module):
     def __init__(self, cameras: int) -> None:
         super().__init__()
         self.corrections = nn.Parameter(torch.zeros(cameras, 4))
+        self._centre_held: Optional[torch.utils.hooks.RemovableHandle] = None
+
+    def learn(self, enabled: bool, principal_point: bool = True) -> None:
+        """Whether gradients reach the corrections, and with ``principal_point`` False only the focal lengths' (the
+        principal point's gradient is zeroed, so an optimiser without weight decay leaves it where it is)."""
+        self.corrections.requires_grad_(enabled)
+        if self._centre_held is not None:
+            self._centre_held.remove()
+            self._centre_held = None
+        if enabled and not principal_point:
+            focal_only = torch.tensor([1.0, 1.0, 0.0, 0.0])
+            self._centre_held = self.corrections.register_hook(lambda grad: grad * focal_only.to(grad))
 
     def forward(self, K: torch.Tensor, camera: torch.Tensor, known: torch.Tensor, size: tuple[int, int]
                 ) -> torch.Tensor:

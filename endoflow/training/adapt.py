@@ -193,7 +193,7 @@ def fine_tune(model: EndoflowModel, frames: Frames, targets: torch.Tensor, optio
     cfg = params.train.replace(lr=adapt_lr(options, params))
     batch_size = min(options.batch_size or cfg.batch_size, len(targets))
     learn_K = not frames.intrinsics_known
-    model.intrinsics.requires_grad_(learn_K)
+    model.intrinsics.learn(learn_K, params.train.intrinsics_principal_point)
     network = [p for name, p in model.named_parameters() if p.requires_grad and not name.startswith("intrinsics.")]
     optimizer = make_optimizer(network, cfg, list(model.intrinsics.parameters()) if learn_K else [])
     generator = torch.Generator().manual_seed(params.seed if options.seed is None else options.seed)

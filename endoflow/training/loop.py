@@ -116,7 +116,7 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
     if wants_channels_last(device, params.train.precision, params.data.size):
         model = model.to(memory_format=torch.channels_last)
     # a camera's intrinsics are learned only where the train shards do not know them (no unused parameters in DDP)
-    model.intrinsics.requires_grad_(bool(config.learn_intrinsics))
+    model.intrinsics.learn(bool(config.learn_intrinsics), params.train.intrinsics_principal_point)
     module = ray.train.torch.prepare_model(LossModule(model, params, device), move_to_device=True)
     network = [p for name, p in model.named_parameters() if p.requires_grad and not name.startswith("intrinsics.")]
     optimizer = make_optimizer(network, params.train, list(model.intrinsics.parameters())
