@@ -38,8 +38,8 @@ from endoflow.devices import (  # noqa: E402
     batch_to_device,
     compiled,
     images_to_device,
+    to_compute_layout,
     use_cpu_threads,
-    wants_channels_last,
 )
 from endoflow.evaluation import metrics, plots  # noqa: E402
 from endoflow.locations import local_file  # noqa: E402
@@ -113,8 +113,7 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
     torch.manual_seed(params.seed)  # identical initial weights on every rank (DDP also broadcasts them)
 
     model = build_model(params, local_file(config.latent_bank) if config.latent_bank else None)
-    if wants_channels_last(device, params.train.precision, params.data.size):
-        model = model.to(memory_format=torch.channels_last)
+    model = to_compute_layout(model, device, params.train.precision, params.data.size)
     # a camera's intrinsics are learned only where the train shards do not know them (no unused parameters in DDP)
     model.intrinsics.learn(bool(config.learn_intrinsics), params.train.intrinsics_principal_point)
     module = ray.train.torch.prepare_model(LossModule(model, params, device), move_to_device=True)
