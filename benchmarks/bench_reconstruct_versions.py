@@ -22,7 +22,8 @@ the field-of-view pass, the contact sheet):
   on frames decoded and resized beforehand, nothing written: what a GPU can be timed on where PyAV and rerun
   (the outputs' video and recording) are not installed. Per frame only (the start-up is left out).
 
-With ``--rounds`` > 1 the two versions alternate so that load from other processes hits both alike, and the
+``--versions after`` times this tree alone (the figures of ``before`` print as nan). With ``--rounds`` > 1 the two
+versions alternate so that load from other processes hits both alike, and the
 median is printed. Figures are printed, not asserted.
 """
 
@@ -46,6 +47,7 @@ CASES = {"video64": ("video", 64, True), "data64": ("data", 64, True), "data480"
          "data480-nofusion": ("data", 480, False), "core64": ("core", 64, True), "core480": ("core", 480, True)}
 VIDEO_SIZE = (1080, 1920)
 WARM_UP_FRAMES = 3
+VERSIONS = ("before", "after")
 
 
 def parse_args() -> argparse.Namespace:
@@ -56,8 +58,11 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--cases", nargs="+", choices=tuple(CASES), default=list(CASES))
+    parser.add_argument("--versions", nargs="+", choices=VERSIONS, default=list(VERSIONS),
+                        help="'after' alone where the earlier code is known to be slow (its numpy TSDF at 480 px)")
     parser.add_argument("--worker", nargs=3, metavar=("CASE", "WORK", "OUT"), help=argparse.SUPPRESS)
     parser.add_argument("--make-inputs", type=Path, metavar="WORK", help=argparse.SUPPRESS)
+    parser.add_argument("--with-video", action="store_true", help=argparse.SUPPRESS)
     return parser.parse_args()
 
 
@@ -156,8 +161,10 @@ def run_core(args: argparse.Namespace) -> dict:
     return timed
 
 
-def make_inputs(work: Path, frames: int, threads: int) -> None:
-    """The model file, the 480 px scene and the 1080p video (see the module docstring)."""
+def make_inputs(work: Path, frames: int, threads: int, video: bool, device: str) -> None:
+    """The model file, the 480 px scene (rendered on ``device``: at 480 px a CPU renders about a
+    frame per second and process) and, where ``video``, the 1080p video (see the module docstring); each step
+    says when it starts and ends, so that a run cut short by a time limit shows where it stood."""
     import av
     import cv2
     import numpy as np
@@ -176,8 +183,12 @@ def make_inputs(work: Path, frames: int, threads: int) -> None:
                                   mean_relative_pose=np.eye(4))
     save_model_file(work / "model.pt", ModelRecord(params=params, state=build_model(params, None).state_dict(),
                                                    epoch=0, val={}, mlflow_run_id=None, baselines=baselines))
-    synthesize_layout("simcol", work / "scene", sequences=1, frames=frames, size=480, seed=0, params=params,
-                      workers=threads, device="cpu")
+    print(f"rendering {frames} frames a sequence at 480 px", file=sys.stderr, flush=True)
+    print(synthesize_layout("simcol", work / "scene", sequences=1, frames=frames, size=480, seed=0, params=params,
+                            workers=threads, device=device), file=sys.stderr, flush=True)
+    if not video:
+        return
+    started = time.perf_counter()
     height, width = VIDEO_SIZE
     with av.open(str(work / "video.mp4"), "w", format="mp4") as container:
         stream = container.add_stream("libx264", rate=25, options={"preset": "ultrafast"})
@@ -186,17 +197,21 @@ def make_inputs(work: Path, frames: int, threads: int) -> None:
             large = cv2.resize(frame.rgb, (width, height), interpolation=cv2.INTER_LINEAR)
             container.mux(stream.encode(av.VideoFrame.from_ndarray(large, format="rgb24")))
         container.mux(stream.encode())
+    print(f"1080p video encoded in {time.perf_counter() - started:.1f} s", file=sys.stderr, flush=True)
 
 
-def in_version(args: argparse.Namespace, version: str, arguments: list[str]) -> str:
-    """This script run with ``arguments`` in a fresh process importing ``version``'s endoflow; its output."""
+def in_version(args: argparse.Namespace, version: str, arguments: list[str], progress: bool = False) -> str:
+    """This script run with ``arguments`` in a fresh process importing ``version``'s endoflow; its output. Its
+    messages pass through as they come where ``progress``, else they are shown only if it fails."""
     tree = args.baseline.resolve() if version == "before" else ROOT
     env = environment_importing(tree)
     command = [sys.executable, __file__, "--baseline", str(args.baseline), "--device", args.device,
                "--threads", str(args.threads), "--frames", str(args.frames), *arguments]
-    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    done = subprocess.run(command, env=env, stdout=subprocess.PIPE, stderr=None if progress else subprocess.PIPE,
+                          text=True)
     if done.returncode:
-        raise SystemExit(f"{version} {' '.join(arguments)} failed:\n{done.stderr[-3000:]}")
+        detail = f":\n{done.stderr[-3000:]}" if done.stderr else " (its messages above)"
+        raise SystemExit(f"{version} {' '.join(arguments)} failed{detail}")
     return done.stdout
 
 
@@ -211,17 +226,18 @@ def main() -> None:
         print(json.dumps(run_worker(args)))
         return
     if args.make_inputs:
-        make_inputs(args.make_inputs, args.frames, args.threads)
+        make_inputs(args.make_inputs, args.frames, args.threads, args.with_video, args.device)
         return
     with tempfile.TemporaryDirectory(prefix="bench_reconstruct_versions_") as folder:
         work = Path(folder)
         started = time.perf_counter()
-        in_version(args, "before", ["--make-inputs", str(work)])
+        video = ["--with-video"] if any(CASES[case][0] == "video" for case in args.cases) else []
+        in_version(args, "before", ["--make-inputs", str(work), *video], progress=True)
         print(f"inputs made in {time.perf_counter() - started:.0f} s", flush=True)
         rates: dict[tuple[str, str, str], list[float]] = {}
         for round_index in range(args.rounds):
             for case in args.cases:
-                for version in ("before", "after"):
+                for version in args.versions:
                     run = run_case(args, version, case, work)
                     whole = run["all"]["frames"] / run["all"]["seconds"]
                     extra = (run["all"]["frames"] - run["half"]["frames"]) / (run["all"]["seconds"]
@@ -235,11 +251,10 @@ def main() -> None:
     print(f"{'case':17s} {'before':>9s} {'after':>9s} {'after/before':>13s} {'per frame: before':>18s} "
           f"{'after':>9s} {'after/before':>13s}   (frames/s)")
     for case in args.cases:
-        call, frame = ([statistics.median(rates[(case, v, kind)]) for v in ("before", "after")]
-                       for kind in ("call", "frame"))
+        call, frame = ([statistics.median(rates[(case, v, kind)]) if v in args.versions else float("nan")
+                        for v in VERSIONS] for kind in ("call", "frame"))
         print(f"{case:17s} {call[0]:9.2f} {call[1]:9.2f} {call[1] / call[0]:13.2f} {frame[0]:18.2f} "
               f"{frame[1]:9.2f} {frame[1] / frame[0]:13.2f}")
-
 
 if __name__ == "__main__":
     main()

@@ -75,7 +75,7 @@ def run_worker(args: argparse.Namespace) -> dict:
     if args.worker == "compiled":
         from endoflow.devices import compiled
 
-        losses_of = compiled(training_step_losses, device, "on")
+        losses_of = compiled(training_step_losses, device, True)
     batch = random_batch(args.batch, args.size, device)
     optimiser = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
 

@@ -118,7 +118,13 @@ def _is_image(value: object) -> bool:
 
 def compiles(device: torch.device, setting: Compile) -> bool:
     """Whether ``setting`` compiles a step on ``device``: ``auto`` does on CUDA only. On a CPU, inductor's C++
-    backend needs a compiler and minutes of warm-up on 2 cores, which a short run never earns back."""
+    backend needs a compiler and minutes of warm-up on 2 cores, which a short run never earns back.
+
+    Raises:
+        ValueError: for any other setting (a string such as ``"on"`` would otherwise run eager unnoticed).
+    """
+    if not (isinstance(setting, bool) or setting == "auto"):
+        raise ValueError(f"compile setting {setting!r}: expected True, False or 'auto'")
     return setting is True or (setting == "auto" and device.type == "cuda")
 
 

@@ -313,6 +313,12 @@ def test_auto_compiles_the_step_on_a_gpu_only_true_everywhere_and_false_nowhere(
     assert (compiles(CPU, setting), compiles(CUDA, setting)) == (on_cpu, on_cuda)
 
 
+@pytest.mark.parametrize("setting", ["on", "true", 1, None])
+def test_a_compile_setting_other_than_true_false_or_auto_is_refused(setting) -> None:
+    with pytest.raises(ValueError, match="expected True, False or 'auto'"):
+        compiled(training_step_losses, CUDA, setting)
+
+
 def test_a_step_left_uncompiled_is_the_function_itself() -> None:
     assert compiled(training_step_losses, CPU, "auto") is training_step_losses
     assert compiled(training_step_losses, CUDA, False) is training_step_losses
