@@ -3,6 +3,7 @@ known motion, never end worse than they start, and ignore a black field-of-view 
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +25,9 @@ from endoflow.synth.writers import plan_jobs, simcol_intrinsics, tube_sequence
 
 SIZE = 64
 FRAMES = 40
-# exact depth: the light's fall-off with distance (inverse-square through the renderer's gamma 2.2) holds
-EXACT = AlignmentSettings(light_falloff=0.91)
+# exact depth: the light's fall-off with distance (inverse-square through the renderer's gamma 2.2) holds; the
+# rotation free, since these starts are off the truth on purpose (the prior's tests set it)
+EXACT = AlignmentSettings(light_falloff=0.91, rotation_prior=0.0)
 
 
 @pytest.fixture(scope="module")
@@ -61,6 +63,33 @@ def test_a_known_motion_is_recovered_from_a_start_a_frames_motion_off(rendered: 
     assert rotation < 0.1 and translation < 0.01
     assert result.cost_end < 0.5 * result.cost_start
     assert result.gain == pytest.approx(1.0, abs=0.05) and result.offset == pytest.approx(0.0, abs=0.02)
+
+
+def test_a_strong_rotation_prior_keeps_the_start_rotation_and_leaves_the_translation_to_the_frames(rendered: dict):
+    truth = relative_pose(rendered["poses"][3], rendered["poses"][0])
+    turned = pose_vec_to_matrix(torch.tensor([0.003, -0.002, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)).numpy()
+    start = turned @ truth
+    start[:3, 3] = 0.5 * truth[:3, 3]  # half the true translation
+    settings = {weight: replace(EXACT, rotation_prior=weight) for weight in (0.0, 0.1, 1e4)}
+    result = {weight: align_to_keyframe(rendered["rgb"][0], rendered["depth"][0], rendered["rgb"][3], rendered["K"],
+                                        torch.from_numpy(start), value).T_frame_key.numpy()
+              for weight, value in settings.items()}
+    from_start = {weight: errors(pose, start)[0] for weight, pose in result.items()}
+    from_truth = {weight: errors(pose, truth) for weight, pose in result.items()}
+    assert from_start[1e4] < 0.002  # degrees: held at the start's rotation, 0.21 degree off the truth ...
+    assert from_truth[1e4][1] < 0.2 * np.linalg.norm(truth[:3, 3])  # ... while the translation still comes
+    assert from_truth[0.0][0] < 0.1  # free, the rotation goes to the truth (the rest: the renderer's light)
+    assert from_start[1e4] < from_start[0.1] < from_start[0.0]  # in between, a weaker pull
+
+
+def test_the_rotation_prior_measures_the_rotation_after_the_start_in_radians():
+    start = pose_vec_to_matrix(torch.tensor([0.2, -0.1, 0.3, 1.0, 2.0, 3.0], dtype=torch.float64))
+    theta = torch.tensor([0.01, 0.02, -0.005], dtype=torch.float64)
+    pose = pose_vec_to_matrix(torch.cat([theta, torch.zeros(3, dtype=torch.float64)])) @ start
+    prior = direct_alignment._RotationPrior(start[:3, :3], weight=2.0)
+    torch.testing.assert_close(prior.departure(pose), theta)
+    assert prior.cost(pose) == pytest.approx(0.5 * 2.0 * float(theta.square().sum()))
+    assert prior.cost(start) == 0.0 and direct_alignment._RotationPrior(start[:3, :3], 0.0).cost(pose) == 0.0
 
 
 def test_a_change_of_brightness_is_taken_up_by_the_gain_and_offset(rendered: dict):

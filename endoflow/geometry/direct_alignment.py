@@ -1,6 +1,7 @@
 """Direct photometric alignment of a frame to a keyframe with known depth (the tracking of DSO and of
 Endo-Depth-and-Motion, reduced to one keyframe): the rigid motion and an affine brightness change that make the
-frame, warped into the keyframe with the keyframe's depth, look like the keyframe.
+frame, warped into the keyframe with the keyframe's depth, look like the keyframe, with a prior that holds the
+rotation near the start's (the pose network's step).
 
 Residual per keyframe pixel and colour channel: ``r = exp(a) * I_frame(w(p)) + b - I_key(p)``, where ``w`` moves
 the keyframe point at ``p`` (its depth ``d``) into the frame by ``T_frame_key`` and projects it. Gauss-Newton with
@@ -9,7 +10,10 @@ Levenberg-Marquardt damping on the 8 parameters (a left increment ``(omega, t)``
 further away is darker: the frame's brightness is brought to the keyframe's distance (``light_falloff``). Pixels
 take part where the keyframe has depth, lands inside the frame in front of its camera, and is, in both images,
 neither saturated (a specular highlight, which moves with the light) nor black (the dark border of an endoscope's
-field of view). A step is kept only where it lowers the cost
+field of view). The prior adds ``rotation_prior / 2 * |theta|^2`` to each pixel's cost, ``theta`` the axis-angle
+of the rotation between the current pose and the start: with a model's depth, which is wrong in shape away from
+its training data, the photometric cost trades rotation against translation, and the pose network's rotation
+keeps the two apart. A step is kept only where it lowers the cost
 over the pixels that take part both before and after it (and keeps at least half of them), so the result is
 never worse than the start. See docs/reconstruction.md, "The path refined".
 """
@@ -24,23 +28,26 @@ import torch.nn.functional as F
 from endoflow.config import RefineConfig
 from endoflow.geometry.camera import backproject, intrinsics_inverse, scale_intrinsics
 from endoflow.geometry.warp import sampling_grid
-from endoflow.geometry.pose import invert_pose, nearest_rigid, pose_vec_to_matrix
+from endoflow.geometry.pose import invert_pose, matrix_to_axis_angle, nearest_rigid, pose_vec_to_matrix
 from endoflow.shapes import check_shape
 
 SATURATED = 0.98  # a keyframe pixel with a channel above this is a highlight
 BLACK = 0.02  # a keyframe pixel with every channel below this is outside the field of view
 KEPT_SHARE = 0.5  # a step that leaves fewer than this share of the pixels taking part is refused
+REFINE = RefineConfig()  # the defaults' one source, the config schema
 
 
 @dataclass(frozen=True)
 class AlignmentSettings:
-    levels: int = 3  # pyramid levels, each half the size of the one below
-    iterations: int = 12  # Gauss-Newton steps per level at most
-    huber: float = 0.04  # residual (intensity in [0, 1]) beyond which a pixel's weight falls as 1 / |r|
+    """How one frame is aligned (``refine.*``, see the config schema): pyramid levels, Gauss-Newton steps per level,
+    the Huber threshold, the light's fall-off and the rotation prior's weight."""
+
+    levels: int = REFINE.levels
+    iterations: int = REFINE.iterations
+    huber: float = REFINE.huber
     min_pixels: int = 64  # fewer valid pixels at a level: that level is skipped
-    # the light sits at the lens: a point's brightness goes as distance^-light_falloff (2 / display gamma: an
-    # inverse-square fall-off seen through gamma 2.2 is 0.91); 0: brightness does not depend on the distance
-    light_falloff: float = 0.0
+    light_falloff: float = REFINE.light_falloff
+    rotation_prior: float = REFINE.rotation_prior
 
 
 @dataclass(frozen=True)
@@ -75,15 +82,32 @@ def align_to_keyframe(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb:
     pyramid = _pyramid(key_rgb.to(dtype), key_depth.to(dtype), frame_rgb.to(dtype), K.to(dtype), settings.levels)
     pose, brightness = T_frame_key.to(dtype).clone(), torch.zeros(2, dtype=dtype)
     start, start_brightness = pose.clone(), brightness.clone()
+    prior = _RotationPrior(start[:3, :3], settings.rotation_prior)
     for level in reversed(pyramid):
-        pose, brightness = _refine_level(level, pose, brightness, settings)
+        pose, brightness = _refine_level(level, pose, brightness, settings, prior)
     finest = pyramid[0]
-    cost_start, cost_end, both = _compare(_costs(finest, (start, start_brightness), settings),
-                                          _costs(finest, (pose, brightness), settings))
+    cost_start, cost_end, both = _compare(_costs(finest, (start, start_brightness), settings, prior),
+                                          _costs(finest, (pose, brightness), settings, prior))
     if not cost_end <= cost_start:  # coarse levels can mislead: never hand back worse than the start
         pose, brightness, cost_end = start, start_brightness, cost_start
     return Alignment(pose, float(torch.exp(brightness[0])), float(brightness[1]), cost_start, cost_end,
                      float(both.sum() / finest.usable.sum().clamp(min=1)))
+
+
+@dataclass(frozen=True)
+class _RotationPrior:
+    """The rotation's pull towards ``start [3, 3]`` with weight ``weight`` (see the module docstring)."""
+
+    start: torch.Tensor
+    weight: float
+
+    def departure(self, pose: torch.Tensor) -> torch.Tensor:
+        """``[3]`` axis-angle (radians) of ``pose``'s rotation after the start's: ``R_pose = exp(theta) R_start``,
+        the left increment the Gauss-Newton steps use."""
+        return matrix_to_axis_angle(pose[:3, :3] @ self.start.T)
+
+    def cost(self, pose: torch.Tensor) -> float:
+        return 0.5 * self.weight * float(self.departure(pose).square().sum()) if self.weight else 0.0
 
 
 @dataclass(frozen=True)
@@ -156,15 +180,15 @@ def _lit(level: _Level, moved: torch.Tensor, falloff: float) -> torch.Tensor:
     return (moved.norm(dim=0).clamp(min=1e-9) / level.distance) ** falloff
 
 
-def _costs(level: _Level, state: tuple[torch.Tensor, torch.Tensor], settings: AlignmentSettings
-           ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-pixel Huber cost ``[N]`` (summed over channels) at ``state`` (pose, brightness) and where the pixels take
-    part."""
+def _costs(level: _Level, state: tuple[torch.Tensor, torch.Tensor], settings: AlignmentSettings,
+           prior: _RotationPrior) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel cost ``[N]`` (Huber, summed over channels, plus the rotation prior's share) at ``state`` (pose,
+    brightness) and where the pixels take part."""
     pose, brightness = state
     sampled, moved, _, inside = _sample(level, pose)
     lit = _lit(level, moved, settings.light_falloff)
     residual = torch.exp(brightness[0]) * lit * sampled[:3] + brightness[1] - level.key_values
-    return _huber(residual, settings.huber).sum(dim=0), level.usable & inside
+    return _huber(residual, settings.huber).sum(dim=0) + prior.cost(pose), level.usable & inside
 
 
 def _compare(before: tuple[torch.Tensor, torch.Tensor], after: tuple[torch.Tensor, torch.Tensor]
@@ -177,8 +201,8 @@ def _compare(before: tuple[torch.Tensor, torch.Tensor], after: tuple[torch.Tenso
     return float(cost_before[both].mean()), float(cost_after[both].mean()), both
 
 
-def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor,
-                  settings: AlignmentSettings) -> tuple[torch.Tensor, torch.Tensor]:
+def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor, settings: AlignmentSettings,
+                  prior: _RotationPrior) -> tuple[torch.Tensor, torch.Tensor]:
     damping = 1e-3
     for _ in range(settings.iterations):
         sampled, moved, pixels, inside = _sample(level, pose)
@@ -190,12 +214,16 @@ def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor,
                               settings.huber / residual.abs().clamp(min=1e-12))
         hessian = jacobian.T @ (weights[:, None] * jacobian)
         gradient = jacobian.T @ (weights * residual)
+        if prior.weight:  # the prior's residual sqrt(weight) * theta, once per pixel taking part, d theta ~ omega
+            pixels_taking_part = float(mask.sum())
+            hessian[:3, :3] += prior.weight * pixels_taking_part * torch.eye(3, dtype=hessian.dtype)
+            gradient[:3] += prior.weight * pixels_taking_part * prior.departure(pose)
         improved = False
-        current = _costs(level, (pose, brightness), settings)
+        current = _costs(level, (pose, brightness), settings, prior)
         while damping < 1e6:
             step = -torch.linalg.solve(hessian + damping * torch.diag(hessian.diagonal().clamp(min=1e-12)), gradient)
             candidate = (pose_vec_to_matrix(step[:6]) @ pose, brightness + step[6:])
-            before, after, _ = _compare(current, _costs(level, candidate, settings))
+            before, after, _ = _compare(current, _costs(level, candidate, settings, prior))
             if after < before:
                 (pose, brightness), damping, improved = candidate, damping / 3, True
                 break
@@ -230,15 +258,18 @@ def _linearise(level: _Level, sampled: torch.Tensor, moved: torch.Tensor, pixels
 
 @dataclass(frozen=True)
 class TrackerSettings:
+    """The alignment of each frame, and when a frame becomes the keyframe (``refine.keyframe_every``,
+    ``refine.min_overlap``)."""
+
     alignment: AlignmentSettings = AlignmentSettings()
-    keyframe_every: int = 6  # a new keyframe after this many frames at most
-    min_overlap: float = 0.5  # ... or once fewer of the keyframe's pixels than this share still take part
+    keyframe_every: int = REFINE.keyframe_every
+    min_overlap: float = REFINE.min_overlap
 
 
 def tracker_settings(cfg: RefineConfig) -> TrackerSettings:
     """The tracker's settings from the ``refine`` params."""
     alignment = AlignmentSettings(levels=cfg.levels, iterations=cfg.iterations, huber=cfg.huber,
-                                  light_falloff=cfg.light_falloff)
+                                  light_falloff=cfg.light_falloff, rotation_prior=cfg.rotation_prior)
     return TrackerSettings(alignment, keyframe_every=cfg.keyframe_every, min_overlap=cfg.min_overlap)
 
 
