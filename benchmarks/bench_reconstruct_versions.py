@@ -2,12 +2,14 @@
 
     python benchmarks/bench_reconstruct_versions.py --baseline DIR [--frames 60] [--device cpu|cuda]
                                                     [--rounds 1] [--threads 2] [--cases video64 data480 ...]
+                                                    [--versions before after]
 
 ``DIR`` holds an earlier ``endoflow`` package (``git archive <commit> endoflow | tar -x -C DIR``); ``before`` runs
 it, ``after`` this tree, each case in a fresh process with ``--threads`` torch threads. The inputs are made once
 by the baseline's code (its model file is one both versions read): the default model (latent bank on, ``data.size`` 64) randomly initialised and saved as a model file
-(weights do not change speed); sequence S1 of a synthetic SimCol3D layout rendered at 480 px (``--frames``
-frames); and the same frames upscaled to 1920 x 1080 in an H.264 MP4. Cases (the whole ``reconstruct()`` call:
+(weights do not change speed); sequence S1 of a synthetic SimCol3D layout rendered at 480 px on ``--device``
+(``--frames`` frames; the layout renders one sequence per scene, S1, B1 and O1, in parallel); and, for the video
+case only, the same frames upscaled to 1920 x 1080 in an H.264 MP4. Cases (the whole ``reconstruct()`` call:
 model load, field of view, decoding, inference, path refinement off, fusion, every output written; frames/s is
 frames over the call's wall time, after an untimed 3-frame warm-up call; "per frame" is the rate of the frames a
 call of all of them takes beyond one of the first half, without the start-up and the end of a call: model load,
@@ -39,8 +41,12 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from code_versions import environment_importing
+
+if TYPE_CHECKING:  # each run imports the endoflow its version names, inside the functions
+    from endoflow.config import Params
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = {"video64": ("video", 64, True), "data64": ("data", 64, True), "data480": ("data", 480, True),
@@ -162,18 +168,15 @@ def run_core(args: argparse.Namespace) -> dict:
 
 
 def make_inputs(work: Path, frames: int, threads: int, video: bool, device: str) -> None:
-    """The model file, the 480 px scene (rendered on ``device``: at 480 px a CPU renders about a
-    frame per second and process) and, where ``video``, the 1080p video (see the module docstring); each step
-    says when it starts and ends, so that a run cut short by a time limit shows where it stood."""
-    import av
-    import cv2
+    """The model file, the 480 px scene (rendered on ``device``: at 480 px a CPU renders about 0.6 frames/s a
+    process) and, where ``video``, the 1080p video (see the module docstring); each step says when it starts and
+    ends, so that a run cut short by a time limit shows where it stood."""
     import numpy as np
     import torch
 
     from endoflow.config import Params
     from endoflow.models.endoflow_model import build_model
     from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
-    from endoflow.reconstruction.frames import FrameRange, open_frames
     from endoflow.synth.writers import synthesize_layout
 
     params = Params()
@@ -186,8 +189,17 @@ def make_inputs(work: Path, frames: int, threads: int, video: bool, device: str)
     print(f"rendering {frames} frames a sequence at 480 px", file=sys.stderr, flush=True)
     print(synthesize_layout("simcol", work / "scene", sequences=1, frames=frames, size=480, seed=0, params=params,
                             workers=threads, device=device), file=sys.stderr, flush=True)
-    if not video:
-        return
+    if video:
+        write_video(work, params)
+
+
+def write_video(work: Path, params: Params) -> None:
+    """The scene's frames upscaled to 1920 x 1080 in an H.264 MP4 (PyAV: only the video case needs it)."""
+    import av
+    import cv2
+
+    from endoflow.reconstruction.frames import FrameRange, open_frames
+
     started = time.perf_counter()
     height, width = VIDEO_SIZE
     with av.open(str(work / "video.mp4"), "w", format="mp4") as container:
@@ -255,6 +267,7 @@ def main() -> None:
                         for v in VERSIONS] for kind in ("call", "frame"))
         print(f"{case:17s} {call[0]:9.2f} {call[1]:9.2f} {call[1] / call[0]:13.2f} {frame[0]:18.2f} "
               f"{frame[1]:9.2f} {frame[1] / frame[0]:13.2f}")
+
 
 if __name__ == "__main__":
     main()

@@ -547,9 +547,9 @@ class RefineConfig(Section):
                                          "fall-off", ge=0)
     # chosen on the SimCol3D validation sequences (0, 0.1, 0.3, 1, 3): the refined path's RTE 0.0100, 0.0086, 0.0094,
     # 0.0129, 0.0157 cm and ROT 0.172, 0.155, 0.165, 0.229, 0.291 deg (base model seed 0; docs/results.md)
-    rotation_prior: Number = setting(0.1, "pull of each refined rotation towards the pose network's: a cost of "
-                                          "rotation_prior / 2 * (angle between them)^2 per pixel, angle in "
-                                          "radians; 0: the rotation is free", ge=0)
+    rotation_prior: Number = setting(0.1, "pull of each refined step's rotation towards the pose network's step: "
+                                          "a cost of rotation_prior / 2 * (angle between them)^2 per pixel, "
+                                          "angle in radians; 0: the rotation is free", ge=0)
     keyframe_every: Count = setting(6, "a new keyframe after this many frames at most", unit="frames")
     min_overlap: Number = setting(0.5, "... or once a smaller share of the keyframe's pixels still takes part",
                                   ge=0, le=1)

@@ -135,6 +135,9 @@ def compiled(step: Step, device: torch.device, setting: Compile) -> Step:
     eager mode (inductor's ``fallback_random``), so a seed gives the same draws compiled or not and a resumed run
     continues the same sequence. The compiler runs on the first call (the backward's on the first backward); where
     it fails, its error says so, and ``train.compile: false`` runs the step eager.
+
+    Raises:
+        ValueError: for a ``setting`` other than True, False and ``"auto"`` (:func:`compiles`).
     """
     if not compiles(device, setting):
         return step

@@ -314,7 +314,7 @@ def test_auto_compiles_the_step_on_a_gpu_only_true_everywhere_and_false_nowhere(
 
 
 @pytest.mark.parametrize("setting", ["on", "true", 1, None])
-def test_a_compile_setting_other_than_true_false_or_auto_is_refused(setting) -> None:
+def test_a_compile_setting_other_than_true_false_or_auto_is_refused(setting: object) -> None:
     with pytest.raises(ValueError, match="expected True, False or 'auto'"):
         compiled(training_step_losses, CUDA, setting)
 
