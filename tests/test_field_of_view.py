@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from endoflow.data.field_of_view import MIN_SHARE, RIM_PX, NoFieldOfView, field_of_view, resized_field_of_view
+from endoflow.data.field_of_view import BLACK_LEVEL, MIN_SHARE, RIM_PX, NoFieldOfView, field_of_view, resized_field_of_view
 from endoflow.reconstruction.frames import FrameRange, VideoFrames
 from tests.samples import COLONOSCOPY_CLIP
 
@@ -53,6 +53,18 @@ def test_frames_without_a_border_are_all_in_view_and_bad_input_is_refused():
         field_of_view([])
     with pytest.raises(ValueError, match="uint8"):
         field_of_view([np.zeros((4, 4), np.float32)])
+    with pytest.raises(ValueError, match=r"different sizes, \(96, 96, 3\) and \(96, 95, 3\)"):
+        field_of_view([scene_frames()[0], scene_frames()[1][:, 1:]])
+
+
+def test_a_pixel_lit_in_any_channel_of_any_frame_is_in_view():
+    frames = [frame * circle(40)[..., None].astype(np.uint8) for frame in scene_frames(3)]
+    for frame in frames:
+        frame[38:59, 2:21] = 0  # a dark bay of the border reaching into the circle
+    frames[0][40:48, 12:21, 0] = BLACK_LEVEL + 1  # part of it lit in red in one frame, part in blue in another
+    frames[1][48:57, 12:21, 2] = BLACK_LEVEL + 1
+    valid = field_of_view(frames)
+    assert valid[44, 16] and valid[52, 16] and not valid[39, 16]
 
 
 def test_text_burnt_into_the_border_is_not_part_of_the_field_of_view():
