@@ -24,8 +24,9 @@ def test_block_keys_round_trip_and_sort_as_their_coordinates() -> None:
 
 
 def test_a_block_beyond_the_keys_range_is_refused_with_the_option_that_helps() -> None:
-    with pytest.raises(ValueError, match="--voxel-cm"):
-        pack_block_keys(torch.tensor([[LIMIT, 0, 0]]))
+    for beyond in ([LIMIT, 0, 0], [0, -LIMIT, 0], [0, 0, LIMIT]):
+        with pytest.raises(ValueError, match="--voxel-cm"):
+            pack_block_keys(torch.tensor([beyond]))
 
 
 def test_each_block_keeps_the_row_it_was_given_first_however_the_table_grows() -> None:

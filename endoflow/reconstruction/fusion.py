@@ -95,11 +95,11 @@ class TSDFVolume:
         along = z[None] + torch.tensor(offsets, dtype=torch.float32, device=self.device)[:, None]  # [n, P]
         camera = rays[:, None] * along[None]  # [3, n, P]
         T = torch.from_numpy(T_world_cam).to(self.device, torch.float32)
-        world = [T[i, 0] * camera[0] + T[i, 1] * camera[1] + T[i, 2] * camera[2] + T[i, 3] for i in range(3)]
-        coords = torch.stack([torch.floor(axis / block_cm) for axis in world], dim=-1).long().reshape(-1, 3)
+        blocks = [torch.floor((T[i, 0] * camera[0] + T[i, 1] * camera[1] + T[i, 2] * camera[2] + T[i, 3]) / block_cm)
+                  .long().view(-1) for i in range(3)]  # one axis each: no [N, 3] table to stack and pick apart
         # neighbouring pixels of a row mostly share a block: dropping repeats in a row first (one pass) leaves the
         # sort of the full unique a small fraction of the points
-        return torch.unique(torch.unique_consecutive(pack_block_keys(coords)))
+        return torch.unique(torch.unique_consecutive(packed_keys(*blocks)))
 
     def _rows_of(self, keys: torch.Tensor) -> torch.Tensor:
         """The rows of the blocks ``keys`` (sorted, unique), allocating (unobserved: weight 0) those not seen."""
@@ -258,11 +258,24 @@ def pack_block_keys(coords: torch.Tensor) -> torch.Tensor:
     Raises:
         ValueError: a block lies beyond the keys' range (a path kilometres long at this voxel size).
     """
-    if len(coords) and int(coords.abs().max()) >= _KEY_HALF:
-        raise ValueError(f"a fused point lies more than {_KEY_HALF} blocks from the origin: the camera path is far "
-                         f"longer than the voxel size allows; pass a larger --voxel-cm")
-    biased = coords + _KEY_HALF
-    return (biased[:, 0] << (2 * _KEY_BITS)) | (biased[:, 1] << _KEY_BITS) | biased[:, 2]
+    return packed_keys(coords[:, 0], coords[:, 1], coords[:, 2])
+
+
+def packed_keys(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """:func:`pack_block_keys` of the coordinates given axis by axis (int64 tensors of one shape)."""
+    for axis in (x, y, z):
+        if not axis.numel():
+            continue
+        low, high = torch.aminmax(axis)
+        if max(-int(low), int(high)) >= _KEY_HALF:
+            raise ValueError(f"a fused point lies more than {_KEY_HALF} blocks from the origin: the camera path is "
+                             f"far longer than the voxel size allows; pass a larger --voxel-cm")
+    # the fields do not overlap, so products and sums place them as shifts and ors would: torch's int64 shift is not
+    # vectorised on a CPU (six times a product's time)
+    keys = (x + _KEY_HALF) * (1 << (2 * _KEY_BITS))
+    keys += (y + _KEY_HALF) * (1 << _KEY_BITS)
+    keys += z + _KEY_HALF
+    return keys
 
 
 def unpack_block_keys(keys: torch.Tensor) -> torch.Tensor:
