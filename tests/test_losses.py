@@ -9,10 +9,12 @@ import torch
 
 from endoflow.config import LossConfig
 from endoflow.geometry.pose import pose_vec_to_matrix
+from endoflow.geometry.warp import warp_frame
 from endoflow.losses.consistency import depth_inconsistency, geometry_consistency
 from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
 from endoflow.losses.kl import kl_standard_normal
-from endoflow.losses.photometric import photometric_error, reprojection_loss, ssim_map
+from endoflow.losses.photometric import (MEASURE_SSIM_WEIGHT, photometric_error, reprojection_loss, ssim_map,
+                                         view_synthesis_error)
 from endoflow.losses.smoothness import edge_aware_smoothness
 
 
@@ -114,6 +116,25 @@ def test_reprojection_loss_is_continuous_minimum_of_identity_and_warp() -> None:
     assert terrible.item() <= identity_only.item() + 1e-4
     assert terrible.item() > 0.5 * identity_only.item() and not mask.all()
 
+
+
+def test_the_view_synthesis_error_counts_the_pixels_whose_sample_lands_in_view() -> None:
+    # what the error is: SSIM + L1 averaged over target pixels in view whose sample lands inside the source and in
+    # its view (the mask warped as the image is), written out with one warp for each
+    target, source = images(2, 3, 24, 24), images(2, 3, 24, 24, seed=1)
+    depth = 2 + images(2, 1, 24, 24, seed=2)
+    v, u = torch.meshgrid(torch.arange(24.0), torch.arange(24.0), indexing="ij")
+    in_view = ((u - 11.5) ** 2 + (v - 11.5) ** 2 <= 10**2).expand(2, 1, 24, 24)
+    T_source_target = pose_vec_to_matrix(torch.tensor([[0.05, -0.02, 0.1, 0.01, 0.02, -0.01],
+                                                       [-0.03, 0.04, -0.05, 0.0, -0.02, 0.03]]))
+    K = torch.tensor([[[20.0, 0.0, 11.5], [0.0, 20.0, 11.5], [0.0, 0.0, 1.0]]])
+    warped, lands = warp_frame(source, depth, T_source_target, K.expand(2, 3, 3))
+    lands_in_view = warp_frame(in_view.float(), depth, T_source_target, K.expand(2, 3, 3))[0] > 0.999
+    counted = lands & in_view & lands_in_view
+    error = photometric_error(warped, target, "ssim_l1", MEASURE_SSIM_WEIGHT)
+    expected = (error * counted).sum(dim=(1, 2, 3)) / counted.sum(dim=(1, 2, 3))
+    assert 0 < counted.float().mean() < in_view.float().mean()  # some samples leave the view
+    assert torch.equal(view_synthesis_error(target, source, depth, T_source_target, K, in_view), expected)
 
 # --------------------------------------------------------------------------------------- smoothness
 def test_smoothness_is_zero_for_constant_disparity_and_scale_invariant() -> None:

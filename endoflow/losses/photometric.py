@@ -39,12 +39,13 @@ def view_synthesis_error(target: torch.Tensor, source: torch.Tensor, depth: torc
     sizes = check_shape("target", target, "B,C,H,W")
     check_shape("depth", depth, "B,1,H,W", B=sizes["B"], H=sizes["H"], W=sizes["W"])
     K = K.expand(sizes["B"], 3, 3) if K.shape[0] == 1 else K
-    warped, lands = warp_frame(source, depth, T_source_target, K)
-    counted = lands
-    if in_view is not None:
+    if in_view is None:
+        warped, counted = warp_frame(source, depth, T_source_target, K)
+    else:  # the view mask rides along as one more channel: one projection and one sampling for both
         check_shape("in_view", in_view, "B,1,H,W", **{k: sizes[k] for k in ("B", "H", "W")})
-        lands_in_view = warp_frame(in_view.to(depth.dtype), depth, T_source_target, K)[0] > 0.999
-        counted = counted & in_view & lands_in_view
+        both, lands = warp_frame(torch.cat([source, in_view.to(source.dtype)], dim=1), depth, T_source_target, K)
+        warped, lands_in_view = both[:, :-1], both[:, -1:] > 0.999
+        counted = lands & in_view & lands_in_view
     error = photometric_error(warped, target, "ssim_l1", MEASURE_SSIM_WEIGHT)
     return (error * counted).sum(dim=(1, 2, 3)) / counted.sum(dim=(1, 2, 3)).clamp(min=1)
 
