@@ -2,6 +2,7 @@
 
     python benchmarks/bench_reconstruct_versions.py --baseline DIR [--frames 60] [--device cpu|cuda]
                                                     [--rounds 1] [--threads 2] [--cases video64 data480 ...]
+                                                    [--video-frames 240]
                                                     [--versions before after]
 
 ``DIR`` holds an earlier ``endoflow`` package (``git archive <commit> endoflow | tar -x -C DIR``); ``before`` runs
@@ -9,11 +10,14 @@ it, ``after`` this tree, each case in a fresh process with ``--threads`` torch t
 by the baseline's code (its model file is one both versions read): the default model (latent bank on, ``data.size`` 64) randomly initialised and saved as a model file
 (weights do not change speed); sequence S1 of a synthetic SimCol3D layout rendered at 480 px on ``--device``
 (``--frames`` frames; the layout renders one sequence per scene, S1, B1 and O1, in parallel); and, for the video
-case only, the same frames upscaled to 1920 x 1080 in an H.264 MP4. Cases (the whole ``reconstruct()`` call:
+case only, the same frames upscaled to 1920 x 1080 in an H.264 MP4 of ``--video-frames`` frames (the rendered ones
+forwards, then backwards, and again: a 1080p frame is cheap to encode, a 480 px one dear to render). Cases (the whole ``reconstruct()`` call:
 model load, field of view, decoding, inference, path refinement off, fusion, every output written; frames/s is
 frames over the call's wall time, after an untimed 3-frame warm-up call; "per frame" is the rate of the frames a
 call of all of them takes beyond one of the first half, without the start-up and the end of a call: model load,
-the field-of-view pass, the contact sheet):
+the field-of-view pass, the contact sheet; the field of view is found in the first 60 frames, so a half of fewer
+takes some of its frames into the per-frame figure: for the video, decoding them a second time, which is why
+the video is longer):
 
 - ``video64``: the 1080p video at the model's 64 px, fused (decoding large frames on the critical path or not);
 - ``data64``: the 480 px dataset sequence at 64 px, fused;
@@ -60,6 +64,8 @@ def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--baseline", type=Path, required=True, help="folder holding the earlier endoflow package")
     parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--video-frames", type=int, default=240,
+                        help="frames of the 1080p video (at least twice the field-of-view pass's 60)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2)
@@ -98,7 +104,8 @@ def run_worker(args: argparse.Namespace) -> dict:
 
     call(FrameRange(stop=WARM_UP_FRAMES), out / "warm-up")
     timed = {}
-    for name, frames in (("half", FrameRange(stop=args.frames // 2)), ("all", FrameRange())):
+    half = (args.video_frames if kind == "video" else args.frames) // 2
+    for name, frames in (("half", FrameRange(stop=half)), ("all", FrameRange())):
         started = time.perf_counter()
         summary = call(frames, out / name)
         timed[name] = {"frames": summary["frames"], "seconds": time.perf_counter() - started}
@@ -167,9 +174,9 @@ def run_core(args: argparse.Namespace) -> dict:
     return timed
 
 
-def make_inputs(work: Path, frames: int, threads: int, video: bool, device: str) -> None:
+def make_inputs(work: Path, frames: int, threads: int, video_frames: int, device: str) -> None:
     """The model file, the 480 px scene (rendered on ``device``: at 480 px a CPU renders about 0.6 frames/s a
-    process) and, where ``video``, the 1080p video (see the module docstring); each step says when it starts and
+    process) and, where ``video_frames``, the 1080p video of that many frames (see the module docstring); each step says when it starts and
     ends, so that a run cut short by a time limit shows where it stood."""
     import numpy as np
     import torch
@@ -189,12 +196,13 @@ def make_inputs(work: Path, frames: int, threads: int, video: bool, device: str)
     print(f"rendering {frames} frames a sequence at 480 px", file=sys.stderr, flush=True)
     print(synthesize_layout("simcol", work / "scene", sequences=1, frames=frames, size=480, seed=0, params=params,
                             workers=threads, device=device), file=sys.stderr, flush=True)
-    if video:
-        write_video(work, params)
+    if video_frames:
+        write_video(work, params, video_frames)
 
 
-def write_video(work: Path, params: Params) -> None:
-    """The scene's frames upscaled to 1920 x 1080 in an H.264 MP4 (PyAV: only the video case needs it)."""
+def write_video(work: Path, params: Params, count: int) -> None:
+    """``count`` frames of the scene's, upscaled to 1920 x 1080, forwards then backwards and again, in an H.264 MP4
+    (PyAV: only the video case needs it)."""
     import av
     import cv2
 
@@ -205,11 +213,19 @@ def write_video(work: Path, params: Params) -> None:
     with av.open(str(work / "video.mp4"), "w", format="mp4") as container:
         stream = container.add_stream("libx264", rate=25, options={"preset": "ultrafast"})
         stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
-        for frame in open_frames(work / "scene", "S1", params).frames(FrameRange()):
-            large = cv2.resize(frame.rgb, (width, height), interpolation=cv2.INTER_LINEAR)
+        rendered = [frame.rgb for frame in open_frames(work / "scene", "S1", params).frames(FrameRange())]
+        for index in ping_pong(len(rendered), count):
+            large = cv2.resize(rendered[index], (width, height), interpolation=cv2.INTER_LINEAR)
             container.mux(stream.encode(av.VideoFrame.from_ndarray(large, format="rgb24")))
         container.mux(stream.encode())
-    print(f"1080p video encoded in {time.perf_counter() - started:.1f} s", file=sys.stderr, flush=True)
+    print(f"1080p video of {count} frames encoded in {time.perf_counter() - started:.1f} s", file=sys.stderr,
+          flush=True)
+
+
+def ping_pong(length: int, count: int) -> list[int]:
+    """``count`` positions in ``length`` frames, forwards to the last, backwards to the first, and again."""
+    cycle = list(range(length)) + list(range(length - 2, 0, -1)) or [0]
+    return [cycle[i % len(cycle)] for i in range(count)]
 
 
 def in_version(args: argparse.Namespace, version: str, arguments: list[str], progress: bool = False) -> str:
@@ -218,7 +234,8 @@ def in_version(args: argparse.Namespace, version: str, arguments: list[str], pro
     tree = args.baseline.resolve() if version == "before" else ROOT
     env = environment_importing(tree)
     command = [sys.executable, __file__, "--baseline", str(args.baseline), "--device", args.device,
-               "--threads", str(args.threads), "--frames", str(args.frames), *arguments]
+               "--threads", str(args.threads), "--frames", str(args.frames), "--video-frames", str(args.video_frames),
+               *arguments]
     done = subprocess.run(command, env=env, stdout=subprocess.PIPE, stderr=None if progress else subprocess.PIPE,
                           text=True)
     if done.returncode:
@@ -238,13 +255,14 @@ def main() -> None:
         print(json.dumps(run_worker(args)))
         return
     if args.make_inputs:
-        make_inputs(args.make_inputs, args.frames, args.threads, args.with_video, args.device)
+        make_inputs(args.make_inputs, args.frames, args.threads, args.video_frames if args.with_video else 0,
+                    args.device)
         return
     with tempfile.TemporaryDirectory(prefix="bench_reconstruct_versions_") as folder:
         work = Path(folder)
         started = time.perf_counter()
-        video = ["--with-video"] if any(CASES[case][0] == "video" for case in args.cases) else []
-        in_version(args, "before", ["--make-inputs", str(work), *video], progress=True)
+        video = any(CASES[case][0] == "video" for case in args.cases)
+        in_version(args, "before", ["--make-inputs", str(work), *(["--with-video"] if video else [])], progress=True)
         print(f"inputs made in {time.perf_counter() - started:.0f} s", flush=True)
         rates: dict[tuple[str, str, str], list[float]] = {}
         for round_index in range(args.rounds):
@@ -258,8 +276,8 @@ def main() -> None:
                     rates.setdefault((case, version, "frame"), []).append(extra)
                     print(f"round {round_index + 1}/{args.rounds} {case:17s} {version:6s} {whole:7.2f} frames/s "
                           f"({extra:.2f} per frame)", flush=True)
-    print(f"\nreconstruct, {args.frames} frames, {args.device}, {args.threads} torch threads, {args.rounds} round(s); "
-          f"before: {args.baseline}")
+    print(f"\nreconstruct, {args.frames} frames ({args.video_frames} in the video), {args.device}, {args.threads} torch "
+          f"threads, {args.rounds} round(s); before: {args.baseline}")
     print(f"{'case':17s} {'before':>9s} {'after':>9s} {'after/before':>13s} {'per frame: before':>18s} "
           f"{'after':>9s} {'after/before':>13s}   (frames/s)")
     for case in args.cases:
