@@ -6,18 +6,19 @@
                                                     [--versions before after]
 
 ``DIR`` holds an earlier ``endoflow`` package (``git archive <commit> endoflow | tar -x -C DIR``); ``before`` runs
-it, ``after`` this tree, each case in a fresh process with ``--threads`` torch threads. The inputs are made once
-by the baseline's code (its model file is one both versions read): the default model (latent bank on, ``data.size`` 64) randomly initialised and saved as a model file
-(weights do not change speed); sequence S1 of a synthetic SimCol3D layout rendered at 480 px on ``--device``
-(``--frames`` frames; the layout renders one sequence per scene, S1, B1 and O1, in parallel); and, for the video
-case only, the same frames upscaled to 1920 x 1080 in an H.264 MP4 of ``--video-frames`` frames (the rendered ones
-forwards, then backwards, and again: a 1080p frame is cheap to encode, a 480 px one dear to render). Cases (the whole ``reconstruct()`` call:
-model load, field of view, decoding, inference, path refinement off, fusion, every output written; frames/s is
-frames over the call's wall time, after an untimed 3-frame warm-up call; "per frame" is the rate of the frames a
-call of all of them takes beyond one of the first half, without the start-up and the end of a call: model load,
-the field-of-view pass, the contact sheet; the field of view is found in the first 60 frames, so a half of fewer
-takes some of its frames into the per-frame figure: for the video, decoding them a second time, which is why
-the video is longer):
+it, ``after`` this tree, each case in a fresh process with ``--threads`` torch threads. The inputs are made once by
+the baseline's code (its model file is one both versions read): the default model (latent bank on, ``data.size``
+64) randomly initialised and saved as a model file (weights do not change speed); sequence S1 of a synthetic
+SimCol3D layout rendered at 480 px on ``--device`` (``--frames`` frames; the layout renders one sequence per scene,
+S1, B1 and O1, in parallel); and, for the video case only, the same frames upscaled to 1920 x 1080 in an H.264 MP4
+of ``--video-frames`` frames (the rendered ones forwards, then backwards, and again: a 1080p frame is cheap to
+encode, a 480 px one dear to render). Cases (the whole ``reconstruct()`` call: model load, field of view, decoding,
+inference, path refinement off, fusion, every output written; frames/s is frames over the call's wall time, after
+an untimed 3-frame warm-up call; "per frame" is the rate of the frames a call of all of them takes beyond one of
+the first half, without the start-up and the end of a call: model load, the field-of-view pass, the contact sheet).
+The field of view is found in a call's first 60 frames: where the first half is shorter, the longer call looks at
+more of them, and each is read a second time inside the per-frame figure (a 1080p decode for the video, hence its
+240 frames; a 480 px PNG for the sequence, with ``--frames`` under 120):
 
 - ``video64``: the 1080p video at the model's 64 px, fused (decoding large frames on the critical path or not);
 - ``data64``: the 480 px dataset sequence at 64 px, fused;
@@ -45,7 +46,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Optional
 
 from code_versions import environment_importing
 
@@ -174,10 +175,10 @@ def run_core(args: argparse.Namespace) -> dict:
     return timed
 
 
-def make_inputs(work: Path, frames: int, threads: int, video_frames: int, device: str) -> None:
+def make_inputs(work: Path, frames: int, threads: int, video_frames: Optional[int], device: str) -> None:
     """The model file, the 480 px scene (rendered on ``device``: at 480 px a CPU renders about 0.6 frames/s a
-    process) and, where ``video_frames``, the 1080p video of that many frames (see the module docstring); each step says when it starts and
-    ends, so that a run cut short by a time limit shows where it stood."""
+    process) and, where ``video_frames`` is given, the 1080p video of that many frames (see the module docstring);
+    each step says when it starts and ends, so that a run cut short by a time limit shows where it stood."""
     import numpy as np
     import torch
 
@@ -196,7 +197,7 @@ def make_inputs(work: Path, frames: int, threads: int, video_frames: int, device
     print(f"rendering {frames} frames a sequence at 480 px", file=sys.stderr, flush=True)
     print(synthesize_layout("simcol", work / "scene", sequences=1, frames=frames, size=480, seed=0, params=params,
                             workers=threads, device=device), file=sys.stderr, flush=True)
-    if video_frames:
+    if video_frames is not None:
         write_video(work, params, video_frames)
 
 
@@ -224,7 +225,7 @@ def write_video(work: Path, params: Params, count: int) -> None:
 
 def ping_pong(length: int, count: int) -> list[int]:
     """``count`` positions in ``length`` frames, forwards to the last, backwards to the first, and again."""
-    cycle = list(range(length)) + list(range(length - 2, 0, -1)) or [0]
+    cycle = (list(range(length)) + list(range(length - 2, 0, -1))) or [0]
     return [cycle[i % len(cycle)] for i in range(count)]
 
 
@@ -255,7 +256,7 @@ def main() -> None:
         print(json.dumps(run_worker(args)))
         return
     if args.make_inputs:
-        make_inputs(args.make_inputs, args.frames, args.threads, args.video_frames if args.with_video else 0,
+        make_inputs(args.make_inputs, args.frames, args.threads, args.video_frames if args.with_video else None,
                     args.device)
         return
     with tempfile.TemporaryDirectory(prefix="bench_reconstruct_versions_") as folder:
@@ -276,8 +277,8 @@ def main() -> None:
                     rates.setdefault((case, version, "frame"), []).append(extra)
                     print(f"round {round_index + 1}/{args.rounds} {case:17s} {version:6s} {whole:7.2f} frames/s "
                           f"({extra:.2f} per frame)", flush=True)
-    print(f"\nreconstruct, {args.frames} frames ({args.video_frames} in the video), {args.device}, {args.threads} torch "
-          f"threads, {args.rounds} round(s); before: {args.baseline}")
+    print(f"\nreconstruct, {args.frames} frames ({args.video_frames} in the video), {args.device}, {args.threads} "
+          f"torch threads, {args.rounds} round(s); before: {args.baseline}")
     print(f"{'case':17s} {'before':>9s} {'after':>9s} {'after/before':>13s} {'per frame: before':>18s} "
           f"{'after':>9s} {'after/before':>13s}   (frames/s)")
     for case in args.cases:

@@ -8,7 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from endoflow.data.field_of_view import BLACK_LEVEL, MIN_SHARE, RIM_PX, NoFieldOfView, field_of_view, resized_field_of_view
+from endoflow.data.field_of_view import (BLACK_LEVEL, MIN_SHARE, RIM_PX, NoFieldOfView, field_of_view,
+                                         resized_field_of_view)
 from endoflow.reconstruction.frames import FrameRange, VideoFrames
 from tests.samples import COLONOSCOPY_CLIP
 
@@ -53,8 +54,9 @@ def test_frames_without_a_border_are_all_in_view_and_bad_input_is_refused():
         field_of_view([])
     with pytest.raises(ValueError, match="uint8"):
         field_of_view([np.zeros((4, 4), np.float32)])
+    first, second = scene_frames(2)
     with pytest.raises(ValueError, match=r"different sizes, \(96, 96, 3\) and \(96, 95, 3\)"):
-        field_of_view([scene_frames()[0], scene_frames()[1][:, 1:]])
+        field_of_view([first, second[:, 1:]])
 
 
 def test_a_pixel_lit_in_any_channel_of_any_frame_is_in_view():

@@ -24,9 +24,12 @@ def test_block_keys_round_trip_and_sort_as_their_coordinates() -> None:
 
 
 def test_a_block_beyond_the_keys_range_is_refused_with_the_option_that_helps() -> None:
-    for beyond in ([LIMIT, 0, 0], [0, -LIMIT, 0], [0, 0, LIMIT]):
-        with pytest.raises(ValueError, match="--voxel-cm"):
-            pack_block_keys(torch.tensor([beyond]))
+    for axis in range(3):
+        for side in (LIMIT, -LIMIT):
+            beyond = torch.zeros(1, 3, dtype=torch.int64)
+            beyond[0, axis] = side
+            with pytest.raises(ValueError, match="--voxel-cm"):
+                pack_block_keys(beyond)
 
 
 def test_each_block_keeps_the_row_it_was_given_first_however_the_table_grows() -> None:

@@ -43,8 +43,9 @@ def view_synthesis_error(target: torch.Tensor, source: torch.Tensor, depth: torc
         warped, counted = warp_frame(source, depth, T_source_target, K)
     else:  # the view mask rides along as one more channel: one projection and one sampling for both
         check_shape("in_view", in_view, "B,1,H,W", **{k: sizes[k] for k in ("B", "H", "W")})
-        both, lands = warp_frame(torch.cat([source, in_view.to(source.dtype)], dim=1), depth, T_source_target, K)
-        warped, lands_in_view = both[:, :-1], both[:, -1:] > 0.999
+        dtype = torch.promote_types(source.dtype, depth.dtype)  # a mask sampled in bf16 would round to 1 early
+        both, lands = warp_frame(torch.cat([source.to(dtype), in_view.to(dtype)], dim=1), depth, T_source_target, K)
+        warped, lands_in_view = both[:, :-1].to(source.dtype), both[:, -1:] > 0.999
         counted = lands & in_view & lands_in_view
     error = photometric_error(warped, target, "ssim_l1", MEASURE_SSIM_WEIGHT)
     return (error * counted).sum(dim=(1, 2, 3)) / counted.sum(dim=(1, 2, 3)).clamp(min=1)

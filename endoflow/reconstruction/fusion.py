@@ -253,21 +253,20 @@ def observed_cubes(observed: np.ndarray) -> np.ndarray:
 
 
 def pack_block_keys(coords: torch.Tensor) -> torch.Tensor:
-    """One int64 key per block of integer coordinates ``coords [N, 3]`` (see :data:`_KEY_BITS`).
+    """One int64 key per block of integer coordinates ``coords [N, 3]`` (see :data:`_KEY_BITS`); the pair of
+    :func:`unpack_block_keys`. Raises as :func:`packed_keys` does."""
+    return packed_keys(*coords.unbind(1))
+
+
+def packed_keys(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """One int64 key per block, its integer coordinates given axis by axis (int64 tensors of one shape).
 
     Raises:
         ValueError: a block lies beyond the keys' range (a path kilometres long at this voxel size).
     """
-    return packed_keys(coords[:, 0], coords[:, 1], coords[:, 2])
-
-
-def packed_keys(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-    """:func:`pack_block_keys` of the coordinates given axis by axis (int64 tensors of one shape)."""
-    for axis in (x, y, z):
-        if not axis.numel():
-            continue
-        low, high = torch.aminmax(axis)
-        if max(-int(low), int(high)) >= _KEY_HALF:
+    if x.numel():  # the six bounds in one transfer: one wait for a GPU, not six
+        bounds = torch.stack([bound for axis in (x, y, z) for bound in torch.aminmax(axis)]).tolist()
+        if max(-min(bounds), max(bounds)) >= _KEY_HALF:
             raise ValueError(f"a fused point lies more than {_KEY_HALF} blocks from the origin: the camera path is "
                              f"far longer than the voxel size allows; pass a larger --voxel-cm")
     # the fields do not overlap, so products and sums place them as shifts and ors would: torch's int64 shift is not
