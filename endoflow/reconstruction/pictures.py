@@ -52,7 +52,7 @@ MIN_VIDEO_HEIGHT = 256  # px: smaller panels are enlarged by an integer factor u
 X264_CRF = "18"  # visually lossless; the default (23) smears the colour-mapped depth's bands
 # x264's preset: at CRF 18 "veryfast" wrote files the size of the default's ("medium") in 40% of its CPU time (480 px
 # panels: 12.0 against 29.5 ms a frame; 64 px: 3.9 against 8.5), time the write-behind thread would take from the
-# networks on two cores
+# networks on two cores, at 0.2-0.5 dB less PSNR against the frames (39-42 dB, image and depth panels, 40 frames)
 X264_PRESET = "veryfast"
 MPEG4_BITS_PER_PIXEL = 0.3  # per pixel per frame: MPEG-4's default 200 kbit/s blurs anything but a thumbnail
 
