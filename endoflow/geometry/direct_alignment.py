@@ -220,10 +220,12 @@ def _compare(before: tuple[torch.Tensor, torch.Tensor], after: tuple[torch.Tenso
 def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor, settings: AlignmentSettings,
                   prior: _RotationPrior) -> tuple[torch.Tensor, torch.Tensor]:
     damping = 1e-3
+    current = _costs(level, (pose, brightness), settings, prior)  # then the accepted candidate's: computed once
     for _ in range(settings.iterations):
         sampled, moved, pixels, inside = _sample(level, pose)
         mask = level.usable & inside
-        if int(mask.sum()) < settings.min_pixels:
+        taking_part = int(mask.sum())
+        if taking_part < settings.min_pixels:
             break
         residual, jacobian = _linearise(level, sampled, moved, pixels, brightness, mask, settings.light_falloff)
         weights = torch.where(residual.abs() <= settings.huber, torch.ones_like(residual),
@@ -231,17 +233,17 @@ def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor, s
         hessian = jacobian.T @ (weights[:, None] * jacobian)
         gradient = jacobian.T @ (weights * residual)
         if prior.weight:
-            prior_hessian, prior_gradient = prior.normal_equations(pose, int(mask.sum()))
+            prior_hessian, prior_gradient = prior.normal_equations(pose, taking_part)
             hessian[:6, :6] += prior_hessian
             gradient[:6] += prior_gradient
         improved = False
-        current = _costs(level, (pose, brightness), settings, prior)
         while damping < 1e6:
             step = -torch.linalg.solve(hessian + damping * torch.diag(hessian.diagonal().clamp(min=1e-12)), gradient)
             candidate = (pose_vec_to_matrix(step[:6]) @ pose, brightness + step[6:])
-            before, after, _ = _compare(current, _costs(level, candidate, settings, prior))
+            candidate_costs = _costs(level, candidate, settings, prior)
+            before, after, _ = _compare(current, candidate_costs)
             if after < before:
-                (pose, brightness), damping, improved = candidate, damping / 3, True
+                (pose, brightness), current, damping, improved = candidate, candidate_costs, damping / 3, True
                 break
             damping *= 4
         if not improved or float(step[:6].abs().max()) < 1e-7:
