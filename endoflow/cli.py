@@ -115,6 +115,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="keep the pose network's path as it is (default: refined by photometric alignment to "
                           "keyframes with the predicted depth, as params.yaml's refine section says)")
     rec.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    rec.add_argument("--precision", choices=("float32", "bf16", "auto"), default=None,
+                     help="the networks' arithmetic: float32 (the same outputs on any machine), bf16 (faster networks "
+                          "on a CPU or GPU with bf16 arithmetic, depth and path a little different: "
+                          "docs/reconstruction.md, 'Precision') or auto (bf16 on a GPU that has it; default: "
+                          "params.yaml's reconstruct.precision)")
     rec.add_argument("--threads", type=_positive_int, default=None,
                      help="torch's CPU threads (default: the model's params' threads; a fixed count gives the "
                           "same depth on any machine, another count sums in another order)")
@@ -290,17 +295,20 @@ def _reconstruct(args: argparse.Namespace) -> int:
 
 
 def _reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
-    """``ReconstructOptions`` of the arguments (and params.yaml's refine section); a ValueError says what is wrong."""
+    """``ReconstructOptions`` of the arguments (and params.yaml's refine section and reconstruct.precision); a
+    ValueError says what is wrong."""
     from endoflow.data.crop import Crop
     from endoflow.geometry.direct_alignment import tracker_settings
     from endoflow.reconstruction.frames import FrameRange
     from endoflow.reconstruction.reconstruct import ReconstructOptions
 
-    refine = _params_if_present(args.params).refine
+    params = _params_if_present(args.params)
+    refine = params.refine
     return ReconstructOptions(FrameRange(args.start, args.stop, args.stride), args.size, args.scale,
                               args.voxel_cm, args.trunc_cm, args.npy, args.fuse, args.device, args.force,
                               Crop.parse(args.crop) if args.crop else None,
-                              tracker_settings(refine) if args.refine and refine.enabled else None)
+                              tracker_settings(refine) if args.refine and refine.enabled else None,
+                              args.precision or params.reconstruct.precision)
 
 
 def _reconstruct_many(args: argparse.Namespace, options: ReconstructOptions) -> int:

@@ -527,6 +527,10 @@ class ReconstructConfig(Section):
                                          unit="cm", gt=0)
     trunc_cm: Optional[Number] = setting(None, "null: 4 voxels", unit="cm", gt=0)
     device: Device = setting("auto", "auto, cpu, cuda or cuda:N (endoflow.devices)")
+    # bf16 rounds depth and pose a little differently (docs/reconstruction.md, "Precision", measures what it costs)
+    precision: Precision = setting("float32", "the networks' arithmetic: float32 (the same outputs on any machine), "
+                                              "bf16 autocast (faster where the CPU or GPU has bf16 arithmetic) or "
+                                              "auto as for train.precision")
 
 
 # ---------------------------------------------------------------------------------------------- refine

@@ -113,10 +113,11 @@ def test_auto_precision_is_bf16_on_gpus_with_native_bf16_and_float32_elsewhere(
     assert not wants_channels_last(CUDA, "float32", 480)
 
 
-def test_on_a_cpu_float32_networks_go_channels_last_from_128_px_up() -> None:
+def test_on_a_cpu_networks_go_channels_last_from_128_px_up_in_either_precision() -> None:
     assert not wants_channels_last(CPU, "float32", 64) and not wants_channels_last(CPU, "auto", 127)
+    assert not wants_channels_last(CPU, "bf16", 127)
     assert wants_channels_last(CPU, "float32", 128) and wants_channels_last(CPU, "auto", 480)
-    assert not wants_channels_last(CPU, "bf16", 480)  # measured for float32 only
+    assert wants_channels_last(CPU, "bf16", 128)
 
 
 def test_autocast_computes_products_in_bf16_only_when_precision_says_so() -> None:

@@ -182,6 +182,32 @@ def test_a_known_scale_multiplies_depth_and_path_alike(scene: Path, model_file: 
     np.testing.assert_allclose(two[:, [3, 7, 11]], 2 * one[:, [3, 7, 11]], rtol=1e-6, atol=1e-9)
 
 
+def test_bf16_networks_give_nearly_the_float32_depth_and_path_and_the_summary_says_which_ran(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
+    exact = run(scene, model_file, tmp_path / "float32", params, "S1", fuse=False, npy=True, precision="float32")
+    fast = run(scene, model_file, tmp_path / "bf16", params, "S1", fuse=False, npy=True, precision="bf16")
+    assert (exact["precision"], fast["precision"]) == ("float32", "bfloat16")
+    depth, rounded = (np.load(tmp_path / name / "depth" / "000003.npy") for name in ("float32", "bf16"))
+    relative = np.abs(rounded - depth) / depth
+    assert 0 < np.median(relative) < 0.01  # rounded, so not equal; bf16 keeps 8 bits of mantissa
+    one, other = (np.loadtxt(tmp_path / name / "trajectory.kitti") for name in ("float32", "bf16"))
+    np.testing.assert_allclose(other, one, atol=0.01)
+
+
+def test_the_command_line_takes_the_precision_from_params_yaml_unless_told(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
+    params_file = tmp_path / "params.yaml"
+    params_file.write_text("reconstruct:\n  precision: bf16\n")
+    arguments = ["--params", str(params_file), "reconstruct", str(scene), "--sequence", "S1", "--model",
+                 str(model_file), "--stop", "2", "--no-fusion", "--out"]
+    assert cli([*arguments, str(tmp_path / "from_params")]) == 0
+    assert cli([*arguments, str(tmp_path / "told"), "--precision", "float32"]) == 0
+    assert json.loads((tmp_path / "from_params" / "reconstruction.json").read_text())["precision"] == "bfloat16"
+    assert json.loads((tmp_path / "told" / "reconstruction.json").read_text())["precision"] == "float32"
+    with pytest.raises(SystemExit):
+        cli([*arguments, str(tmp_path / "bad"), "--precision", "fp16"])
+
+
 def test_an_interrupted_run_leaves_the_previous_output_folder_whole(
         scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
     folder = image_folder(scene, params, tmp_path / "frames")

@@ -249,7 +249,7 @@ def run_reconstruction(params: Params, name: str, project_root: str | Path = "."
     source = DatasetFrames(root / getattr(params.data, item.dataset).root, item.sequence, params)
     out_dir = root / cfg.out / name
     options = ReconstructOptions(FrameRange(item.start, item.stop, item.stride), cfg.size, 1.0, cfg.voxel_cm,
-                                 cfg.trunc_cm, device=cfg.device,
+                                 cfg.trunc_cm, device=cfg.device, precision=cfg.precision,
                                  refine=tracker_settings(params.refine) if params.refine.enabled else None)
     reconstruct(source, source.K, model_path, out_dir, options)
     result = measure_reconstruction(source, out_dir, record.baselines)

@@ -23,10 +23,10 @@ from typing import TYPE_CHECKING, Iterator, Optional, TypeVar
 import numpy as np
 import torch
 
-from endoflow.config import DATASETS, ModelConfig, Params
+from endoflow.config import DATASETS, ModelConfig, Params, Precision, ReconstructConfig
 from endoflow.data.field_of_view import FIELD_OF_VIEW_FRAMES, NoFieldOfView, field_of_view, resized_field_of_view
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
-from endoflow.devices import images_to_device, resolve_device, to_compute_layout
+from endoflow.devices import autocast, compute_dtype, images_to_device, resolve_device, to_compute_layout
 from endoflow.errors import DataFormatError
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings
 from endoflow.geometry.pose import chain_step, invert_pose, relative_pose
@@ -74,7 +74,8 @@ class ReconstructOptions:
     ``npy``: also write float32 depth; ``fuse``: build the surface; ``device``: ``auto``, ``cpu`` or ``cuda``;
     ``force``: replace an output folder that holds something other than an earlier reconstruction; ``crop``: the
     region of the frames to use (None: all of it; see :mod:`endoflow.data.crop`); ``refine``: the
-    tracker that refines the pose network's path against keyframes (None: the network's chain as it is)."""
+    tracker that refines the pose network's path against keyframes (None: the network's chain as it is);
+    ``precision``: the networks' arithmetic (``reconstruct.precision`` in params)."""
 
     frames: FrameRange = field(default_factory=FrameRange)
     size: Optional[int] = None
@@ -87,6 +88,7 @@ class ReconstructOptions:
     force: bool = False
     crop: Optional[Crop] = None
     refine: Optional[TrackerSettings] = None
+    precision: Precision = ReconstructConfig.model_fields["precision"].default
 
     def __post_init__(self) -> None:
         if self.size is not None and (self.size < NETWORK_STRIDE or self.size % NETWORK_STRIDE):
@@ -106,7 +108,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
     device = resolve_device(options.device, "--device")
     model, record = load_trained_model(model_path, device)
     size = options.size or record.params.data.size
-    model = to_compute_layout(model, device, "float32", size)
+    model = to_compute_layout(model, device, options.precision, size)
     region = frame_region(source.native_size, options.crop, source.description)
     K, intrinsics_from = input_intrinsics(K_native, region, size, model, record.params.data.assumed_fov_deg)
     print(f"[reconstruct] intrinsics: {intrinsics_from}", file=sys.stderr)
@@ -135,9 +137,10 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                 read_ahead(model_inputs(source, options.frames, region, size), per_call + READ_AHEAD)))
             for batch in in_batches(inputs, per_call):
                 images = images_to_device(torch.from_numpy(np.stack([rgb for _, rgb in batch])).permute(0, 3, 1, 2)
-                                          .contiguous(), device, "float32")
-                predicted = predict_frames(model, images, previous, options.scale, model_path,
-                                           [frame.index for frame, _ in batch])
+                                          .contiguous(), device, options.precision)
+                with autocast(device, options.precision):
+                    predicted = predict_frames(model, images, previous, options.scale, model_path,
+                                               [frame.index for frame, _ in batch])
                 for (frame, rgb), (depth, T_cur_prev) in zip(batch, predicted):
                     depth = np.where(valid, depth, np.float32(0))  # outside the field of view: unknown
                     network_pose = path.network_step(T_cur_prev, options.scale)
@@ -169,6 +172,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             "crop": asdict(region), "model_view": asdict(model_view(region)), "size": size,
             "K": K.tolist(), "intrinsics": intrinsics_from, "scale": options.scale, "depth_unit_cm": unit,
             "seconds": seconds, "frames_per_second": path.count / seconds, "device": str(device),
+            "precision": str(compute_dtype(device, options.precision)).removeprefix("torch."),
             "threads": torch.get_num_threads(),
             "tsdf": {"voxel_cm": voxel, "trunc_cm": volume.trunc_cm} if volume is not None else None,
             "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
