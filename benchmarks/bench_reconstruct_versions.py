@@ -3,7 +3,7 @@
     python benchmarks/bench_reconstruct_versions.py --baseline DIR [--frames 60] [--device cpu|cuda]
                                                     [--rounds 1] [--threads 2] [--cases video64 data480 ...]
                                                     [--video-frames 240]
-                                                    [--versions before after]
+                                                    [--versions before after] [--precision float32|bf16]
 
 ``DIR`` holds an earlier ``endoflow`` package (``git archive <commit> endoflow | tar -x -C DIR``); ``before`` runs
 it, ``after`` this tree, each case in a fresh process with ``--threads`` torch threads. The inputs are made once by
@@ -29,7 +29,10 @@ more of them, and each is read a second time inside the per-frame figure (a 1080
   on frames decoded and resized beforehand, nothing written: what a GPU can be timed on where PyAV and rerun
   (the outputs' video and recording) are not installed. Per frame only (the start-up is left out).
 
-``--versions after`` times this tree alone (the figures of ``before`` print as nan). With ``--rounds`` > 1 the two
+``--versions after`` times this tree alone (the figures of ``before`` print as nan). ``--precision bf16`` runs this
+tree's networks under bf16 autocast (``reconstruct --precision``); the earlier code runs float32, which is all it had
+before the option: with ``--baseline`` an archive of this very commit, the two columns are float32 and bf16 of one
+code. With ``--rounds`` > 1 the two
 versions alternate so that load from other processes hits both alike, and the
 median is printed. Figures are printed, not asserted.
 """
@@ -37,6 +40,7 @@ median is printed. Figures are printed, not asserted.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -73,6 +77,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--cases", nargs="+", choices=tuple(CASES), default=list(CASES))
     parser.add_argument("--versions", nargs="+", choices=VERSIONS, default=list(VERSIONS),
                         help="'after' alone where the earlier code is known to be slow (its numpy TSDF at 480 px)")
+    parser.add_argument("--precision", choices=("float32", "bf16"), default="float32",
+                        help="the networks' arithmetic in this tree ('after'); the earlier code runs float32")
     parser.add_argument("--worker", nargs=3, metavar=("CASE", "WORK", "OUT"), help=argparse.SUPPRESS)
     parser.add_argument("--make-inputs", type=Path, metavar="WORK", help=argparse.SUPPRESS)
     parser.add_argument("--with-video", action="store_true", help=argparse.SUPPRESS)
@@ -83,8 +89,6 @@ def run_worker(args: argparse.Namespace) -> dict:
     """One case with whichever endoflow this process's PYTHONPATH names: frames/s of the timed call."""
     if CASES[args.worker[0]][0] == "core":
         return run_core(args)
-    import contextlib
-
     import torch
 
     from endoflow.config import Params
@@ -99,7 +103,7 @@ def run_worker(args: argparse.Namespace) -> dict:
     K = getattr(source, "K", None)
 
     def call(frames: FrameRange, folder: Path) -> dict:
-        options = ReconstructOptions(frames=frames, size=size, fuse=fuse, device=args.device)
+        options = ReconstructOptions(frames=frames, size=size, fuse=fuse, device=args.device, **precision_option(args))
         with open(os.devnull, "w") as nowhere, contextlib.redirect_stderr(nowhere):
             return reconstruct(source, K, work / "model.pt", folder, options)
 
@@ -141,10 +145,12 @@ def run_core(args: argparse.Namespace) -> dict:
     voxel = steps.default_voxel_cm(K, record.params.model.max_depth, size)
     batched = hasattr(steps, "predict_frames")  # this version; the earlier one predicts frame by frame
     batch = steps.frames_per_call(size, device) if batched else 1
-    if batched:  # the networks' layout for frames of this size, as this version's reconstruct chooses it
-        from endoflow.devices import to_compute_layout
+    arithmetic = contextlib.nullcontext()
+    if batched:  # the networks' layout and arithmetic for frames of this size, as this version's reconstruct has them
+        from endoflow.devices import autocast, to_compute_layout
 
-        model = to_compute_layout(model, device, "float32", size)
+        model = to_compute_layout(model, device, args.precision, size)
+        arithmetic = autocast(device, args.precision)
 
     def fuse(frames: list) -> None:
         volume = TSDFVolume(voxel, 4 * voxel, device) if batched else TSDFVolume(voxel, 4 * voxel)
@@ -153,10 +159,11 @@ def run_core(args: argparse.Namespace) -> dict:
             for start in range(0, len(frames), batch):
                 chunk = frames[start:start + batch]
                 images = images_to_device(torch.from_numpy(np.stack(chunk)).permute(0, 3, 1, 2).contiguous(),
-                                          device, "float32")
+                                          device, args.precision)
                 if batched:
-                    predicted = steps.predict_frames(model, images, previous, 1.0, work / "model.pt",
-                                                     list(range(start, start + len(chunk))))
+                    with arithmetic:
+                        predicted = steps.predict_frames(model, images, previous, 1.0, work / "model.pt",
+                                                         list(range(start, start + len(chunk))))
                 else:
                     predicted = [steps.predict_frame(model, images, previous, 1.0, work / "model.pt", start)]
                 for rgb, (depth, T_cur_prev) in zip(chunk, predicted):
@@ -173,6 +180,11 @@ def run_core(args: argparse.Namespace) -> dict:
         fuse(frames)
         timed[name] = {"frames": len(frames), "seconds": time.perf_counter() - started}
     return timed
+
+
+def precision_option(args: argparse.Namespace) -> dict:
+    """``ReconstructOptions``' precision where it is not float32 (the earlier code has no such field)."""
+    return {"precision": args.precision} if args.precision != "float32" else {}
 
 
 def make_inputs(work: Path, frames: int, threads: int, video_frames: Optional[int], device: str) -> None:
@@ -236,7 +248,7 @@ def in_version(args: argparse.Namespace, version: str, arguments: list[str], pro
     env = environment_importing(tree)
     command = [sys.executable, __file__, "--baseline", str(args.baseline), "--device", args.device,
                "--threads", str(args.threads), "--frames", str(args.frames), "--video-frames", str(args.video_frames),
-               *arguments]
+               "--precision", args.precision if version == "after" else "float32", *arguments]
     done = subprocess.run(command, env=env, stdout=subprocess.PIPE, stderr=None if progress else subprocess.PIPE,
                           text=True)
     if done.returncode:
@@ -278,7 +290,8 @@ def main() -> None:
                     print(f"round {round_index + 1}/{args.rounds} {case:17s} {version:6s} {whole:7.2f} frames/s "
                           f"({extra:.2f} per frame)", flush=True)
     print(f"\nreconstruct, {args.frames} frames ({args.video_frames} in the video), {args.device}, {args.threads} "
-          f"torch threads, {args.rounds} round(s); before: {args.baseline}")
+          f"torch threads, {args.rounds} round(s); before: {args.baseline} (float32), after: this tree "
+          f"({args.precision})")
     print(f"{'case':17s} {'before':>9s} {'after':>9s} {'after/before':>13s} {'per frame: before':>18s} "
           f"{'after':>9s} {'after/before':>13s}   (frames/s)")
     for case in args.cases:
