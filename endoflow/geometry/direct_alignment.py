@@ -22,6 +22,8 @@ never worse than the start. See docs/reconstruction.md, "The path refined".
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -130,11 +132,16 @@ class _RotationPrior:
 class _Level:
     key_rgb: torch.Tensor  # [3, H, W]
     points: torch.Tensor  # [3, N] keyframe-camera points of the pixels with depth
-    distance: torch.Tensor  # [N] their distance from the keyframe's camera (its light)
     key_values: torch.Tensor  # [3, N] their colours
     usable: torch.Tensor  # [N] bool: neither saturated nor black
-    frame: torch.Tensor  # [1, 9, H, W] the frame and its horizontal and vertical gradients
+    frame: torch.Tensor  # [1, 4, H, W] the frame and where it is well exposed
+    gradients: torch.Tensor  # [1, 6, H, W] its horizontal and vertical gradients (only a step needs them)
     K: torch.Tensor
+
+    @cached_property
+    def distance(self) -> torch.Tensor:
+        """``[N]`` the points' distance from the keyframe's camera (its light): only a light fall-off needs it."""
+        return self.points.norm(dim=0).clamp(min=1e-9)
 
 
 def _pyramid(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb: torch.Tensor, K: torch.Tensor,
@@ -157,9 +164,8 @@ def _pyramid(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb: torch.Te
         usable = (key_good.reshape(-1) > 0) & (key_depth.reshape(-1) > 0)
         gx = F.pad(frame_rgb[:, :, 2:] - frame_rgb[:, :, :-2], (1, 1, 0, 0)) / 2
         gy = F.pad(frame_rgb[:, 2:, :] - frame_rgb[:, :-2, :], (0, 0, 1, 1)) / 2
-        distance = points.norm(dim=0).clamp(min=1e-9)
-        frame = torch.cat([frame_rgb, gx, gy, frame_good])[None]
-        pyramid.append(_Level(key_rgb, points, distance, key_rgb.reshape(3, -1), usable, frame, K))
+        frame, gradients = torch.cat([frame_rgb, frame_good])[None], torch.cat([gx, gy])[None]
+        pyramid.append(_Level(key_rgb, points, key_rgb.reshape(3, -1), usable, frame, gradients, K))
     return pyramid
 
 
@@ -170,10 +176,21 @@ def _well_exposed(rgb: torch.Tensor) -> torch.Tensor:
     return (brightest < SATURATED) & (brightest > BLACK)
 
 
-def _sample(level: _Level, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The frame (and its gradients) at the keyframe points moved by ``pose``: ``[9, N]``, the moved points
-    ``[3, N]``, the pixels ``[2, N]`` and which take part: land inside, one pixel from the border, in front, among
-    well-exposed frame pixels."""
+class _Sample(NamedTuple):
+    """The frame at the keyframe points moved by a pose: its colours ``[3, N]``, the moved points ``[3, N]``, their
+    pixels ``[2, N]``, the sampling grid and which points take part (land inside, one pixel from the border, in
+    front, among well-exposed frame pixels)."""
+
+    values: torch.Tensor
+    moved: torch.Tensor
+    pixels: torch.Tensor
+    grid: torch.Tensor
+    inside: torch.Tensor
+
+
+def _sample(level: _Level, pose: torch.Tensor) -> _Sample:
+    """The frame's colours at the keyframe points moved by ``pose`` (a cost needs no more; a step also samples the
+    gradients there, :func:`_sampled_gradients`: most candidates are refused, so they are not sampled for nothing)."""
     moved = pose[:3, :3] @ level.points + pose[:3, 3:4]
     z = moved[2]
     projected = level.K @ moved
@@ -181,8 +198,19 @@ def _sample(level: _Level, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tens
     height, width = level.frame.shape[-2:]
     inside = (z > 1e-6) & (u >= 1) & (u <= width - 2) & (v >= 1) & (v <= height - 2)
     grid = sampling_grid(u, v, height, width)[None, None]
-    sampled = F.grid_sample(level.frame, grid, mode="bilinear", padding_mode="border", align_corners=True)[0, :, 0]
-    return sampled[:9], moved, torch.stack([u, v]), inside & (sampled[9] > 0.999)
+    sampled = _grid_sample(level.frame, grid)
+    return _Sample(sampled[:3], moved, torch.stack([u, v]), grid, inside & (sampled[3] > 0.999))
+
+
+def _sampled_gradients(level: _Level, sample: _Sample) -> torch.Tensor:
+    """``[6, N]``: the frame's horizontal and vertical gradients where ``sample`` sampled its colours."""
+    return _grid_sample(level.gradients, sample.grid)
+
+
+def _grid_sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """``image [1, C, H, W]`` sampled bilinearly at ``grid [1, 1, N, 2]``: ``[C, N]`` (each channel on its own, so
+    sampling the channels apart gives what sampling them together does, to the bit)."""
+    return F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)[0, :, 0]
 
 
 def _huber(residual: torch.Tensor, delta: float) -> torch.Tensor:
@@ -190,27 +218,30 @@ def _huber(residual: torch.Tensor, delta: float) -> torch.Tensor:
     return torch.where(absolute <= delta, 0.5 * residual**2, delta * (absolute - 0.5 * delta))
 
 
-def _lit(level: _Level, moved: torch.Tensor, falloff: float) -> torch.Tensor:
+def _lit(level: _Level, moved: torch.Tensor, falloff: float) -> torch.Tensor | float:
     """``[N]`` factor that brings a frame pixel's brightness to the keyframe's light: (distance in the frame /
-    distance in the keyframe) ^ falloff."""
+    distance in the keyframe) ^ falloff; 1 without a fall-off (the default), where the distances, the dearest part
+    of a cost at 480 px, would only be raised to the power 0."""
+    if not falloff:
+        return 1.0
     return (moved.norm(dim=0).clamp(min=1e-9) / level.distance) ** falloff
 
 
 def _costs(level: _Level, state: tuple[torch.Tensor, torch.Tensor], settings: AlignmentSettings,
-           prior: _RotationPrior) -> tuple[torch.Tensor, torch.Tensor]:
+           prior: _RotationPrior) -> tuple[torch.Tensor, torch.Tensor, _Sample]:
     """Per-pixel cost ``[N]`` (Huber, summed over channels, plus the rotation prior's share) at ``state`` (pose,
-    brightness) and where the pixels take part."""
+    brightness), where the pixels take part, and the frame sampled at the pose (what a step from it linearises)."""
     pose, brightness = state
-    sampled, moved, _, inside = _sample(level, pose)
-    lit = _lit(level, moved, settings.light_falloff)
-    residual = torch.exp(brightness[0]) * lit * sampled[:3] + brightness[1] - level.key_values
-    return _huber(residual, settings.huber).sum(dim=0) + prior.cost(pose), level.usable & inside
+    sample = _sample(level, pose)
+    lit = _lit(level, sample.moved, settings.light_falloff)
+    residual = torch.exp(brightness[0]) * lit * sample.values + brightness[1] - level.key_values
+    return _huber(residual, settings.huber).sum(dim=0) + prior.cost(pose), level.usable & sample.inside, sample
 
 
-def _compare(before: tuple[torch.Tensor, torch.Tensor], after: tuple[torch.Tensor, torch.Tensor]
+def _compare(before: tuple[torch.Tensor, torch.Tensor, _Sample], after: tuple[torch.Tensor, torch.Tensor, _Sample]
              ) -> tuple[float, float, torch.Tensor]:
     """Mean costs before and after (each :func:`_costs`) over the pixels taking part in both, and those pixels."""
-    (cost_before, part_before), (cost_after, part_after) = before, after
+    (cost_before, part_before, _), (cost_after, part_after, _) = before, after
     both = part_before & part_after
     if not both.any() or int(both.sum()) < KEPT_SHARE * int(part_before.sum()):
         return float(cost_before[part_before].mean()) if part_before.any() else 0.0, float("inf"), both
@@ -222,12 +253,13 @@ def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor, s
     damping = 1e-3
     current = _costs(level, (pose, brightness), settings, prior)  # then the accepted candidate's: computed once
     for _ in range(settings.iterations):
-        sampled, moved, pixels, inside = _sample(level, pose)
-        mask = level.usable & inside
+        sample = current[2]  # the frame sampled at the pose
+        mask = level.usable & sample.inside
         taking_part = int(mask.sum())
         if taking_part < settings.min_pixels:
             break
-        residual, jacobian = _linearise(level, sampled, moved, pixels, brightness, mask, settings.light_falloff)
+        residual, jacobian = _linearise(level, sample, _sampled_gradients(level, sample), brightness, mask,
+                                        settings.light_falloff)
         weights = torch.where(residual.abs() <= settings.huber, torch.ones_like(residual),
                               settings.huber / residual.abs().clamp(min=1e-12))
         hessian = jacobian.T @ (weights[:, None] * jacobian)
@@ -251,22 +283,25 @@ def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor, s
     return pose, brightness
 
 
-def _linearise(level: _Level, sampled: torch.Tensor, moved: torch.Tensor, pixels: torch.Tensor,
-               brightness: torch.Tensor, mask: torch.Tensor, falloff: float) -> tuple[torch.Tensor, torch.Tensor]:
+def _linearise(level: _Level, sample: _Sample, gradients: torch.Tensor, brightness: torch.Tensor, mask: torch.Tensor,
+               falloff: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Residuals ``[M]`` and their Jacobian ``[M, 8]`` in (omega, t, gain, offset), over the masked pixels' three
     channels. A left increment moves a point ``X`` to ``X + omega x X + t``."""
-    lit = _lit(level, moved, falloff)[mask]
-    gain = torch.exp(brightness[0]) * lit
-    X = moved[:, mask]
-    u, v = pixels[0, mask], pixels[1, mask]
+    lit = _lit(level, sample.moved, falloff)
+    gain = torch.exp(brightness[0]) * (lit[mask] if isinstance(lit, torch.Tensor) else lit)
+    X = sample.moved[:, mask]
+    u, v = sample.pixels[0, mask], sample.pixels[1, mask]
     z = X[2]
     K = level.K
     du = (K[0][:, None] - u * K[2][:, None]) / z  # [3, M]: d u / d X
     dv = (K[1][:, None] - v * K[2][:, None]) / z
-    values, gx, gy = sampled[0:3, mask], sampled[3:6, mask], sampled[6:9, mask]
+    values, gx, gy = sample.values[:, mask], gradients[0:3, mask], gradients[3:6, mask]
     # d image / d X per channel: [3 channels, 3 coordinates, M]; the light's factor grows with |X|
-    d_lit = falloff * X / X.square().sum(dim=0).clamp(min=1e-18)  # d log(lit) / d X
-    d_image = gain * (gx[:, None, :] * du[None] + gy[:, None, :] * dv[None] + values[:, None, :] * d_lit[None])
+    d_image = gx[:, None, :] * du[None] + gy[:, None, :] * dv[None]
+    if falloff:
+        d_lit = falloff * X / X.square().sum(dim=0).clamp(min=1e-18)  # d log(lit) / d X
+        d_image = d_image + values[:, None, :] * d_lit[None]
+    d_image = gain * d_image
     # d X / d omega = -[X]_x, so d image / d omega = X x (d image / d X)
     d_omega = torch.cross(X[None].expand_as(d_image), d_image, dim=1)
     jacobian = torch.cat([d_omega, d_image, (gain * values)[:, None, :], torch.ones_like(values)[:, None, :]], dim=1)
