@@ -4,16 +4,18 @@
                                                     [--rounds 1] [--threads 2] [--cases video64 data480 ...]
                                                     [--video-frames 240]
                                                     [--versions before after] [--precision float32|bf16]
+                                                    [--model FILE]
 
 ``DIR`` holds an earlier ``endoflow`` package (``git archive <commit> endoflow | tar -x -C DIR``); ``before`` runs
 it, ``after`` this tree, each case in a fresh process with ``--threads`` torch threads. The inputs are made once by
 the baseline's code (its model file is one both versions read): the default model (latent bank on, ``data.size``
-64) randomly initialised and saved as a model file (weights do not change speed); sequence S1 of a synthetic
+64) randomly initialised and saved as a model file, or ``--model FILE`` (a trained one: its depth is a surface's,
+which gives fusion and the tracker their real work; an untrained model's is nearly flat); sequence S1 of a synthetic
 SimCol3D layout rendered at 480 px on ``--device`` (``--frames`` frames; the layout renders one sequence per scene,
 S1, B1 and O1, in parallel); and, for the video case only, the same frames upscaled to 1920 x 1080 in an H.264 MP4
 of ``--video-frames`` frames (the rendered ones forwards, then backwards, and again: a 1080p frame is cheap to
 encode, a 480 px one dear to render). Cases (the whole ``reconstruct()`` call: model load, field of view, decoding,
-inference, path refinement off, fusion, every output written; frames/s is frames over the call's wall time, after
+inference, path refinement off unless a case says so, fusion, every output written; frames/s is frames over the call's wall time, after
 an untimed 3-frame warm-up call; "per frame" is the rate of the frames a call of all of them takes beyond one of
 the first half, without the start-up and the end of a call: model load, the field-of-view pass, the contact sheet).
 The field of view is found in a call's first 60 frames: where the first half is shorter, the longer call looks at
@@ -24,6 +26,8 @@ more of them, and each is read a second time inside the per-frame figure (a 1080
 - ``data64``: the 480 px dataset sequence at 64 px, fused;
 - ``data480``: the dataset sequence at 480 px, fused (the TSDF at the pixel footprint's voxel);
 - ``data480-nofusion``: the same without fusion;
+- ``data480-refined``: ``data480`` with the path refined against keyframes (``refine`` of the default params, what
+  ``endoflow reconstruct`` does unless told ``--no-refine``);
 - ``core64``, ``core480``: the model and the fusion alone, as each version's ``reconstruct`` runs them (the earlier
   one frame by frame with its numpy TSDF; this one in batches of ``frames_per_call`` with the TSDF on the device),
   on frames decoded and resized beforehand, nothing written: what a GPU can be timed on where PyAV and rerun
@@ -58,8 +62,10 @@ if TYPE_CHECKING:  # each run imports the endoflow its version names, inside the
     from endoflow.config import Params
 
 ROOT = Path(__file__).resolve().parents[1]
-CASES = {"video64": ("video", 64, True), "data64": ("data", 64, True), "data480": ("data", 480, True),
-         "data480-nofusion": ("data", 480, False), "core64": ("core", 64, True), "core480": ("core", 480, True)}
+CASES = {"video64": ("video", 64, True, False), "data64": ("data", 64, True, False),
+         "data480": ("data", 480, True, False), "data480-nofusion": ("data", 480, False, False),
+         "data480-refined": ("data", 480, True, True), "core64": ("core", 64, True, False),
+         "core480": ("core", 480, True, False)}  # kind, size, fused, path refined
 VIDEO_SIZE = (1080, 1920)
 WARM_UP_FRAMES = 3
 VERSIONS = ("before", "after")
@@ -77,6 +83,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--cases", nargs="+", choices=tuple(CASES), default=list(CASES))
     parser.add_argument("--versions", nargs="+", choices=VERSIONS, default=list(VERSIONS),
                         help="'after' alone where the earlier code is known to be slow (its numpy TSDF at 480 px)")
+    parser.add_argument("--model", type=Path, default=None,
+                        help="a trained model file to reconstruct with (default: the default model, untrained)")
     parser.add_argument("--precision", choices=("float32", "bf16"), default="float32",
                         help="the networks' arithmetic in this tree ('after'); the earlier code runs float32")
     parser.add_argument("--worker", nargs=3, metavar=("CASE", "WORK", "OUT"), help=argparse.SUPPRESS)
@@ -97,13 +105,19 @@ def run_worker(args: argparse.Namespace) -> dict:
 
     torch.set_num_threads(args.threads)
     case, work, out = args.worker[0], Path(args.worker[1]), Path(args.worker[2])
-    kind, size, fuse = CASES[case]
+    kind, size, fuse, refined = CASES[case]
     source = (open_frames(work / "video.mp4", None, Params()) if kind == "video"
               else open_frames(work / "scene", "S1", Params()))
     K = getattr(source, "K", None)
+    refine = None
+    if refined:  # the earlier code may predate the tracker: imported only where a case asks for it
+        from endoflow.geometry.direct_alignment import tracker_settings
+
+        refine = tracker_settings(Params().refine)
 
     def call(frames: FrameRange, folder: Path) -> dict:
-        options = ReconstructOptions(frames=frames, size=size, fuse=fuse, device=args.device, **precision_option(args))
+        options = ReconstructOptions(frames=frames, size=size, fuse=fuse, device=args.device, refine=refine,
+                                     **precision_option(args))
         with open(os.devnull, "w") as nowhere, contextlib.redirect_stderr(nowhere):
             return reconstruct(source, K, work / "model.pt", folder, options)
 
@@ -134,7 +148,7 @@ def run_core(args: argparse.Namespace) -> dict:
     from endoflow.reconstruction.fusion import TSDFVolume
 
     torch.set_num_threads(args.threads)
-    _, size, _ = CASES[args.worker[0]]
+    _, size, _, _ = CASES[args.worker[0]]
     work = Path(args.worker[1])
     device = resolve_device(args.device, "--device")
     source = open_frames(work / "scene", "S1", Params())
@@ -276,6 +290,8 @@ def main() -> None:
         started = time.perf_counter()
         video = any(CASES[case][0] == "video" for case in args.cases)
         in_version(args, "before", ["--make-inputs", str(work), *(["--with-video"] if video else [])], progress=True)
+        if args.model is not None:
+            shutil.copyfile(args.model, work / "model.pt")
         print(f"inputs made in {time.perf_counter() - started:.0f} s", flush=True)
         rates: dict[tuple[str, str, str], list[float]] = {}
         for round_index in range(args.rounds):
@@ -291,7 +307,7 @@ def main() -> None:
                           f"({extra:.2f} per frame)", flush=True)
     print(f"\nreconstruct, {args.frames} frames ({args.video_frames} in the video), {args.device}, {args.threads} "
           f"torch threads, {args.rounds} round(s); before: {args.baseline} (float32), after: this tree "
-          f"({args.precision})")
+          f"({args.precision}); model: {args.model or 'the default, untrained'}")
     print(f"{'case':17s} {'before':>9s} {'after':>9s} {'after/before':>13s} {'per frame: before':>18s} "
           f"{'after':>9s} {'after/before':>13s}   (frames/s)")
     for case in args.cases:
