@@ -7,14 +7,14 @@ step, so the prior holds the rotation of each step near the network's).
 Residual per keyframe pixel and colour channel: ``r = exp(a) * I_frame(w(p)) + b - I_key(p)``, where ``w`` moves
 the keyframe point at ``p`` (its depth ``d``) into the frame by ``T_frame_key`` and projects it. Gauss-Newton with
 Levenberg-Marquardt damping on the 8 parameters (a left increment ``(omega, t)`` of the pose, gain ``a``, offset
-``b``), Huber weights, coarse to fine over an image pyramid. The light sits at the lens, so a point seen from
-further away is darker: the frame's brightness is brought to the keyframe's distance (``light_falloff``). Pixels
-take part where the keyframe has depth, lands inside the frame in front of its camera, and is, in both images,
-neither saturated (a specular highlight, which moves with the light) nor black (the dark border of an endoscope's
-field of view). The prior adds ``rotation_prior / 2 * |theta|^2`` to each pixel's cost, ``theta`` the axis-angle
-of the rotation between the current pose and the start: with a model's depth, which is wrong in shape away from
-its training data, the photometric cost trades rotation against translation, and the pose network's rotation
-keeps the two apart. A step is kept only where it lowers the cost
+``b``), Huber weights, coarse to fine over an image pyramid; the pixels in float32, the parameters in float64. The
+light sits at the lens, so a point seen from further away is darker: the frame's brightness is brought to the
+keyframe's distance (``light_falloff``). Pixels take part where the keyframe has depth, lands inside the frame in
+front of its camera, and is, in both images, neither saturated (a specular highlight, which moves with the light)
+nor black (the dark border of an endoscope's field of view). The prior adds ``rotation_prior / 2 * |theta|^2`` to
+each pixel's cost, ``theta`` the axis-angle of the rotation between the current pose and the start: with a model's
+depth, which is wrong in shape away from its training data, the photometric cost trades rotation against
+translation, and the pose network's rotation keeps the two apart. A step is kept only where it lowers the cost
 over the pixels that take part both before and after it (and keeps at least half of them), so the result is
 never worse than the start. See docs/reconstruction.md, "The path refined".
 """
