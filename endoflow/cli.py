@@ -10,7 +10,7 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, Optional, Sequence
 
-from endoflow.config import SYNTH_LAYOUTS, ConfigError, load_params
+from endoflow.config import PRECISIONS, SYNTH_LAYOUTS, ConfigError, load_params
 from endoflow.data.base import DATASETS
 from endoflow.errors import DataFormatError
 from endoflow.io import OutputFolderError, write_bytes
@@ -115,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="keep the pose network's path as it is (default: refined by photometric alignment to "
                           "keyframes with the predicted depth, as params.yaml's refine section says)")
     rec.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
-    rec.add_argument("--precision", choices=("float32", "bf16", "auto"), default=None,
+    rec.add_argument("--precision", choices=PRECISIONS, default=None,
                      help="the networks' arithmetic: float32 (the same outputs on any machine), bf16 (faster networks "
                           "on a CPU or GPU with bf16 arithmetic, depth and path a little different: "
                           "docs/reconstruction.md, 'Precision') or auto (bf16 on a GPU that has it; default: "

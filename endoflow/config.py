@@ -12,7 +12,7 @@ from __future__ import annotations
 import difflib
 import re
 from pathlib import Path
-from typing import Annotated, Any, Callable, ClassVar, Literal, Optional, Sequence, Union
+from typing import Annotated, Any, Callable, ClassVar, Literal, Optional, Sequence, Union, get_args
 
 from typing_extensions import Self
 
@@ -35,6 +35,7 @@ RAY_MIN_OBJECT_STORE_MB = 75
 # What a device key may say; endoflow/devices.py turns it into a torch device.
 DEVICE_NAME = re.compile(r"auto|cpu|cuda(:[0-9]+)?")
 Precision = Literal["auto", "bf16", "float32"]
+PRECISIONS: tuple[str, ...] = get_args(Precision)
 Compile = Union[Literal["auto"], bool]
 Split = Literal["train", "val", "test"]
 

@@ -20,10 +20,10 @@ Step = TypeVar("Step", bound=Callable)
 
 # The first CUDA compute capability with native bf16 arithmetic (Ampere); older GPUs emulate it slowly.
 NATIVE_BF16_CAPABILITY = (8, 0)
-# The smallest frame side (px) whose convolutions run channels-last on a CPU. Measured on 2 cores (docs/benchmarks.md):
-# float32 depth inference 1.6x faster from 128 px up, the paper preset's 480 px step 1.43x; at 64 px the default step
-# is 5 % slower and inference the same, so the default run keeps its contiguous layout. bf16 inference (oneDNN's
-# native bf16 convolutions) gains as much: at 480 px depth 121 -> 81 ms, at 256 px 39 -> 28 ms.
+# The smallest frame side (px) whose convolutions run channels-last on a CPU. Measured on 2 cores (docs/benchmarks.md,
+# docs/method.md): float32 depth inference 1.6x faster from 128 px up, the paper preset's 480 px step 1.43x; at 64 px
+# the default step is 5 % slower and inference the same, so the default run keeps its contiguous layout. In bf16
+# (oneDNN's native bf16 convolutions) depth inference 1.5x at 480 px and 1.4x at 256 px, the 480 px step 1.17x.
 CPU_CHANNELS_LAST_MIN_PX = 128
 
 

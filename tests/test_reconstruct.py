@@ -186,12 +186,14 @@ def test_bf16_networks_give_nearly_the_float32_depth_and_path_and_the_summary_sa
         scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
     exact = run(scene, model_file, tmp_path / "float32", params, "S1", fuse=False, npy=True, precision="float32")
     fast = run(scene, model_file, tmp_path / "bf16", params, "S1", fuse=False, npy=True, precision="bf16")
-    assert (exact["precision"], fast["precision"]) == ("float32", "bfloat16")
+    assert (exact["precision"], fast["precision"]) == ("float32", "bf16")
     depth, rounded = (np.load(tmp_path / name / "depth" / "000003.npy") for name in ("float32", "bf16"))
-    relative = np.abs(rounded - depth) / depth
-    assert 0 < np.median(relative) < 0.01  # rounded, so not equal; bf16 keeps 8 bits of mantissa
-    one, other = (np.loadtxt(tmp_path / name / "trajectory.kitti") for name in ("float32", "bf16"))
-    np.testing.assert_allclose(other, one, atol=0.01)
+    known = depth > 0
+    relative = np.abs(rounded[known] - depth[known]) / depth[known]
+    assert known.mean() > 0.9 and 0 < np.median(relative) < 0.01  # rounded, so not equal: bf16 keeps 8 mantissa bits
+    one, other = (np.loadtxt(tmp_path / name / "trajectory.kitti")[:, [3, 7, 11]] for name in ("float32", "bf16"))
+    steps, rounded_steps = np.diff(one, axis=0), np.diff(other, axis=0)
+    assert np.linalg.norm(rounded_steps - steps) < 0.05 * np.linalg.norm(steps)
 
 
 def test_the_command_line_takes_the_precision_from_params_yaml_unless_told(
@@ -202,7 +204,7 @@ def test_the_command_line_takes_the_precision_from_params_yaml_unless_told(
                  str(model_file), "--stop", "2", "--no-fusion", "--out"]
     assert cli([*arguments, str(tmp_path / "from_params")]) == 0
     assert cli([*arguments, str(tmp_path / "told"), "--precision", "float32"]) == 0
-    assert json.loads((tmp_path / "from_params" / "reconstruction.json").read_text())["precision"] == "bfloat16"
+    assert json.loads((tmp_path / "from_params" / "reconstruction.json").read_text())["precision"] == "bf16"
     assert json.loads((tmp_path / "told" / "reconstruction.json").read_text())["precision"] == "float32"
     with pytest.raises(SystemExit):
         cli([*arguments, str(tmp_path / "bad"), "--precision", "fp16"])
@@ -294,6 +296,8 @@ def test_bad_inputs_fail_saying_what_to_provide(scene: Path, params: Params, tmp
         open_frames(scene, None, params)
     with pytest.raises(ValueError, match="multiple of 32"):
         ReconstructOptions(size=50)
+    with pytest.raises(ValueError, match="--precision must be one of auto, bf16, float32, got 'fp16'"):
+        ReconstructOptions(precision="fp16")
     with pytest.raises(ValueError, match="start < stop"):
         FrameRange(4, 2)
 

@@ -293,7 +293,7 @@ def _linearise(level: _Level, sample: _Sample, gradients: torch.Tensor, brightne
     """Residuals ``[M]`` and their Jacobian ``[M, 8]`` in (omega, t, gain, offset), over the masked pixels' three
     channels. A left increment moves a point ``X`` to ``X + omega x X + t``."""
     lit = _lit(level, sample.moved, falloff)
-    gain = torch.exp(brightness[0]) * (lit[mask] if isinstance(lit, torch.Tensor) else lit)
+    gain = torch.exp(brightness[0]) * (lit[mask] if falloff else lit)
     X = sample.moved[:, mask]
     u, v = sample.pixels[0, mask], sample.pixels[1, mask]
     z = X[2]

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Iterator, Optional, TypeVar
 import numpy as np
 import torch
 
-from endoflow.config import DATASETS, ModelConfig, Params, Precision, ReconstructConfig
+from endoflow.config import DATASETS, PRECISIONS, ModelConfig, Params, Precision, ReconstructConfig
 from endoflow.data.field_of_view import FIELD_OF_VIEW_FRAMES, NoFieldOfView, field_of_view, resized_field_of_view
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
 from endoflow.devices import autocast, compute_dtype, images_to_device, resolve_device, to_compute_layout
@@ -96,6 +96,8 @@ class ReconstructOptions:
         for option, value in (("--scale", self.scale), ("--voxel-cm", self.voxel_cm), ("--trunc-cm", self.trunc_cm)):
             if value is not None and not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"{option} must be a positive number, got {value}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"--precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
 
 
 def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path: Path, out_dir: Path,
@@ -172,7 +174,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             "crop": asdict(region), "model_view": asdict(model_view(region)), "size": size,
             "K": K.tolist(), "intrinsics": intrinsics_from, "scale": options.scale, "depth_unit_cm": unit,
             "seconds": seconds, "frames_per_second": path.count / seconds, "device": str(device),
-            "precision": str(compute_dtype(device, options.precision)).removeprefix("torch."),
+            "precision": "bf16" if compute_dtype(device, options.precision) == torch.bfloat16 else "float32",
             "threads": torch.get_num_threads(),
             "tsdf": {"voxel_cm": voxel, "trunc_cm": volume.trunc_cm} if volume is not None else None,
             "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),

@@ -1,0 +1,155 @@
+"""The path refinement (``KeyframeTracker``) of an earlier version of the code against this one, in one run.
+
+    python benchmarks/bench_tracker.py --baseline DIR [--sizes 64 256 480] [--frames 12] [--threads 2]
+
+``DIR`` holds an earlier ``endoflow`` package (``git archive <commit> endoflow | tar -x -C DIR``). For each size,
+sequence S1 of a synthetic SimCol3D layout is rendered once by this tree (``--frames`` frames with their exact depth,
+intrinsics and poses). Each version then tracks it in a fresh process with ``--threads`` torch threads and the
+default ``refine`` params: every frame from the previous refined pose times the previous refined step (constant
+velocity; the first step from the truth), aligned to the keyframes with the exact depth. One untimed pass, then a
+timed one. Printed per size: ms a tracked frame of each version and their ratio, how far this tree's steps are from
+the earlier one's (translation relative to the step's length, rotation in degrees, the largest over the frames), and
+each version's mean step errors against the truth (translation in cm, rotation in degrees). Figures are printed, not
+asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from code_versions import environment_importing
+
+ROOT = Path(__file__).resolve().parents[1]
+VERSIONS = ("before", "after")
+
+
+def parse_args() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--baseline", type=Path, required=True, help="folder holding the earlier endoflow package")
+    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 256, 480])
+    parser.add_argument("--frames", type=int, default=12)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--worker", nargs=2, metavar=("INPUTS", "OUT"), help=argparse.SUPPRESS)
+    return parser.parse_args()
+
+
+def make_inputs(folder: Path, size: int, frames: int, threads: int) -> Path:
+    """S1 rendered at ``size`` px: its frames ``[N, 3, H, W]`` in [0, 1], depth ``[N, 1, H, W]`` in cm, ``K`` and
+    camera-to-world poses, saved as plain tensors for both versions to read."""
+    import torch
+
+    from endoflow.config import Params
+    from endoflow.data.registry import open_reader
+    from endoflow.synth.writers import synthesize_layout
+
+    params = Params()
+    root = folder / f"scene{size}"
+    synthesize_layout("simcol", root, sequences=1, frames=frames, size=size, seed=0, params=params,
+                      workers=threads, device="cpu")
+    sequence = next(s for s in open_reader(root, None, params).sequences() if s.name == "S1")
+    path = folder / f"inputs{size}.pt"
+    torch.save({"rgb": torch.from_numpy(np.stack([sequence.load_rgb(i) for i in range(len(sequence))]))
+                .permute(0, 3, 1, 2).double() / 255,
+                "depth": torch.from_numpy(np.stack([sequence.load_depth(i) for i in range(len(sequence))]))[:, None],
+                "K": torch.from_numpy(sequence.K), "poses": torch.from_numpy(np.stack(sequence.poses))}, path)
+    return path
+
+
+def run_worker(inputs: Path, out: Path, threads: int) -> None:
+    """Track the inputs with whichever endoflow this process's PYTHONPATH names; write the poses and the time."""
+    import torch
+
+    from endoflow.config import Params
+    from endoflow.geometry.direct_alignment import KeyframeTracker, tracker_settings
+
+    torch.set_num_threads(threads)
+    data = torch.load(inputs, weights_only=True)
+
+    def track() -> list[np.ndarray]:
+        tracker = KeyframeTracker(data["K"], tracker_settings(Params().refine))
+        truth = data["poses"].double()
+        poses = [tracker.track(data["rgb"][0], data["depth"][0], truth[0])]
+        step = torch.linalg.inv(truth[0]) @ truth[1]
+        for rgb, depth in zip(data["rgb"][1:], data["depth"][1:]):
+            poses.append(tracker.track(rgb, depth, poses[-1] @ step))
+            step = torch.linalg.inv(poses[-2]) @ poses[-1]
+        return [pose.numpy() for pose in poses]
+
+    track()
+    started = time.perf_counter()
+    poses = track()
+    seconds = time.perf_counter() - started
+    out.write_text(json.dumps({"ms_per_frame": 1e3 * seconds / (len(poses) - 1),
+                               "poses": [pose.tolist() for pose in poses]}))
+
+
+def steps(poses: np.ndarray) -> np.ndarray:
+    return np.linalg.inv(poses[:-1]) @ poses[1:]
+
+
+def angle_deg(rotations: np.ndarray) -> np.ndarray:
+    cosine = (np.trace(rotations, axis1=-2, axis2=-1) - 1) / 2
+    return np.degrees(np.arccos(np.clip(cosine, -1, 1)))
+
+
+def step_differences(reference: np.ndarray, other: np.ndarray) -> tuple[float, float]:
+    """Largest translation difference relative to the reference step's length, and rotation difference (deg)."""
+    a, b = steps(reference), steps(other)
+    translation = np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1) / np.linalg.norm(a[:, :3, 3], axis=1)
+    rotation = angle_deg(np.swapaxes(a[:, :3, :3], 1, 2) @ b[:, :3, :3])
+    return float(translation.max()), float(rotation.max())
+
+
+def step_errors(truth: np.ndarray, poses: np.ndarray) -> tuple[float, float]:
+    """Mean step errors against the truth: translation (cm) and rotation (deg)."""
+    error = np.linalg.inv(steps(truth)) @ steps(poses)
+    return float(np.linalg.norm(error[:, :3, 3], axis=1).mean()), float(angle_deg(error[:, :3, :3]).mean())
+
+
+def main() -> None:
+    args = parse_args()
+    if args.worker:
+        run_worker(Path(args.worker[0]), Path(args.worker[1]), args.threads)
+        return
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_tracker_") as folder:
+        work = Path(folder)
+        for size in args.sizes:
+            inputs = make_inputs(work, size, args.frames, args.threads)
+            results = {}
+            for version in VERSIONS:
+                tree = args.baseline.resolve() if version == "before" else ROOT
+                out = work / f"{version}{size}.json"
+                command = [sys.executable, __file__, "--baseline", str(args.baseline), "--threads", str(args.threads),
+                           "--worker", str(inputs), str(out)]
+                subprocess.run(command, env=environment_importing(tree), check=True)
+                results[version] = json.loads(out.read_text())
+                print(f"{size} px {version:6s} {results[version]['ms_per_frame']:8.1f} ms a tracked frame", flush=True)
+            import torch
+
+            truth = torch.load(inputs, weights_only=True)["poses"].double().numpy()
+            before, after = (np.array(results[v]["poses"]) for v in VERSIONS)
+            rows.append((size, results["before"]["ms_per_frame"], results["after"]["ms_per_frame"],
+                         *step_differences(before, after), *step_errors(truth, before), *step_errors(truth, after)))
+    print(f"\nKeyframeTracker, {args.frames} rendered frames with exact depth, {args.threads} torch threads; "
+          f"before: {args.baseline}")
+    print(f"{'size':>5s} {'before ms':>10s} {'after ms':>9s} {'before/after':>13s} {'steps: d trans':>15s} "
+          f"{'d rot (deg)':>12s} {'error before: cm':>17s} {'deg':>7s} {'after: cm':>10s} {'deg':>7s}")
+    for size, slow, fast, d_trans, d_rot, t_before, r_before, t_after, r_after in rows:
+        print(f"{size:5d} {slow:10.1f} {fast:9.1f} {slow / fast:13.2f} {d_trans:15.1e} {d_rot:12.1e} "
+              f"{t_before:17.5f} {r_before:7.4f} {t_after:10.5f} {r_after:7.4f}")
+    if any(math.isnan(value) for row in rows for value in row):
+        print("(nan: a step of length 0)")
+
+
+if __name__ == "__main__":
+    main()
