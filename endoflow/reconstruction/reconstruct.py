@@ -26,7 +26,8 @@ import torch
 from endoflow.config import DATASETS, PRECISIONS, ModelConfig, Params, Precision, ReconstructConfig
 from endoflow.data.field_of_view import FIELD_OF_VIEW_FRAMES, NoFieldOfView, field_of_view, resized_field_of_view
 from endoflow.data.frame_encoding import depth_to_counts, encode_png, resize_depth, resize_rgb, stored_intrinsics
-from endoflow.devices import autocast, compute_dtype, images_to_device, resolve_device, to_compute_layout
+from endoflow.devices import (autocast, compute_dtype, images_to_device, resolve_device, to_compute_layout,
+                              unit_float_images)
 from endoflow.errors import DataFormatError
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings
 from endoflow.geometry.pose import chain_step, invert_pose, relative_pose
@@ -147,7 +148,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                     depth = np.where(valid, depth, np.float32(0))  # outside the field of view: unknown
                     network_pose = path.network_step(T_cur_prev, options.scale)
                     pose = network_pose if tracker is None else tracker.track(
-                        torch.from_numpy(rgb).permute(2, 0, 1).double() / 255, torch.from_numpy(depth)[None],
+                        unit_float_images(torch.from_numpy(rgb).permute(2, 0, 1)), torch.from_numpy(depth)[None],
                         torch.from_numpy(path.step_from_last(T_cur_prev, options.scale))).numpy()
                     path.add(frame, pose, network_pose, depth, size)
                     explained.add(rgb, depth, path)
