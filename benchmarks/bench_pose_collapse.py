@@ -14,7 +14,10 @@ Over the split's (cur, next) pairs, with the shards' exact depth and poses, prin
 - the training loss (the default objective's photometric term for the pair, the model's depth) at the true pose,
   at the network's, at the training set's mean step (constant velocity) and at the true pose with its translation
   scaled by 0.5 ... 1.5: how much lower the truth is than one step for all, the signal that would make the
-  network follow the motion.
+  network follow the motion;
+- the same loss at the true pose and at the network's run backwards (their inverses): whether the loss, with the
+  model's depth, tells the direction of the motion, and whether a network that answers against it sits on the
+  wrong side of what its loss prefers (time reversal, ``train.time_reversal``, asks a network for both directions).
 """
 
 from __future__ import annotations
@@ -108,7 +111,9 @@ def main() -> None:
     with torch.no_grad():
         at = {"truth": loss_at(cur, nxt, depth, T_next_cur, K, cfg),
               "network": loss_at(cur, nxt, depth, pose_vec_to_matrix(mean.float()), K, cfg),
-              "constant velocity": loss_at(cur, nxt, depth, constant, K, cfg)}
+              "constant velocity": loss_at(cur, nxt, depth, constant, K, cfg),
+              "truth reversed": loss_at(cur, nxt, depth, invert_pose(T_next_cur), K, cfg),
+              "network reversed": loss_at(cur, nxt, depth, invert_pose(pose_vec_to_matrix(mean.float())), K, cfg)}
         scaled = {}
         for scale in SCALES:
             T = T_next_cur.clone()
@@ -119,6 +124,8 @@ def main() -> None:
         f"{name} {values.mean().item():.5f} ({values.mean().item() / base - 1:+.2%})" for name, values in at.items()))
     print(f"  pairs where the truth beats constant velocity: {(at['truth'] < at['constant velocity']).float().mean():.1%}"
           f"; the network beats it: {(at['network'] < at['constant velocity']).float().mean():.1%}")
+    print(f"  pairs where the truth beats it reversed: {(at['truth'] < at['truth reversed']).float().mean():.1%}; "
+          f"the network beats its answer reversed: {(at['network'] < at['network reversed']).float().mean():.1%}")
     print("  true pose with its translation scaled: " + ", ".join(
         f"x{scale:g} {value / base - 1:+.2%}" for scale, value in scaled.items()))
     steps = mean_step(T_next_cur.double().numpy())
