@@ -15,9 +15,10 @@ SimCol3D layout rendered at 480 px on ``--device`` (``--frames`` frames; the lay
 S1, B1 and O1, in parallel); and, for the video case only, the same frames upscaled to 1920 x 1080 in an H.264 MP4
 of ``--video-frames`` frames (the rendered ones forwards, then backwards, and again: a 1080p frame is cheap to
 encode, a 480 px one dear to render). Cases (the whole ``reconstruct()`` call: model load, field of view, decoding,
-inference, path refinement off unless a case says so, fusion, every output written; frames/s is frames over the call's wall time, after
-an untimed 3-frame warm-up call; "per frame" is the rate of the frames a call of all of them takes beyond one of
-the first half, without the start-up and the end of a call: model load, the field-of-view pass, the contact sheet).
+inference, path refinement off unless a case says so, fusion, every output written; frames/s is frames over the
+call's wall time, after an untimed 3-frame warm-up call; "per frame" is the rate of the frames a call of all of them
+takes beyond one of the first half, without the start-up and the end of a call: model load, the field-of-view pass,
+the contact sheet).
 The field of view is found in a call's first 60 frames: where the first half is shorter, the longer call looks at
 more of them, and each is read a second time inside the per-frame figure (a 1080p decode for the video, hence its
 240 frames; a 480 px PNG for the sequence, with ``--frames`` under 120):
@@ -34,11 +35,10 @@ more of them, and each is read a second time inside the per-frame figure (a 1080
   (the outputs' video and recording) are not installed. Per frame only (the start-up is left out).
 
 ``--versions after`` times this tree alone (the figures of ``before`` print as nan). ``--precision bf16`` runs this
-tree's networks under bf16 autocast (``reconstruct --precision``); the earlier code runs float32, which is all it had
-before the option: with ``--baseline`` an archive of this very commit, the two columns are float32 and bf16 of one
-code. With ``--rounds`` > 1 the two
-versions alternate so that load from other processes hits both alike, and the
-median is printed. Figures are printed, not asserted.
+tree's networks under bf16 autocast (``reconstruct --precision``); the earlier code runs float32, which is all it
+had before the option: with ``--baseline`` an archive of this very commit, the two columns are float32 and bf16 of
+one code. With ``--rounds`` > 1 the two versions alternate so that load from other processes hits both alike, and
+the median is printed. Figures are printed, not asserted.
 """
 
 from __future__ import annotations

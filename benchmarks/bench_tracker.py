@@ -92,27 +92,24 @@ def run_worker(inputs: Path, out: Path, threads: int) -> None:
                                "poses": [pose.tolist() for pose in poses]}))
 
 
-def steps(poses: np.ndarray) -> np.ndarray:
-    return np.linalg.inv(poses[:-1]) @ poses[1:]
-
-
-def angle_deg(rotations: np.ndarray) -> np.ndarray:
-    cosine = (np.trace(rotations, axis1=-2, axis2=-1) - 1) / 2
-    return np.degrees(np.arccos(np.clip(cosine, -1, 1)))
-
-
 def step_differences(reference: np.ndarray, other: np.ndarray) -> tuple[float, float]:
     """Largest translation difference relative to the reference step's length, and rotation difference (deg)."""
-    a, b = steps(reference), steps(other)
+    from endoflow.evaluation.metrics import relative_poses
+    from endoflow.geometry.pose import rotation_angle_deg
+
+    a, b = relative_poses(reference), relative_poses(other)
     translation = np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1) / np.linalg.norm(a[:, :3, 3], axis=1)
-    rotation = angle_deg(np.swapaxes(a[:, :3, :3], 1, 2) @ b[:, :3, :3])
+    rotation = rotation_angle_deg(np.swapaxes(a[:, :3, :3], 1, 2) @ b[:, :3, :3])
     return float(translation.max()), float(rotation.max())
 
 
 def step_errors(truth: np.ndarray, poses: np.ndarray) -> tuple[float, float]:
     """Mean step errors against the truth: translation (cm) and rotation (deg)."""
-    error = np.linalg.inv(steps(truth)) @ steps(poses)
-    return float(np.linalg.norm(error[:, :3, 3], axis=1).mean()), float(angle_deg(error[:, :3, :3]).mean())
+    from endoflow.evaluation.metrics import relative_poses
+    from endoflow.geometry.pose import rotation_angle_deg
+
+    error = np.linalg.inv(relative_poses(truth)) @ relative_poses(poses)
+    return float(np.linalg.norm(error[:, :3, 3], axis=1).mean()), float(rotation_angle_deg(error[:, :3, :3]).mean())
 
 
 def main() -> None:

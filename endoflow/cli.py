@@ -303,11 +303,10 @@ def _reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
     from endoflow.reconstruction.reconstruct import ReconstructOptions
 
     params = _params_if_present(args.params)
-    refine = params.refine
     return ReconstructOptions(FrameRange(args.start, args.stop, args.stride), args.size, args.scale,
                               args.voxel_cm, args.trunc_cm, args.npy, args.fuse, args.device, args.force,
                               Crop.parse(args.crop) if args.crop else None,
-                              tracker_settings(refine) if args.refine and refine.enabled else None,
+                              tracker_settings(params.refine) if args.refine and params.refine.enabled else None,
                               args.precision or params.reconstruct.precision)
 
 
