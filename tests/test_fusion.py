@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from endoflow.reconstruction.fusion import TSDFVolume, pack_block_keys, unpack_block_keys
 
@@ -80,3 +81,84 @@ def test_unknown_depth_fuses_nothing() -> None:
     unknown[0, :3] = np.nan
     volume.integrate(unknown, rgb, K, T)
     assert volume.block_count == 0 and len(volume.extract_mesh().vertices) == 0
+
+
+def wavy_frames(count: int = 4, height: int = 40, width: int = 56) -> list[tuple[np.ndarray, ...]]:
+    """A wavy wall seen from a camera that moves and turns, in frames with holes (zeros, NaN) and a K whose
+    centre and focal lengths are not round in float32."""
+    generator = np.random.default_rng(3)
+    K = np.array([[41.37, 0, width / 2 - 0.3], [0, 43.91, height / 2 + 0.17], [0, 0, 1.0]])
+    v, u = np.mgrid[0:height, 0:width]
+    frames = []
+    for step in range(count):
+        depth = (3.0 + 0.4 * np.sin(u / 5.0 + step) + 0.3 * np.cos(v / 7.0) + 0.02 * u).astype(np.float32)
+        depth[generator.random(depth.shape) < 0.05] = 0.0
+        depth[:3, :4] = np.nan
+        rgb = generator.integers(0, 256, (height, width, 3), dtype=np.uint8)
+        angle = 0.05 * step
+        T_world_cam = np.eye(4)
+        T_world_cam[:3, :3] = [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
+        T_world_cam[:3, 3] = [0.13 * step, -0.07 * step, 0.21 * step]
+        frames.append((depth, rgb, K, T_world_cam))
+    return frames
+
+
+def test_the_compiled_loops_fuse_the_volume_of_the_tensor_code_to_the_bit() -> None:
+    volumes = [TSDFVolume(0.031, 0.124, compiled=compiled) for compiled in (True, False)]
+    for frame in wavy_frames():
+        for volume in volumes:
+            volume.integrate(*frame)
+    loops, tensors = volumes
+    assert loops._compiled and not tensors._compiled
+    assert loops.block_count == tensors.block_count > 100
+    for name in ("_keys", "_rows", "_tsdf", "_weight", "_colour"):
+        assert torch.equal(getattr(loops, name), getattr(tensors, name)), name
+    assert (loops._weight > 1).any()  # frames overlapped: averaging, not only first sightings, was compared
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["loops", "tensors"])
+def test_a_frame_beyond_the_keys_range_is_refused_with_the_option_that_helps(compiled: bool) -> None:
+    volume = TSDFVolume(0.01, 0.04, compiled=compiled)
+    depth, rgb, K, T_world_cam = plane_frames()[0]
+    T_world_cam = T_world_cam.copy()
+    T_world_cam[0, 3] = 1e5  # 1 km along x: 1.25 million blocks of 0.08 cm
+    with pytest.raises(ValueError, match="--voxel-cm"):
+        volume.integrate(depth, rgb, K, T_world_cam)
+
+
+def test_the_chunked_mesh_is_the_mesh_of_the_whole_grid_at_once() -> None:
+    from skimage.measure import marching_cubes
+
+    from endoflow.reconstruction.fusion import BLOCK, CHUNK_BLOCKS, observed_cubes
+
+    volume = TSDFVolume(0.02, 0.08)  # 0.16 cm blocks, 1.28 cm chunks: the wall's view crosses many chunk seams
+    for frame in wavy_frames():
+        volume.integrate(*frame)
+    coords = unpack_block_keys(volume._keys).numpy()
+    low = coords.min(axis=0)
+    shape = tuple((coords.max(axis=0) - low + 1) * BLOCK)
+    tsdf, weight = np.ones(shape, np.float32), np.zeros(shape, np.float32)
+    for coord, row in zip(coords - low, volume._rows.tolist()):  # block by block: the plainest reading
+        region = tuple(slice(c * BLOCK, (c + 1) * BLOCK) for c in coord)
+        tsdf[region] = volume._tsdf[row].reshape(BLOCK, BLOCK, BLOCK).numpy()
+        weight[region] = volume._weight[row].reshape(BLOCK, BLOCK, BLOCK).numpy()
+    vertices, _, _, _ = marching_cubes(tsdf, level=0.0, mask=observed_cubes(weight > 0))
+    whole = (vertices + low * BLOCK + 0.5) * volume.voxel_cm
+    chunked = volume.extract_mesh().vertices
+    assert len(np.unique(coords // CHUNK_BLOCKS, axis=0)) > 8
+    assert len(whole) > 1000
+    for these, those in ((whole, chunked), (chunked, whole)):  # the same points (seams' twice), up to rounding
+        assert cKDTree(those).query(these)[0].max() < 0.01 * volume.voxel_cm
+
+
+def test_no_face_reaches_a_voxel_never_observed() -> None:
+    tsdf = np.ones((4, 4, 4), np.float32)
+    tsdf[1, 1, 1] = -1.0  # behind the surface: a crossing on each edge from it
+    observed = np.zeros((4, 4, 4), bool)
+    observed[1:, 1:, 1:] = True  # the 8 cubes around voxel (1, 1, 1) reach unobserved voxels, but one
+    from skimage.measure import marching_cubes
+
+    from endoflow.reconstruction.fusion import observed_cubes
+
+    vertices, _, _, _ = marching_cubes(tsdf, level=0.0, mask=observed_cubes(observed))
+    assert len(vertices) == 3 and (vertices >= 1).all()  # one corner of the one cube from (1, 1, 1) to (2, 2, 2)

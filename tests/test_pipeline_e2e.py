@@ -94,7 +94,12 @@ def test_dvc_metrics_are_a_short_numeric_summary(smoke_repro):
     expected = {f"test_{test_set}.{key}" for test_set in params.eval.test_sets
                 for key in ("abs_rel", "rte_cm", "rot_deg")}
     expected |= {f"reconstruct_{name}.{key}" for name in params.reconstruct.sequences
-                 for key in ("ate_cm", "accuracy_cm", "completeness_2vox_pct")}
+                 for key in ("ate_cm", "completeness_2vox_pct")}
+    # a mesh's accuracy where it has vertices: the smoke model's depth may leave no cube of the fusion observed on
+    # all its corners across the surface, and a figure that does not exist is left out, never written as NaN
+    expected |= {f"reconstruct_{name}.accuracy_cm" for name in params.reconstruct.sequences
+                 if json.loads((smoke_repro / params.reconstruct.out / name / "reconstruction.json").read_text()
+                               )["mesh"]["vertices"]}
     expected |= {"train.best_epoch", "train.val_abs_rel", "train.val_rmse_cm", "train.val_photometric",
                  "latent_bank.swd_final", "latent_bank.swd_ratio"}
     assert set(values) == expected

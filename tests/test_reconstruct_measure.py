@@ -19,11 +19,13 @@ from endoflow.io import write_bytes, write_json
 from endoflow.models.model_file import TrainingBaselines
 from endoflow.reconstruction.frames import DatasetFrames, FrameRange, FolderFrames
 from endoflow.reconstruction.fusion import TSDFVolume, write_ply
+from endoflow.reconstruction import measure
 from endoflow.reconstruction.measure import (
     DISTANCE_CAP_CM,
     PATH_ROWS,
     back_project,
     format_measurement,
+    headline_measurement,
     measure_reconstruction,
     metrics_summary,
     path_errors,
@@ -204,6 +206,29 @@ def test_an_empty_mesh_has_no_accuracy_and_every_ground_truth_point_missed(tmp_p
     table = format_measurement("empty", {"frames": 1, "voxel_cm": 0.1, "frames_per_second": 1.0, "path": {},
                                          "surface": {"model": errors}})
     assert "none (empty mesh) / none (empty mesh)" in table
+
+
+def test_the_headline_of_an_empty_mesh_logs_to_mlflow_without_its_missing_accuracy(
+        measured, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    result, _ = measured
+    empty = {**result, "surface": {**result["surface"], "model": surface_errors(
+        np.zeros((0, 3)), np.ones((5, 3)), voxel_cm=0.1)}}
+    logged: dict = {}
+
+    class Run:  # the model's MLflow run, as log_reconstruction returns it
+        def log_metrics(self, metrics: dict) -> None:
+            logged.update(metrics)
+
+        def show_in_runs_table(self, metrics: dict) -> None:
+            pass
+
+        def log_table(self, rows: list, name: str) -> None:
+            logged["table"] = rows
+
+    monkeypatch.setattr(measure, "log_reconstruction", lambda *args: Run())
+    measure.log_measurement(None, tmp_path, "run", "S1", tmp_path, empty)
+    assert headline_measurement(empty)["accuracy_cm"] is None
+    assert set(logged) == {"reconstruct/S1/ate_cm", "reconstruct/S1/completeness_2vox_pct", "table"}
 
 
 def test_input_without_ground_truth_says_which_frame_lacks_it(source: DatasetFrames, tmp_path: Path) -> None:

@@ -10,12 +10,15 @@ scikit-image's marching cubes over the allocated blocks.
 
 Integration is torch arithmetic over whole blocks at a time, on the volume's device (the GPU where reconstruct
 runs on one): the blocks a frame touches are found by sorting packed integer keys, looked up in a sorted key
-table by binary search, and updated in float32. We write this rather than use Open3D: ``open3d-cpu`` (0.20) needs
-the system library ``libusb-1.0``, which a pip install cannot provide, so it fails to import on a clean machine.
+table by binary search, and updated in float32. On a CPU the two passes over pixels and voxels run as compiled
+loops instead (``tsdf_loops.py``), to the bit the same arithmetic. We write this rather than use Open3D:
+``open3d-cpu`` (0.20) needs the system library ``libusb-1.0``, which a pip install cannot provide, so it fails to
+import on a clean machine.
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +26,7 @@ import numpy as np
 import torch
 
 from endoflow.io import atomic_path
+from endoflow.reconstruction import tsdf_loops
 
 BLOCK = 8  # voxels per block edge
 CHUNK_BLOCKS = 8  # blocks per chunk edge when extracting the mesh: 64^3 voxels at a time
@@ -45,10 +49,12 @@ class SurfaceMesh:
 
 class TSDFVolume:
     """``voxel_cm``: voxel edge; ``trunc_cm``: truncation distance (a few voxels); ``device``: where the voxels live
-    and integration runs. Blocks are rows of the voxel arrays (``[rows, BLOCK^3]``, grown by doubling); a sorted
-    table of packed block keys gives each block's row."""
+    and integration runs; ``compiled``: on a CPU, integrate with the compiled loops (False: the tensor code, as on
+    a GPU; the same volume, slower). Blocks are rows of the voxel arrays (``[rows, BLOCK^3]``, grown by doubling);
+    a sorted table of packed block keys gives each block's row."""
 
-    def __init__(self, voxel_cm: float, trunc_cm: float, device: torch.device | str = "cpu") -> None:
+    def __init__(self, voxel_cm: float, trunc_cm: float, device: torch.device | str = "cpu", compiled: bool = True
+                 ) -> None:
         if not (voxel_cm > 0 and trunc_cm >= voxel_cm):
             raise ValueError(f"voxel size {voxel_cm} cm must be > 0 and at most the truncation {trunc_cm} cm")
         self.voxel_cm, self.trunc_cm, self.device = float(voxel_cm), float(trunc_cm), torch.device(device)
@@ -58,6 +64,7 @@ class TSDFVolume:
         self._weight = torch.zeros(0, BLOCK**3, device=self.device)
         self._colour = torch.zeros(0, BLOCK**3, 3, device=self.device)
         self._local = _LOCAL_VOXELS.to(self.device, torch.float32)
+        self._compiled = compiled and self.device.type == "cpu"
 
     @property
     def block_count(self) -> int:
@@ -84,14 +91,19 @@ class TSDFVolume:
     def _touched_keys(self, depth: torch.Tensor, K: np.ndarray, T_world_cam: np.ndarray) -> torch.Tensor:
         """Sorted keys of the blocks within ``trunc`` of a surface point of the frame: the points at depth - trunc
         and + trunc along each pixel's ray, and samples between them half a block apart."""
+        block_cm = BLOCK * self.voxel_cm
+        offsets = np.append(np.arange(-self.trunc_cm, self.trunc_cm + block_cm, block_cm / 2), self.trunc_cm)
+        if self._compiled:
+            keys, beyond = tsdf_loops.ray_block_keys(depth.numpy(), K, T_world_cam, offsets, block_cm, _KEY_BITS)
+            if beyond:
+                raise _beyond_key_range()
+            return torch.unique(torch.from_numpy(keys))
         v, u = torch.nonzero(depth, as_tuple=True)
         if len(u) == 0:
             return torch.zeros(0, dtype=torch.int64, device=self.device)
         z = depth[v, u]
         rays = torch.stack([(u - float(K[0, 2])) / float(K[0, 0]), (v - float(K[1, 2])) / float(K[1, 1]),
                             torch.ones_like(z)])  # [3, P]
-        block_cm = BLOCK * self.voxel_cm
-        offsets = np.append(np.arange(-self.trunc_cm, self.trunc_cm + block_cm, block_cm / 2), self.trunc_cm)
         along = z[None] + torch.tensor(offsets, dtype=torch.float32, device=self.device)[:, None]  # [n, P]
         camera = rays[:, None] * along[None]  # [3, n, P]
         T = torch.from_numpy(T_world_cam).to(self.device, torch.float32)
@@ -122,10 +134,9 @@ class TSDFVolume:
         if rows <= len(self._tsdf):
             return
         grown = max(rows, 2 * len(self._tsdf), 64)
-        extra = grown - len(self._tsdf)
-        self._tsdf = torch.cat([self._tsdf, torch.ones(extra, BLOCK**3, device=self.device)])
-        self._weight = torch.cat([self._weight, torch.zeros(extra, BLOCK**3, device=self.device)])
-        self._colour = torch.cat([self._colour, torch.zeros(extra, BLOCK**3, 3, device=self.device)])
+        self._tsdf = _enlarged(self._tsdf, grown, 1.0)
+        self._weight = _enlarged(self._weight, grown, 0.0)
+        self._colour = _enlarged(self._colour, grown, 0.0)
 
     def _insert(self, keys: torch.Tensor, rows: torch.Tensor) -> None:
         """Merge sorted new ``keys`` (and their ``rows``) into the sorted key table in one pass: each key's place
@@ -154,6 +165,11 @@ class TSDFVolume:
         per_block = torch.from_numpy(firsts @ projection[:, :3].T + projection[:, 3]).to(self.device, torch.float32)
         per_voxel = (self._local * self.voxel_cm) @ torch.from_numpy(projection[:, :3].T).to(self.device,
                                                                                            torch.float32)
+        if self._compiled:
+            tsdf_loops.update_blocks(per_block.numpy(), per_voxel.numpy(), rows.numpy(), depth.numpy(),
+                                     colour.numpy(), self._tsdf.numpy(), self._weight.numpy(), self._colour.numpy(),
+                                     self.trunc_cm)
+            return
         hu, hv, z = (per_block[:, i:i + 1] + per_voxel[:, i] for i in range(3))  # [n, 512] each
         u, v = torch.round(hu / z), torch.round(hv / z)
         height, width = depth.shape
@@ -180,8 +196,7 @@ class TSDFVolume:
         Extracted chunk by chunk (:data:`CHUNK_BLOCKS`^3 blocks, plus one voxel layer of the next blocks so that
         chunks join), so memory follows the surface, not the bounding box of a long path."""
         grid = _HostGrid(self)
-        parts = [grid.chunk_mesh(chunk) for chunk in sorted({tuple(k // CHUNK_BLOCKS for k in key)
-                                                             for key in grid.rows})]
+        parts = [grid.chunk_mesh(index) for index in range(len(grid.chunks))]
         parts = [part for part in parts if len(part.vertices)]
         if not parts:
             return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
@@ -192,36 +207,29 @@ class TSDFVolume:
 
 
 class _HostGrid:
-    """A volume's voxels copied to host memory once, with a dict from block coordinates to rows: what marching
-    cubes reads, chunk by chunk."""
+    """A volume's voxels copied to host memory once, with the blocks each chunk reads (:func:`_chunk_reads`): what
+    marching cubes reads, chunk by chunk."""
 
     def __init__(self, volume: TSDFVolume) -> None:
         count = volume.block_count
         coords = unpack_block_keys(volume._keys).cpu().numpy()
-        self.rows = dict(zip(map(tuple, coords.tolist()), volume._rows.cpu().tolist()))
-        self.tsdf = volume._tsdf[:count].cpu().numpy()
-        self.weight = volume._weight[:count].cpu().numpy()
-        self.colour = volume._colour[:count].cpu().numpy()
+        rows = volume._rows.cpu().numpy()
+        self.tsdf = volume._tsdf[:count].cpu().numpy().reshape(-1, BLOCK, BLOCK, BLOCK)
+        self.weight = volume._weight[:count].cpu().numpy().reshape(-1, BLOCK, BLOCK, BLOCK)
+        self.colour = volume._colour[:count].cpu().numpy().reshape(-1, BLOCK, BLOCK, BLOCK, 3)
         self.voxel_cm = volume.voxel_cm
+        self.chunks, self.places, self.rows, self.starts = _chunk_reads(coords, rows)
 
-    def chunk_mesh(self, chunk: tuple[int, int, int]) -> SurfaceMesh:
+    def chunk_mesh(self, index: int) -> SurfaceMesh:
         from skimage.measure import marching_cubes
 
         empty = SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
-        low = np.array(chunk) * CHUNK_BLOCKS
+        low = self.chunks[index] * CHUNK_BLOCKS
         size = CHUNK_BLOCKS * BLOCK + 1  # the chunk's voxels and the first layer of the next chunk's
-        tsdf = np.ones((size,) * 3, np.float32)
-        weight = np.zeros((size,) * 3, np.float32)
-        colour = np.zeros((size,) * 3 + (3,), np.float32)
-        for offset in np.ndindex(*(CHUNK_BLOCKS + 1,) * 3):
-            row = self.rows.get(tuple(int(v) for v in low + offset))
-            if row is None:
-                continue
-            region = tuple(slice(o * BLOCK, min(o * BLOCK + BLOCK, size)) for o in offset)
-            extent = tuple(r.stop - r.start for r in region)
-            tsdf[region] = self.tsdf[row].reshape(BLOCK, BLOCK, BLOCK)[:extent[0], :extent[1], :extent[2]]
-            weight[region] = self.weight[row].reshape(BLOCK, BLOCK, BLOCK)[:extent[0], :extent[1], :extent[2]]
-            colour[region] = self.colour[row].reshape(BLOCK, BLOCK, BLOCK, 3)[:extent[0], :extent[1], :extent[2]]
+        reads = slice(self.starts[index], self.starts[index + 1])
+        places, rows = tuple(self.places[reads].T), self.rows[reads]
+        tsdf = _dense(self.tsdf, places, rows, 1.0)
+        weight = _dense(self.weight, places, rows, 0.0)
         observed = weight > 0
         cubes = observed_cubes(observed)
         if not (cubes.any() and tsdf[observed].min() < 0 < tsdf[observed].max()):
@@ -231,22 +239,80 @@ class _HostGrid:
         except (ValueError, RuntimeError):  # no crossing among the masked cubes
             return empty
         nearest = np.clip(np.round(vertices).astype(np.int64), 0, size - 1)
-        colours = colour[nearest[:, 0], nearest[:, 1], nearest[:, 2]]
+        colours = self._colours_at(nearest, places, rows)
         world = (vertices + low * BLOCK + 0.5) * self.voxel_cm
         return SurfaceMesh(world, triangles.astype(np.int64), np.clip(np.round(colours), 0, 255).astype(np.uint8))
 
+    def _colours_at(self, voxels: np.ndarray, places: tuple[np.ndarray, ...], rows: np.ndarray) -> np.ndarray:
+        """The colours ``[V, 3]`` of a chunk's voxels ``voxels [V, 3]`` (indices into the chunk's voxel grid)
+        whose blocks are ``rows`` at ``places``; black where no block is (never observed)."""
+        row_at = np.full((CHUNK_BLOCKS + 1,) * 3, -1, np.int64)
+        row_at[places] = rows
+        block, local = np.divmod(voxels, BLOCK)
+        row = row_at[block[:, 0], block[:, 1], block[:, 2]]
+        colours = self.colour[np.maximum(row, 0), local[:, 0], local[:, 1], local[:, 2]]
+        return np.where((row >= 0)[:, None], colours, np.float32(0))
+
+
+def _chunk_reads(coords: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Which blocks (integer ``coords [N, 3]`` at ``rows``) each chunk reads, and where: a chunk reads its own
+    :data:`CHUNK_BLOCKS`^3 blocks and the first voxel layer of the blocks after it on each axis, so a block at the
+    start of a chunk on some axes is also read by the chunks before it on those axes. Returns the chunks holding a
+    block ``[C, 3]`` (sorted as tuples: the mesh's order), and the reads grouped by chunk: each one's block place
+    in its chunk ``[R, 3]`` (0 to :data:`CHUNK_BLOCKS`) and row ``[R]``; chunk ``c``'s reads are ``starts[c]`` to
+    ``starts[c + 1]``."""
+    home = np.floor_divide(coords, CHUNK_BLOCKS)
+    place = coords - home * CHUNK_BLOCKS
+    chunks = np.unique(home, axis=0)
+    readers, places, read_rows = [], [], []
+    for shift in np.array(list(itertools.product((0, 1), repeat=3))):  # 1 on an axis: the chunk before on it
+        read = np.all((shift == 0) | (place == 0), axis=1)
+        readers.append(home[read] - shift)
+        places.append(place[read] + shift * CHUNK_BLOCKS)
+        read_rows.append(rows[read])
+    readers, places, read_rows = np.concatenate(readers), np.concatenate(places), np.concatenate(read_rows)
+    reader = np.minimum(np.searchsorted(_chunk_keys(chunks), _chunk_keys(readers)), len(chunks) - 1)
+    kept = np.all(chunks[reader] == readers, axis=1)  # a chunk holding no block of its own is not meshed
+    order = np.argsort(reader[kept], kind="stable")
+    return (chunks, places[kept][order], read_rows[kept][order],
+            np.searchsorted(reader[kept][order], np.arange(len(chunks) + 1)))
+
+
+def _chunk_keys(chunks: np.ndarray) -> np.ndarray:
+    """One int64 per chunk ``[N, 3]`` that sorts as the chunks do as tuples (21 bits an axis, as block keys)."""
+    return packed_keys(*torch.from_numpy(np.ascontiguousarray(chunks.T))).numpy()
+
+
+def _dense(blocks: np.ndarray, places: tuple[np.ndarray, ...], rows: np.ndarray, fill: float) -> np.ndarray:
+    """A chunk's voxels and the first layer of the next chunk's: ``blocks[rows]`` (``[rows, BLOCK, BLOCK, BLOCK]``)
+    at block ``places`` (three index arrays, 0 to :data:`CHUNK_BLOCKS`), ``fill`` where no block is."""
+    span, size = CHUNK_BLOCKS + 1, CHUNK_BLOCKS * BLOCK + 1
+    voxels = np.full((span * BLOCK,) * 3, fill, blocks.dtype)
+    voxels.reshape(span, BLOCK, span, BLOCK, span, BLOCK).transpose(0, 2, 4, 1, 3, 5)[places] = blocks[rows]
+    return np.ascontiguousarray(voxels[:size, :size, :size])
+
+
+def _enlarged(rows: torch.Tensor, count: int, fill: float) -> torch.Tensor:
+    """``rows`` followed by rows of ``fill`` up to ``count``: one copy and one fill (a concatenation with a filled
+    tensor writes the new rows twice)."""
+    enlarged = torch.empty((count, *rows.shape[1:]), dtype=rows.dtype, device=rows.device)
+    enlarged[:len(rows)] = rows
+    enlarged[len(rows):] = fill
+    return enlarged
+
 
 def observed_cubes(observed: np.ndarray) -> np.ndarray:
-    """Cubes (named by their lowest corner) whose 8 corners were all observed. Marching cubes reads its mask at a
-    cube's lowest corner only; a cube reaching an unobserved voxel (left at +1) from one behind the surface (-1)
-    would otherwise put a false surface at the back of the truncation band."""
+    """The mask of the cubes whose 8 corners were all observed, for scikit-image's marching cubes, which reads a
+    cube's mask at its highest corner (the cube from ``c - 1`` to ``c`` on each axis is ``mask[c]``). A cube
+    reaching an unobserved voxel (left at +1) from one behind the surface (-1) would otherwise put a false surface
+    at the back of the truncation band."""
     cubes = observed.copy()
     for axis in range(3):
         shifted = np.zeros_like(cubes)
         index = [slice(None)] * 3
-        index[axis] = slice(0, -1)
+        index[axis] = slice(1, None)
         source = [slice(None)] * 3
-        source[axis] = slice(1, None)
+        source[axis] = slice(0, -1)
         shifted[tuple(index)] = cubes[tuple(source)]
         cubes &= shifted
     return cubes
@@ -267,14 +333,18 @@ def packed_keys(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tens
     if x.numel():  # the six bounds in one transfer: one wait for a GPU, not six
         bounds = torch.stack([bound for axis in (x, y, z) for bound in torch.aminmax(axis)]).tolist()
         if max(-min(bounds), max(bounds)) >= _KEY_HALF:
-            raise ValueError(f"a fused point lies more than {_KEY_HALF} blocks from the origin: the camera path is "
-                             f"far longer than the voxel size allows; pass a larger --voxel-cm")
+            raise _beyond_key_range()
     # the fields do not overlap, so products and sums place them as shifts and ors would: torch's int64 shift is not
     # vectorised on a CPU (six times a product's time)
     keys = (x + _KEY_HALF) * (1 << (2 * _KEY_BITS))
     keys += (y + _KEY_HALF) * (1 << _KEY_BITS)
     keys += z + _KEY_HALF
     return keys
+
+
+def _beyond_key_range() -> ValueError:
+    return ValueError(f"a fused point lies more than {_KEY_HALF} blocks from the origin: the camera path is far "
+                      f"longer than the voxel size allows; pass a larger --voxel-cm")
 
 
 def unpack_block_keys(keys: torch.Tensor) -> torch.Tensor:

@@ -261,10 +261,11 @@ def run_reconstruction(params: Params, name: str, project_root: str | Path = "."
     return result
 
 
-def headline_measurement(result: dict) -> dict[str, float]:
+def headline_measurement(result: dict) -> dict[str, Optional[float]]:
     """Three numbers per sequence for ``dvc exp show``, named with their units: the model's path ATE RMSE (cm),
-    its surface's median accuracy (cm) and the share of the ground-truth surface within
-    :data:`COMPLETE_WITHIN_VOXELS` voxels of it (%). Constant velocity's figures are in :data:`MEASUREMENT_FILE`."""
+    its surface's median accuracy (cm; None for a mesh without vertices) and the share of the ground-truth surface
+    within :data:`COMPLETE_WITHIN_VOXELS` voxels of it (%). Constant velocity's figures are in
+    :data:`MEASUREMENT_FILE`."""
     return {"ate_cm": result["path"]["model"]["ate_rmse"],
             "accuracy_cm": result["surface"]["model"]["accuracy_median"],
             f"completeness_{COMPLETE_WITHIN_VOXELS:g}vox_pct": 100.0 * result["surface"]["model"]["completeness_ratio"]}
@@ -279,11 +280,11 @@ def dvc_metrics(name: str, result: dict) -> dict[str, dict[str, float]]:
 def log_measurement(params: Params, project_root: Path, model_run_id: str, name: str, out_dir: Path,
                     result: dict) -> None:
     """Into the model's MLflow run (:func:`log_reconstruction`, with the reconstruction's files): the headline
-    as metrics ``reconstruct/<name>/<figure>`` (columns of the runs table; finite values only, MLflow refuses
-    NaN) and every figure as the table ``reconstruct/<name>/figures.csv``."""
+    as metrics ``reconstruct/<name>/<figure>`` (columns of the runs table; figures that exist and are finite only,
+    MLflow refuses NaN) and every figure as the table ``reconstruct/<name>/figures.csv``."""
     run = log_reconstruction(params, project_root, model_run_id, name, out_dir)
     headline = {f"reconstruct/{name}/{key}": value for key, value in headline_measurement(result).items()
-                if np.isfinite(value)}
+                if value is not None and np.isfinite(value)}
     run.log_metrics(headline)
     run.show_in_runs_table(headline)
     run.log_table(measurement_rows(result), f"reconstruct/{name}/figures.csv")
