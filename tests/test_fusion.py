@@ -162,3 +162,52 @@ def test_no_face_reaches_a_voxel_never_observed() -> None:
 
     vertices, _, _, _ = marching_cubes(tsdf, level=0.0, mask=observed_cubes(observed))
     assert len(vertices) == 3 and (vertices >= 1).all()  # one corner of the one cube from (1, 1, 1) to (2, 2, 2)
+
+
+@pytest.mark.parametrize("block", [-LIMIT, -LIMIT + 1, LIMIT - 1, LIMIT])
+def test_the_compiled_loops_refuse_the_blocks_the_key_packing_refuses(block: int) -> None:
+    from endoflow.reconstruction import fusion, tsdf_loops
+
+    T_world_cam = np.eye(4)
+    T_world_cam[0, 3] = block + 0.5  # the one ray point (x = 0 in the camera) lies inside block `block` of 1 cm
+    K = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]])
+    _, beyond = tsdf_loops.ray_block_keys(np.ones((1, 1), np.float32), K, T_world_cam, np.zeros(1), 1.0,
+                                          fusion._KEY_BITS)
+    refused = False
+    try:
+        pack_block_keys(torch.tensor([[block, 0, 1]]))
+    except ValueError:
+        refused = True
+    assert beyond == refused == (abs(block) >= LIMIT)
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["loops", "tensors"])
+def test_a_depth_map_laid_out_column_first_fuses_as_its_copy(compiled: bool) -> None:
+    depth, rgb, K, T_world_cam = wavy_frames(1)[0]
+    volumes = [TSDFVolume(0.031, 0.124, compiled=compiled) for _ in range(2)]
+    volumes[0].integrate(np.asfortranarray(depth), rgb, K, T_world_cam)
+    volumes[1].integrate(depth, rgb, K, T_world_cam)
+    assert volumes[0].block_count == volumes[1].block_count > 0
+    assert torch.equal(volumes[0]._tsdf, volumes[1]._tsdf)
+
+
+def test_without_a_writable_cache_folder_the_loops_compile_in_each_process(monkeypatch: pytest.MonkeyPatch) -> None:
+    import numba
+
+    from endoflow.reconstruction import tsdf_loops
+
+    asked: list[dict] = []
+    njit = numba.njit
+
+    def no_cache_folder(**options):  # what numba raises when no folder for its cache is writable
+        asked.append(options)
+        if options.get("cache"):
+            raise RuntimeError("cannot cache function 'double': no locator available for file 'tsdf_loops.py'")
+        return njit(**options)
+
+    def double(x):
+        return 2 * x
+
+    monkeypatch.setattr(numba, "njit", no_cache_folder)
+    assert tsdf_loops._compiled(double)(21) == 42
+    assert asked == [{"cache": True, "nogil": True}, {"nogil": True}]

@@ -96,7 +96,8 @@ def test_dvc_metrics_are_a_short_numeric_summary(smoke_repro):
     expected |= {f"reconstruct_{name}.{key}" for name in params.reconstruct.sequences
                  for key in ("ate_cm", "completeness_2vox_pct")}
     # a mesh's accuracy where it has vertices: the smoke model's depth may leave no cube of the fusion observed on
-    # all its corners across the surface, and a figure that does not exist is left out, never written as NaN
+    # all its corners across the surface; a figure that does not exist is written as null (never NaN), which
+    # `dvc metrics show` leaves out
     expected |= {f"reconstruct_{name}.accuracy_cm" for name in params.reconstruct.sequences
                  if json.loads((smoke_repro / params.reconstruct.out / name / "reconstruction.json").read_text()
                                )["mesh"]["vertices"]}

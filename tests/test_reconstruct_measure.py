@@ -17,9 +17,9 @@ from endoflow.data.trajectory_files import write_tum
 from endoflow.geometry.pose import invert_pose
 from endoflow.io import write_bytes, write_json
 from endoflow.models.model_file import TrainingBaselines
+from endoflow.reconstruction import measure
 from endoflow.reconstruction.frames import DatasetFrames, FrameRange, FolderFrames
 from endoflow.reconstruction.fusion import TSDFVolume, write_ply
-from endoflow.reconstruction import measure
 from endoflow.reconstruction.measure import (
     DISTANCE_CAP_CM,
     PATH_ROWS,

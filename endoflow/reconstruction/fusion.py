@@ -76,7 +76,8 @@ class TSDFVolume:
         """Fuse one frame: ``depth_cm`` ``H x W`` z-depth (0 or non-finite: unknown), ``rgb`` ``H x W x 3``
         uint8, ``K`` its pixel intrinsics, ``T_world_cam`` its camera-to-world pose (cm). Only the blocks near
         this frame's surface are visited, so a frame costs the same however long the video has been."""
-        depth = torch.from_numpy(np.where(np.isfinite(depth_cm) & (depth_cm > 0), depth_cm, 0).astype(np.float32))
+        depth = torch.from_numpy(np.ascontiguousarray(  # a view of a transposed array would not flatten
+            np.where(np.isfinite(depth_cm) & (depth_cm > 0), depth_cm, 0), np.float32))
         depth = depth.to(self.device)
         keys = self._touched_keys(depth, K, T_world_cam)
         if not len(keys):
@@ -221,6 +222,7 @@ class _HostGrid:
         self.chunks, self.places, self.rows, self.starts = _chunk_reads(coords, rows)
 
     def chunk_mesh(self, index: int) -> SurfaceMesh:
+        """The mesh of chunk ``index`` (of :attr:`chunks`), in world cm, coloured by each vertex's nearest voxel."""
         from skimage.measure import marching_cubes
 
         empty = SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))

@@ -271,7 +271,7 @@ def headline_measurement(result: dict) -> dict[str, Optional[float]]:
             f"completeness_{COMPLETE_WITHIN_VOXELS:g}vox_pct": 100.0 * result["surface"]["model"]["completeness_ratio"]}
 
 
-def dvc_metrics(name: str, result: dict) -> dict[str, dict[str, float]]:
+def dvc_metrics(name: str, result: dict) -> dict[str, dict[str, Optional[float]]]:
     """The content of ``<reconstruct.metrics>/<name>.json``: the headline under ``reconstruct_<name>``, a key no
     other metrics file has (a test set may share the sequence's name)."""
     return {f"reconstruct_{name}": headline_measurement(result)}

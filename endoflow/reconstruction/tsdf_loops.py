@@ -6,16 +6,29 @@ million at 480 px), each writing a temporary, and the passes run at memory speed
 keeps the rest in registers. On a GPU the tensor code is the fast one and stays (``fusion.py``).
 
 The loops run in the calling thread, one core: numba's own thread pool would contend with torch's on a small
-machine and, in its default layer, aborts the process when two threads call it at once. Compiled on first use
-(about 2 s), then loaded from numba's cache beside this file or in the user's cache folder.
+machine and, in its default layer, aborts the process when two threads call it at once. They release the GIL, so
+the threads that read frames ahead and write outputs behind go on meanwhile. Compiled on first use (about 2 s), then
+loaded from numba's cache beside this file or in the user's cache folder (``NUMBA_CACHE_DIR`` sets another); where
+no cache folder is writable, compiled once per process instead.
 """
 
 from __future__ import annotations
+
+from typing import Callable
 
 import numba
 import numpy as np
 
 _NO_KEY = np.int64(-1)  # packed keys are never negative: each field is offset by half its range
+
+
+def _compiled(function: Callable) -> Callable:
+    """``function`` compiled by numba without the GIL, cached on disk where numba finds a writable folder for it
+    (a read-only install run by a user without a writable home has none: numba then refuses ``cache=True``)."""
+    try:
+        return numba.njit(cache=True, nogil=True)(function)
+    except RuntimeError:  # "cannot cache function ...: no locator available"
+        return numba.njit(nogil=True)(function)
 
 
 def ray_block_keys(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, offsets_cm: np.ndarray,
@@ -29,7 +42,8 @@ def ray_block_keys(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, of
                                            np.ascontiguousarray(T_world_cam, np.float32),
                                            np.ascontiguousarray(offsets_cm, np.float32), np.float32(block_cm),
                                            key_bits)
-    return np.concatenate([row[:count] for row, count in zip(keys, counts)]), bool(beyond)
+    kept = [row[:count] for row, count in zip(keys, counts)]
+    return (np.concatenate(kept) if kept else np.zeros(0, np.int64)), bool(beyond)
 
 
 def update_blocks(per_block: np.ndarray, per_voxel: np.ndarray, rows: np.ndarray, depth: np.ndarray,
@@ -42,7 +56,7 @@ def update_blocks(per_block: np.ndarray, per_voxel: np.ndarray, rows: np.ndarray
     _update_voxels(per_block, per_voxel, rows, depth, colour, tsdf, weight, colours, np.float32(trunc_cm))
 
 
-@numba.njit(cache=True)
+@_compiled
 def _ray_block_keys(depth, intrinsics, T, offsets, block_cm, key_bits):  # pragma: no cover (compiled)
     """Per image row: the keys of its pixels' ray points, repeats of the key before dropped; the count kept per
     row; and whether any block lay beyond the keys' range."""
@@ -67,7 +81,7 @@ def _ray_block_keys(depth, intrinsics, T, offsets, block_cm, key_bits):  # pragm
                 for axis in range(3):
                     world = T[axis, 0] * x + T[axis, 1] * y + T[axis, 2] * along + T[axis, 3]
                     block = np.int64(np.floor(world / block_cm))
-                    if block >= half or block < -half:
+                    if block >= half or block <= -half:  # as fusion.packed_keys refuses
                         beyond[v] = True
                     packed = (packed << key_bits) + (block + half)
                 if packed != last:
@@ -78,8 +92,10 @@ def _ray_block_keys(depth, intrinsics, T, offsets, block_cm, key_bits):  # pragm
     return keys, counts, beyond.any()
 
 
-@numba.njit(cache=True)
+@_compiled
 def _update_voxels(per_block, per_voxel, rows, depth, colour, tsdf, weight, colours, trunc):  # pragma: no cover
+    """Each voxel of each block that projects into the image onto known depth no farther than ``trunc`` behind it:
+    its truncated signed distance and colour averaged in, its weight counted up."""
     height, width = depth.shape
     one = np.float32(1)
     for block in range(len(rows)):
