@@ -9,6 +9,7 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
+from endoflow.config import ConfigError
 from endoflow.reconstruction.fusion import TSDFVolume, pack_block_keys, unpack_block_keys
 
 LIMIT = 1 << 20  # blocks from the origin a key can name
@@ -122,7 +123,7 @@ def test_a_frame_beyond_the_keys_range_is_refused_with_the_option_that_helps(com
     depth, rgb, K, T_world_cam = plane_frames()[0]
     T_world_cam = T_world_cam.copy()
     T_world_cam[0, 3] = 1e5  # 1 km along x: 1.25 million blocks of 0.08 cm
-    with pytest.raises(ValueError, match="--voxel-cm"):
+    with pytest.raises(ConfigError, match="--voxel-cm"):  # the command line prints it as an error
         volume.integrate(depth, rgb, K, T_world_cam)
 
 

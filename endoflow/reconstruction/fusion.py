@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from endoflow.config import ConfigError
 from endoflow.io import atomic_path
 from endoflow.reconstruction import tsdf_loops
 
@@ -330,7 +331,7 @@ def packed_keys(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tens
     """One int64 key per block, its integer coordinates given axis by axis (int64 tensors of one shape).
 
     Raises:
-        ValueError: a block lies beyond the keys' range (a path kilometres long at this voxel size).
+        ConfigError: a block lies beyond the keys' range (a path kilometres long at this voxel size).
     """
     if x.numel():  # the six bounds in one transfer: one wait for a GPU, not six
         bounds = torch.stack([bound for axis in (x, y, z) for bound in torch.aminmax(axis)]).tolist()
@@ -344,9 +345,11 @@ def packed_keys(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tens
     return keys
 
 
-def _beyond_key_range() -> ValueError:
-    return ValueError(f"a fused point lies more than {_KEY_HALF} blocks from the origin: the camera path is far "
-                      f"longer than the voxel size allows; pass a larger --voxel-cm")
+def _beyond_key_range() -> ConfigError:
+    """The voxel size is the setting at fault (a ConfigError: the command line prints it as an error, not a
+    traceback)."""
+    return ConfigError(f"a fused point lies more than {_KEY_HALF} blocks from the origin: the camera path is far "
+                       f"longer than the voxel size allows; pass a larger --voxel-cm")
 
 
 def unpack_block_keys(keys: torch.Tensor) -> torch.Tensor:
