@@ -150,6 +150,18 @@ def test_a_dataset_sequence_gives_depth_path_surface_and_the_scale_that_fits_its
     assert rows["/world/path"] == rows["/world/ground_truth_path"] == rows["/world/surface"] == 1
 
 
+def test_an_empty_surface_is_written_and_said_with_the_voxel_that_would_give_one(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    # the untrained model sees everything at about 0.2 cm, and the default voxel is as wide as the view
+    summary = run(scene, model_file, tmp_path / "out", params, "S1", frames=FrameRange(stop=3))
+    assert summary["mesh"]["vertices"] == 0 and len(read_ply_vertices(tmp_path / "out" / "points.ply")) == 0
+    warning = capsys.readouterr().err
+    assert "the fused surface is empty" in warning and "--voxel-cm about the pixel footprint" in warning
+    footprint = float(warning.split("footprint there, ")[1].split(" cm")[0])
+    finer = run(scene, model_file, tmp_path / "finer", params, "S1", frames=FrameRange(stop=3), voxel_cm=footprint)
+    assert finer["mesh"]["vertices"] > 0
+
+
 def test_a_folder_and_a_lossless_video_of_the_same_frames_give_the_dataset_sequences_depth(
         scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
     run(scene, model_file, tmp_path / "dataset", params, "S1", fuse=False)

@@ -166,6 +166,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             "unknown": 0, "scale_applied": options.scale, "preview_range_cm": shown})
         path.write(stage)
         mesh = write_surface(stage, volume) if volume is not None else None
+        if mesh is not None and len(mesh.vertices) == 0:
+            print(f"[reconstruct] warning: {empty_surface_warning(depth, K, voxel)}", file=sys.stderr)
         ground_truth = ground_truth_in_path_world(path.gt_poses, path.poses)
         recording.finish(np.stack(path.poses), ground_truth, mesh)
         seconds = progress.elapsed()
@@ -455,6 +457,17 @@ def write_surface(stage: Path, volume: TSDFVolume) -> SurfaceMesh:
     write_ply(stage / "mesh.ply", mesh.vertices, mesh.colours, mesh.triangles)
     write_ply(stage / "points.ply", mesh.vertices, mesh.colours)
     return mesh
+
+
+def empty_surface_warning(depth_cm: np.ndarray, K: np.ndarray, voxel_cm: float) -> str:
+    """Why a fused surface can be empty and what helps, from the last frame's ``depth_cm`` (cm, 0 unknown)."""
+    known = depth_cm[depth_cm > 0]
+    if not len(known):
+        return "the fused surface is empty, and the last frame has no depth inside the field of view"
+    median = float(np.median(known))
+    return (f"the fused surface is empty: no cube of voxels was seen on all its corners across the surface (voxel "
+            f"{voxel_cm:.3g} cm, the last frame's median depth {median:.3g} cm); --voxel-cm about the pixel "
+            f"footprint there, {median / float(K[0, 0]):.2g} cm, gives the frames' surface")
 
 
 def sheet_title(source: FrameSource, summary: dict) -> str:
