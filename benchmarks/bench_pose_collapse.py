@@ -17,7 +17,12 @@ Over the split's (cur, next) pairs, with the shards' exact depth and poses, prin
   network follow the motion;
 - the same loss at the true pose and at the network's run backwards (their inverses): whether the loss, with the
   model's depth, tells the direction of the motion, and whether a network that answers against it sits on the
-  wrong side of what its loss prefers (time reversal, ``train.time_reversal``, asks a network for both directions).
+  wrong side of what its loss prefers (time reversal, ``train.time_reversal``, asks a network for both directions);
+- the gradient the pose receives: the loss's gradient with respect to the network's answer (the pose vector), and
+  on how many pairs a step against it moves the answer towards the truth (translation and rotation apart);
+- the output scaling: the answer is ``MEAN_SCALE * (bias + W . features)`` (the head's 1x1 convolution, averaged
+  over the image); per component, the bias's part of the mean answer and the spread the features give it, against
+  the truth's mean and spread.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from endoflow.geometry.pose import invert_pose, matrix_to_pose_vec, mean_step, p
 from endoflow.geometry.warp import project_target_pixels, warp_frame
 from endoflow.losses.photometric import identity_error, reprojection_loss
 from endoflow.models.endoflow_model import load_trained_model
+from endoflow.models.pose_net import MEAN_SCALE
 
 SCALES = (0.5, 0.75, 1.0, 1.25, 1.5)
 
@@ -53,6 +59,38 @@ def loss_at(cur: torch.Tensor, nxt: torch.Tensor, depth: torch.Tensor, T_next_cu
     warped = warp_frame(nxt, depth, T_next_cur, K)[0]
     _, per_pixel, _ = reprojection_loss([warped], cur, [nxt], cfg, identity_error(cur, [nxt], cfg))
     return per_pixel.mean(dim=(1, 2, 3))
+
+
+def print_pose_gradient(cur: torch.Tensor, nxt: torch.Tensor, depth: torch.Tensor, answer: torch.Tensor,
+                        truth: torch.Tensor, K: torch.Tensor, cfg: LossConfig) -> None:
+    """Where the loss pushes the network's answer ``[B, 6]``: the share of pairs whose negative gradient points
+    towards ``truth`` (positive cosine with ``truth - answer``), for the rotation and the translation apart."""
+    pose = answer.clone().requires_grad_(True)
+    loss_at(cur, nxt, depth, pose_vec_to_matrix(pose), K, cfg).sum().backward()
+    descent, towards = -pose.grad, truth - answer
+    for part, columns in (("rotation", slice(0, 3)), ("translation", slice(3, 6))):
+        cosine = torch.nn.functional.cosine_similarity(descent[:, columns], towards[:, columns], dim=1)
+        print(f"  gradient at the network's answer, {part}: a step against it moves towards the truth on "
+              f"{(cosine > 0).float().mean():.1%} of pairs (median cosine {cosine.median():+.2f}); median |gradient| "
+              f"{descent[:, columns].norm(dim=1).median():.3e} per {'rad' if part == 'rotation' else 'cm'}")
+
+
+def print_output_scaling(model: torch.nn.Module, cur: torch.Tensor, nxt: torch.Tensor, truth: np.ndarray) -> None:
+    """The answer's two parts: ``MEAN_SCALE * bias`` (the same for every pair) and ``MEAN_SCALE * W . features``."""
+    head = model.pose_net.mean_head
+    captured: list[torch.Tensor] = []
+    hook = head.register_forward_hook(lambda module, inputs, output: captured.append(inputs[0]))
+    with torch.no_grad():
+        model.forward_motion(cur, nxt, sample=False)
+        hook.remove()
+        features = captured[0].mean(dim=(2, 3))
+        varying = (MEAN_SCALE * features @ head.weight[:, :, 0, 0].T).double().numpy()
+    constant = MEAN_SCALE * head.bias.detach().double().numpy()
+    print("output scaling (MEAN_SCALE * raw): per component, the bias's part / the features' mean part (their "
+          "spread) / the truth's mean (spread)")
+    for i, name in enumerate(("rx", "ry", "rz", "tx", "ty", "tz")):
+        print(f"  {name}: {constant[i]:+.2e} / {varying[:, i].mean():+.2e} ({varying[:, i].std():.2e}) / "
+              f"{truth[:, i].mean():+.2e} ({truth[:, i].std():.2e})")
 
 
 def main() -> None:
@@ -128,6 +166,8 @@ def main() -> None:
           f"the network beats its answer reversed: {(at['network'] < at['network reversed']).float().mean():.1%}")
     print("  true pose with its translation scaled: " + ", ".join(
         f"x{scale:g} {value / base - 1:+.2%}" for scale, value in scaled.items()))
+    print_pose_gradient(cur, nxt, depth, mean.float(), torch.from_numpy(truth).float(), K, cfg)
+    print_output_scaling(model, cur, nxt, truth)
     steps = mean_step(T_next_cur.double().numpy())
     print(f"the split's mean step {np.linalg.norm(steps[:3, 3]) * 10:.3f} mm; {time.perf_counter() - began:.0f} s")
 

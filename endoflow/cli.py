@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, Iterator, Optional, Sequence
 from endoflow.config import PRECISIONS, SYNTH_LAYOUTS, ConfigError, load_params
 from endoflow.data.base import DATASETS
 from endoflow.errors import DataFormatError
-from endoflow.io import OutputFolderError, write_bytes
+from endoflow.io import OutputFolderError
 from endoflow.sweep import STUDIES
 
 if TYPE_CHECKING:  # the commands import what they run when they run: `endoflow --help` stays quick
@@ -341,7 +341,7 @@ def _reconstruct_one(args: argparse.Namespace, options: ReconstructOptions) -> i
     from endoflow.models.model_file import load_model_file
     from endoflow.reconstruction.frames import intrinsics_for, open_frames
     from endoflow.reconstruction.reconstruct import ADAPTED_MODEL, log_reconstruction, reconstruct
-    from endoflow.training.adapt import AdaptOptions
+    from endoflow.training.adapt import AdaptOptions, fits_better
 
     with _model_file(args.model, args.params) as model_path, tempfile.TemporaryDirectory() as scratch:
         record = load_model_file(model_path)
@@ -350,12 +350,11 @@ def _reconstruct_one(args: argparse.Namespace, options: ReconstructOptions) -> i
         K = intrinsics_for(args.intrinsics, frames, options.crop)
         used = model_path
         if args.adapt:
-            used = Path(scratch) / ADAPTED_MODEL
-            _run_adaptation(args, model_path, used, AdaptOptions(
-                steps=args.adapt, start=args.start, stop=args.stop, stride=args.stride, device=args.device))
-        summary = reconstruct(frames, K, used, args.out, options)
-        if args.adapt:
-            write_bytes(args.out / ADAPTED_MODEL, used.read_bytes())
+            adapted = Path(scratch) / ADAPTED_MODEL
+            if fits_better(_run_adaptation(args, model_path, adapted, AdaptOptions(
+                    steps=args.adapt, start=args.start, stop=args.stop, stride=args.stride, device=args.device))):
+                used = adapted
+        summary = reconstruct(frames, K, used, args.out, options, keep_model=used != model_path)
     if args.mlflow:
         run = log_reconstruction(_params_if_present(args.params), Path(".").resolve(), record.mlflow_run_id,
                                  args.out.name, args.out)

@@ -1,15 +1,20 @@
 """DVC stage `reconstruct` (foreach sequence): a built-in test sequence reconstructed, measured on its ground truth.
 
 Usage: ``python -m stages.reconstruct NAME`` (a key of ``reconstruct.sequences``); logs into the model's MLflow
-run. See docs/reconstruction.md, "Measured on exact ground truth".
+run. With ``reconstruct.adapt`` steps the model is first fitted to the sequence's frames, as ``endoflow reconstruct
+--adapt`` fits it to a user's video, and used where it explains the held-out frames better. See docs/reconstruction.md, "Measured on exact ground truth".
 """
 
 from __future__ import annotations
 
 import argparse
+import tempfile
+from pathlib import Path
 
 from endoflow.config import load_params
 from endoflow.reconstruction.measure import format_measurement, run_reconstruction
+from endoflow.reconstruction.reconstruct import ADAPTED_MODEL
+from endoflow.training.adapt import adapt_to_reconstruct_sequence, fits_better
 
 
 def main() -> None:
@@ -17,7 +22,12 @@ def main() -> None:
     parser.add_argument("name", help="a key of reconstruct.sequences")
     parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
     args = parser.parse_args()
-    result = run_reconstruction(load_params(args.params), args.name)
+    params = load_params(args.params)
+    with tempfile.TemporaryDirectory() as scratch:
+        adapted = Path(scratch) / ADAPTED_MODEL
+        kept = params.reconstruct.adapt > 0 and fits_better(
+            adapt_to_reconstruct_sequence(params, args.name, adapted))
+        result = run_reconstruction(params, args.name, adapted=adapted if kept else None)
     print(format_measurement(args.name, result), end="")
 
 

@@ -16,7 +16,7 @@ from endoflow.io import file_sha256
 from endoflow.models.endoflow_model import build_model, load_trained_model
 from endoflow.models.model_file import ModelRecord, load_model_file, save_model_file
 from endoflow.synth.writers import synthesize_layout
-from endoflow.training.adapt import AdaptOptions, adapt, input_sequence
+from endoflow.training.adapt import AdaptOptions, adapt, fits_better, input_sequence
 from tests.small_model import small_model_params
 from tests.test_reconstruct import default_baselines
 
@@ -92,6 +92,22 @@ def test_adapt_runs_from_the_command_line_and_reconstruct_adapts_first(clip: Pat
     assert adapted.adapted_from["steps"] == 2
     summary = json.loads((tmp_path / "recon" / "reconstruction.json").read_text())
     assert summary["frames"] == 12 and summary["intrinsics"].startswith("learned by the model for its 'video'")
+    # the summary names the kept model, not the scratch file it was adapted into, and what it was adapted from
+    assert summary["model"] == "model_adapted.pt" and summary["adapted_from"] == adapted.adapted_from
+
+
+def test_reconstruct_keeps_the_model_as_trained_where_the_fit_explains_the_held_out_frames_worse(
+        clip: Path, model_file: Path, tmp_path: Path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    worse = {"held_out_photometric_before": 0.05, "held_out_photometric_after": 0.06}
+    monkeypatch.setattr("endoflow.cli._run_adaptation", lambda *args: worse)
+    assert cli(["reconstruct", str(clip), "--model", str(model_file), "--out", "recon", "--adapt", "2",
+                "--no-fusion", "--stop", "12"]) == 0
+    assert "explains the held-out frames worse than the model as trained (0.0500 -> 0.0600)" in capsys.readouterr().err
+    summary = json.loads((tmp_path / "recon" / "reconstruction.json").read_text())
+    assert summary["model"] == str(model_file) and "adapted_from" not in summary
+    assert not (tmp_path / "recon" / "model_adapted.pt").exists()
+    assert fits_better({"held_out_photometric_before": 0.06, "held_out_photometric_after": 0.05})
 
 
 def test_too_few_frames_or_the_model_itself_as_output_are_refused(clip: Path, model_file: Path, tmp_path: Path):

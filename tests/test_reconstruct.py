@@ -20,11 +20,14 @@ from endoflow.data.imageio import read_gray16
 from endoflow.data.registry import open_reader
 from endoflow.data.frame_encoding import resize_depth, stored_intrinsics
 from endoflow.errors import DataFormatError
+from endoflow.io import file_sha256
 from endoflow.models.endoflow_model import build_model
-from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
+from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_model_file, save_model_file
 from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
 from endoflow.reconstruction.fusion import TSDFVolume, read_ply_vertices
+from endoflow.reconstruction.measure import run_reconstruction
 from endoflow.reconstruction.reconstruct import (
+    ADAPTED_MODEL,
     RECONSTRUCTION_FORMAT,
     ReconstructOptions,
     default_voxel_cm,
@@ -33,6 +36,7 @@ from endoflow.reconstruction.reconstruct import (
     reconstruct,
 )
 from endoflow.synth.writers import synthesize_layout
+from endoflow.training.adapt import adapt_to_reconstruct_sequence
 from tests.small_model import small_model_params
 
 SIZE = 64
@@ -148,6 +152,32 @@ def test_a_dataset_sequence_gives_depth_path_surface_and_the_scale_that_fits_its
     assert {rows[f"/world/camera/{part}"] for part in ("image", "depth")} == {FRAMES}
     assert rows["/world/camera"] == 2 * FRAMES  # the pose and the intrinsics of each frame
     assert rows["/world/path"] == rows["/world/ground_truth_path"] == rows["/world/surface"] == 1
+
+
+def test_the_stage_adapts_the_model_to_its_sequence_first_as_the_command_does_and_keeps_it(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
+    stage = params.replace(
+        data=params.data.replace(simcol=params.data.simcol.replace(root=str(scene))),
+        reconstruct=params.reconstruct.replace(model=str(model_file), adapt=2, sequences={
+            "s1": {"dataset": "simcol", "sequence": "S1", "start": 0, "stop": None, "stride": 1}}))
+    adapted = tmp_path / "adapted.pt"
+    adapt_to_reconstruct_sequence(stage, "s1", adapted, tmp_path)
+    # the sequence's frames, as `endoflow adapt --sequence` reads them: the same model to the bit
+    assert cli(["adapt", str(scene), "--sequence", "S1", "--model", str(model_file), "--out",
+                str(tmp_path / "command.pt"), "--steps", "2", "--no-mlflow"]) == 0
+    ours, theirs = load_model_file(adapted).state, load_model_file(tmp_path / "command.pt").state
+    assert all(torch.equal(ours[key], theirs[key]) for key in ours)
+    assert not all(torch.equal(ours[key], value) for key, value in load_model_file(model_file).state.items())
+
+    run_reconstruction(stage, "s1", tmp_path, adapted=adapted)
+    out = tmp_path / "reconstructions" / "s1"
+    summary = json.loads((out / "reconstruction.json").read_text())
+    assert summary["model"] == ADAPTED_MODEL and (out / ADAPTED_MODEL).read_bytes() == adapted.read_bytes()
+    assert summary["adapted_from"]["parent"]["sha256"] == file_sha256(model_file)
+    assert summary["adapted_from"]["steps"] == 2
+    # the adapted model's depth
+    run(scene, adapted, tmp_path / "direct", params, "S1", fuse=False)
+    assert all(np.array_equal(depth_of(out, i), depth_of(tmp_path / "direct", i)) for i in range(FRAMES))
 
 
 def test_an_empty_surface_is_written_and_said_with_the_voxel_that_would_give_one(

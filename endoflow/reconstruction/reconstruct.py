@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import math
+import shutil
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -102,11 +103,12 @@ class ReconstructOptions:
 
 
 def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path: Path, out_dir: Path,
-                options: ReconstructOptions, resume_key: Optional[str] = None) -> dict:
+                options: ReconstructOptions, resume_key: Optional[str] = None, keep_model: bool = False) -> dict:
     """Run the model over ``source`` and write the outputs listed in the module docstring; returns the summary
     written to ``reconstruction.json``. ``K_native`` None: the intrinsics are unknown (:func:`input_intrinsics`).
     ``resume_key``, where given, is recorded in the summary: what a run over many videos keeps a folder by
-    (:mod:`endoflow.reconstruction.many`)."""
+    (:mod:`endoflow.reconstruction.many`). ``keep_model``: the model (one adapted to this input, in a scratch
+    folder) is written into the output as :data:`ADAPTED_MODEL`, which the summary names."""
     check_frame_range(source, options.frames)
     device = resolve_device(options.device, "--device")
     model, record = load_trained_model(model_path, device)
@@ -172,7 +174,9 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
         recording.finish(np.stack(path.poses), ground_truth, mesh)
         seconds = progress.elapsed()
         summary = {
-            "format": RECONSTRUCTION_FORMAT, "input": source.description, "model": str(model_path),
+            "format": RECONSTRUCTION_FORMAT, "input": source.description,
+            "model": ADAPTED_MODEL if keep_model else str(model_path),
+            **({"adapted_from": record.adapted_from} if record.adapted_from is not None else {}),
             "frames": path.count, "frame_range": asdict(options.frames), "native_size": list(source.native_size),
             "crop": asdict(region), "model_view": asdict(model_view(region)), "size": size,
             "K": K.tolist(), "intrinsics": intrinsics_from, "scale": options.scale, "depth_unit_cm": unit,
@@ -190,6 +194,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             **path.ground_truth_scale(),
             **({"resume_key": resume_key} if resume_key is not None else {}),
         }
+        if keep_model:
+            shutil.copyfile(model_path, stage / ADAPTED_MODEL)
         write_json(stage / "reconstruction.json", summary)
         write_contact_sheet(stage / "sheet.png", sampler.samples, shown, np.stack(path.poses),
                             mesh.vertices if mesh is not None else np.zeros((0, 3)),

@@ -34,7 +34,7 @@ from endoflow.errors import DataFormatError
 from endoflow.io import file_sha256
 from endoflow.losses.photometric import held_out_photometric_error
 from endoflow.models.endoflow_model import EndoflowModel, load_trained_model
-from endoflow.models.model_file import ModelRecord, save_model_file
+from endoflow.models.model_file import ModelRecord, load_model_file, save_model_file
 from endoflow.progress import Progress
 from endoflow.training.objective import loss_weights, training_step_losses
 from endoflow.training.optimization import make_optimizer
@@ -101,6 +101,32 @@ def input_sequence(source: Path, sequence: Optional[str], params: Params, crop: 
         check_intrinsics(K, chosen.image_size, intrinsics)
         chosen.K, chosen.intrinsics_known = K, True
     return chosen
+
+
+def fits_better(summary: dict) -> bool:
+    """Whether an adaptation (its :func:`adapt` summary) explains the held-out frames better than the model it
+    started from: the one sign without ground truth that it helped. Where it does not, says so: ``reconstruct``
+    then keeps the model as trained."""
+    before, after = summary["held_out_photometric_before"], summary["held_out_photometric_after"]
+    if after < before:
+        return True
+    print(f"[adapt] warning: the adapted model explains the held-out frames worse than the model as trained "
+          f"({before:.4f} -> {after:.4f}); reconstructing with the model as trained", file=sys.stderr)
+    return False
+
+
+def adapt_to_reconstruct_sequence(params: Params, name: str, out_path: Path, project_root: str | Path = ".") -> dict:
+    """The ``reconstruct`` stage's ``reconstruct.adapt``: the model of ``reconstruct.model`` fitted to the frames of
+    ``reconstruct.sequences.<name>`` for that many steps, as ``endoflow reconstruct --sequence --adapt`` fits it
+    (the sequence read with the model's params, its ground truth unused), written to ``out_path``."""
+    cfg = params.reconstruct
+    item = cfg.sequences[name]
+    root = Path(project_root).resolve()
+    model_path = root / cfg.model
+    sequence = input_sequence(root / getattr(params.data, item.dataset).root, item.sequence,
+                              load_model_file(model_path).params)
+    return adapt(sequence, model_path, out_path, AdaptOptions(steps=cfg.adapt, start=item.start, stop=item.stop,
+                                                              stride=item.stride, device=cfg.device))
 
 
 # -------------------------------------------------------------------------------------------- the frames
