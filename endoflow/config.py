@@ -529,9 +529,9 @@ class ReconstructConfig(Section):
     trunc_cm: Optional[Number] = setting(None, "null: 4 voxels", unit="cm", gt=0)
     device: Device = setting("auto", "auto, cpu, cuda or cuda:N (endoflow.devices)")
     # self-supervised, the sequence's ground truth unused: what `endoflow reconstruct --adapt` does for a user's video
-    adapt: int = setting(0, "first fit the model to the sequence with `endoflow adapt` for this many steps (the "
-                            "adapted model is written beside the reconstruction); 0: the model as trained",
-                         unit="steps", ge=0)
+    adapt: int = setting(0, "first fit the model to the sequence with `endoflow adapt` for this many steps; where "
+                            "the fit explains its held-out frames better it reconstructs, and is written beside the "
+                            "reconstruction; 0: the model as trained", unit="steps", ge=0)
     # bf16 rounds depth and pose a little differently (docs/reconstruction.md, "Precision", measures what it costs)
     precision: Precision = setting("float32", "the networks' arithmetic: float32 (the same outputs on any machine), "
                                               "bf16 autocast (faster where the CPU or GPU has bf16 arithmetic) or "

@@ -2,7 +2,8 @@
 
 Usage: ``python -m stages.reconstruct NAME`` (a key of ``reconstruct.sequences``); logs into the model's MLflow
 run. With ``reconstruct.adapt`` steps the model is first fitted to the sequence's frames, as ``endoflow reconstruct
---adapt`` fits it to a user's video, and used where it explains the held-out frames better. See docs/reconstruction.md, "Measured on exact ground truth".
+--adapt`` fits it to a user's video, and used where it explains the held-out frames better. See
+docs/reconstruction.md, "Measured on exact ground truth".
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from pathlib import Path
 
 from endoflow.config import load_params
 from endoflow.reconstruction.measure import format_measurement, run_reconstruction
-from endoflow.reconstruction.reconstruct import ADAPTED_MODEL
+from endoflow.reconstruction.reconstruct import ADAPTED_MODEL, Adaptation
 from endoflow.training.adapt import adapt_to_reconstruct_sequence, fits_better
 
 
@@ -24,10 +25,12 @@ def main() -> None:
     args = parser.parse_args()
     params = load_params(args.params)
     with tempfile.TemporaryDirectory() as scratch:
-        adapted = Path(scratch) / ADAPTED_MODEL
-        kept = params.reconstruct.adapt > 0 and fits_better(
-            adapt_to_reconstruct_sequence(params, args.name, adapted))
-        result = run_reconstruction(params, args.name, adapted=adapted if kept else None)
+        adaptation = None
+        if params.reconstruct.adapt > 0:
+            adapted = Path(scratch) / ADAPTED_MODEL
+            fit = adapt_to_reconstruct_sequence(params, args.name, adapted)
+            adaptation = Adaptation.of(adapted, fit, fits_better(fit))
+        result = run_reconstruction(params, args.name, adaptation=adaptation)
     print(format_measurement(args.name, result), end="")
 
 

@@ -94,20 +94,28 @@ def test_adapt_runs_from_the_command_line_and_reconstruct_adapts_first(clip: Pat
     assert summary["frames"] == 12 and summary["intrinsics"].startswith("learned by the model for its 'video'")
     # the summary names the kept model, not the scratch file it was adapted into, and what it was adapted from
     assert summary["model"] == "model_adapted.pt" and summary["adapted_from"] == adapted.adapted_from
+    assert summary["adaptation"]["kept"] and summary["adaptation"]["steps"] == 2
 
 
 def test_reconstruct_keeps_the_model_as_trained_where_the_fit_explains_the_held_out_frames_worse(
         clip: Path, model_file: Path, tmp_path: Path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     worse = {"held_out_photometric_before": 0.05, "held_out_photometric_after": 0.06}
-    monkeypatch.setattr("endoflow.cli._run_adaptation", lambda *args: worse)
+    monkeypatch.setattr("endoflow.cli._run_adaptation", lambda *args: {"steps": 2, **worse})
     assert cli(["reconstruct", str(clip), "--model", str(model_file), "--out", "recon", "--adapt", "2",
                 "--no-fusion", "--stop", "12"]) == 0
-    assert "explains the held-out frames worse than the model as trained (0.0500 -> 0.0600)" in capsys.readouterr().err
+    assert ("does not explain the held-out frames better than the model as trained (photometric error 0.0500 -> "
+            "0.0600)") in capsys.readouterr().err
     summary = json.loads((tmp_path / "recon" / "reconstruction.json").read_text())
     assert summary["model"] == str(model_file) and "adapted_from" not in summary
+    assert summary["adaptation"] == {"steps": 2, **worse, "kept": False}
     assert not (tmp_path / "recon" / "model_adapted.pt").exists()
-    assert fits_better({"held_out_photometric_before": 0.06, "held_out_photometric_after": 0.05})
+
+
+@pytest.mark.parametrize("before, after, better", [(0.06, 0.05, True), (0.05, 0.05, False), (0.05, float("nan"), False),
+                                                   (float("nan"), 0.05, False)])
+def test_a_fit_is_better_only_where_its_held_out_error_is_lower(before: float, after: float, better: bool):
+    assert fits_better({"held_out_photometric_before": before, "held_out_photometric_after": after}) is better
 
 
 def test_too_few_frames_or_the_model_itself_as_output_are_refused(clip: Path, model_file: Path, tmp_path: Path):

@@ -28,6 +28,7 @@ from endoflow.reconstruction.fusion import TSDFVolume, read_ply_vertices
 from endoflow.reconstruction.measure import run_reconstruction
 from endoflow.reconstruction.reconstruct import (
     ADAPTED_MODEL,
+    Adaptation,
     RECONSTRUCTION_FORMAT,
     ReconstructOptions,
     default_voxel_cm,
@@ -161,7 +162,7 @@ def test_the_stage_adapts_the_model_to_its_sequence_first_as_the_command_does_an
         reconstruct=params.reconstruct.replace(model=str(model_file), adapt=2, sequences={
             "s1": {"dataset": "simcol", "sequence": "S1", "start": 0, "stop": None, "stride": 1}}))
     adapted = tmp_path / "adapted.pt"
-    adapt_to_reconstruct_sequence(stage, "s1", adapted, tmp_path)
+    fit = adapt_to_reconstruct_sequence(stage, "s1", adapted, tmp_path)
     # the sequence's frames, as `endoflow adapt --sequence` reads them: the same model to the bit
     assert cli(["adapt", str(scene), "--sequence", "S1", "--model", str(model_file), "--out",
                 str(tmp_path / "command.pt"), "--steps", "2", "--no-mlflow"]) == 0
@@ -169,15 +170,34 @@ def test_the_stage_adapts_the_model_to_its_sequence_first_as_the_command_does_an
     assert all(torch.equal(ours[key], theirs[key]) for key in ours)
     assert not all(torch.equal(ours[key], value) for key, value in load_model_file(model_file).state.items())
 
-    run_reconstruction(stage, "s1", tmp_path, adapted=adapted)
+    run_reconstruction(stage, "s1", tmp_path, Adaptation.of(adapted, fit, kept=True))
     out = tmp_path / "reconstructions" / "s1"
     summary = json.loads((out / "reconstruction.json").read_text())
     assert summary["model"] == ADAPTED_MODEL and (out / ADAPTED_MODEL).read_bytes() == adapted.read_bytes()
+    assert summary["adaptation"] == {"steps": 2, "held_out_photometric_before": fit["held_out_photometric_before"],
+                                     "held_out_photometric_after": fit["held_out_photometric_after"], "kept": True}
     assert summary["adapted_from"]["parent"]["sha256"] == file_sha256(model_file)
     assert summary["adapted_from"]["steps"] == 2
     # the adapted model's depth
     run(scene, adapted, tmp_path / "direct", params, "S1", fuse=False)
     assert all(np.array_equal(depth_of(out, i), depth_of(tmp_path / "direct", i)) for i in range(FRAMES))
+
+
+def test_the_stage_reconstructs_with_the_model_as_trained_where_the_fit_is_not_better_and_fits_only_if_asked(
+        tmp_path: Path, monkeypatch) -> None:
+    from stages import reconstruct as stage
+
+    calls: list = []
+    not_better = {"steps": 300, "held_out_photometric_before": 0.05, "held_out_photometric_after": 0.05}
+    monkeypatch.setattr(stage, "adapt_to_reconstruct_sequence", lambda *args: calls.append("fit") or not_better)
+    monkeypatch.setattr(stage, "run_reconstruction", lambda params, name, adaptation: calls.append(adaptation) or {})
+    monkeypatch.setattr(stage, "format_measurement", lambda name, result: "")
+    for steps in (0, 300):
+        (tmp_path / "params.yaml").write_text(yaml.safe_dump({"reconstruct": {"adapt": steps}}))
+        monkeypatch.setattr("sys.argv", ["stage", "simcol_S5", "--params", str(tmp_path / "params.yaml")])
+        stage.main()
+    assert calls[0] is None  # adapt 0: no fit
+    assert calls[1] == "fit" and calls[2].kept is False and calls[2].held_out_after == 0.05
 
 
 def test_an_empty_surface_is_written_and_said_with_the_voxel_that_would_give_one(

@@ -49,7 +49,8 @@ from endoflow.models.model_file import TrainingBaselines, load_model_file
 from endoflow.reconstruction.alignment import Alignment, align_trajectory, trajectories
 from endoflow.reconstruction.frames import DatasetFrames, FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import TSDFVolume, read_ply_vertices
-from endoflow.reconstruction.reconstruct import NETWORK_PATH_FILE, ReconstructOptions, log_reconstruction, reconstruct
+from endoflow.reconstruction.reconstruct import (NETWORK_PATH_FILE, Adaptation, ReconstructOptions, kept,
+                                                 log_reconstruction, reconstruct)
 
 SURFACE_ROWS = ("ground_truth", "model", "model_depth_gt_path", "constant_depth", "constant_velocity", "trivial")
 PATH_ROWS = ("model", "network", "constant_velocity")  # network: the pose network's own chain, where refined
@@ -234,26 +235,27 @@ def metrics_summary(result: dict) -> dict:
 
 
 def run_reconstruction(params: Params, name: str, project_root: str | Path = ".",
-                       adapted: Optional[Path] = None) -> dict:
+                       adaptation: Optional[Adaptation] = None) -> dict:
     """The ``reconstruct`` stage for ``reconstruct.sequences.<name>``: reconstruct the sequence with the trained
-    model (or ``adapted``, the model fitted to the sequence first, which the reconstruction keeps) into
+    model (or, where ``adaptation`` was kept, the model fitted to the sequence first) into
     ``<reconstruct.out>/<name>/``, measure it (:func:`measure_reconstruction`) and log the figures and pictures
     into the model's MLflow run (:func:`log_measurement`). Every figure goes beside the reconstruction
-    (:data:`MEASUREMENT_FILE`, and per-frame path errors in :data:`PATH_ERRORS_FILE`); ``<reconstruct.metrics>/<name>.json``, the file DVC
-    reads, holds the headline (:func:`dvc_metrics`, shown by ``dvc exp show`` as ``reconstruct_simcol_S5.ate_cm``);
-    ``<reconstruct.plots>/<name>/sheet.png`` is the picture sheet."""
+    (:data:`MEASUREMENT_FILE`, and per-frame path errors in :data:`PATH_ERRORS_FILE`);
+    ``<reconstruct.metrics>/<name>.json``, the file DVC reads, holds the headline (:func:`dvc_metrics`, shown by
+    ``dvc exp show`` as ``reconstruct_simcol_S5.ate_cm``); ``<reconstruct.plots>/<name>/sheet.png`` is the picture
+    sheet."""
     cfg = params.reconstruct
     item = cfg.sequences[name]
     root = Path(project_root).resolve()
     use_cpu_threads(params.threads)
-    model_path = adapted or root / cfg.model
+    model_path = adaptation.model if kept(adaptation) else root / cfg.model
     record = load_model_file(model_path)
     source = DatasetFrames(root / getattr(params.data, item.dataset).root, item.sequence, params)
     out_dir = root / cfg.out / name
     options = ReconstructOptions(FrameRange(item.start, item.stop, item.stride), cfg.size, 1.0, cfg.voxel_cm,
                                  cfg.trunc_cm, device=cfg.device, precision=cfg.precision,
                                  refine=tracker_settings(params.refine) if params.refine.enabled else None)
-    reconstruct(source, source.K, model_path, out_dir, options, keep_model=adapted is not None)
+    reconstruct(source, source.K, model_path, out_dir, options, adaptation=adaptation)
     result = measure_reconstruction(source, out_dir, record.baselines)
     write_json(out_dir / MEASUREMENT_FILE, metrics_summary(result))
     write_json(root / cfg.metrics / f"{name}.json", dvc_metrics(name, result))

@@ -102,13 +102,38 @@ class ReconstructOptions:
             raise ValueError(f"--precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
 
 
+@dataclass(frozen=True)
+class Adaptation:
+    """The model fitted to the input before it is reconstructed (``endoflow adapt``): the fitted model file (in a
+    scratch folder), its steps, the held-out photometric error before and after, and whether it was kept (it
+    explains the held-out frames better) and so reconstructs."""
+
+    model: Path
+    steps: int
+    held_out_before: float
+    held_out_after: float
+    kept: bool
+
+    @classmethod
+    def of(cls, model: Path, summary: dict, kept: bool) -> "Adaptation":
+        """From the summary ``endoflow.training.adapt.adapt`` returns."""
+        return cls(model, summary["steps"], summary["held_out_photometric_before"],
+                   summary["held_out_photometric_after"], kept)
+
+    def record(self) -> dict:
+        """What ``reconstruction.json`` says of it."""
+        return {"steps": self.steps, "held_out_photometric_before": self.held_out_before,
+                "held_out_photometric_after": self.held_out_after, "kept": self.kept}
+
+
 def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path: Path, out_dir: Path,
-                options: ReconstructOptions, resume_key: Optional[str] = None, keep_model: bool = False) -> dict:
+                options: ReconstructOptions, resume_key: Optional[str] = None,
+                adaptation: Optional[Adaptation] = None) -> dict:
     """Run the model over ``source`` and write the outputs listed in the module docstring; returns the summary
     written to ``reconstruction.json``. ``K_native`` None: the intrinsics are unknown (:func:`input_intrinsics`).
     ``resume_key``, where given, is recorded in the summary: what a run over many videos keeps a folder by
-    (:mod:`endoflow.reconstruction.many`). ``keep_model``: the model (one adapted to this input, in a scratch
-    folder) is written into the output as :data:`ADAPTED_MODEL`, which the summary names."""
+    (:mod:`endoflow.reconstruction.many`). ``adaptation``, a fit made first, is recorded in the summary; where it
+    was kept, ``model_path`` is its model, which is written into the output as :data:`ADAPTED_MODEL`."""
     check_frame_range(source, options.frames)
     device = resolve_device(options.device, "--device")
     model, record = load_trained_model(model_path, device)
@@ -175,7 +200,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
         seconds = progress.elapsed()
         summary = {
             "format": RECONSTRUCTION_FORMAT, "input": source.description,
-            "model": ADAPTED_MODEL if keep_model else str(model_path),
+            "model": ADAPTED_MODEL if kept(adaptation) else str(model_path),
+            **({"adaptation": adaptation.record()} if adaptation is not None else {}),
             **({"adapted_from": record.adapted_from} if record.adapted_from is not None else {}),
             "frames": path.count, "frame_range": asdict(options.frames), "native_size": list(source.native_size),
             "crop": asdict(region), "model_view": asdict(model_view(region)), "size": size,
@@ -194,7 +220,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             **path.ground_truth_scale(),
             **({"resume_key": resume_key} if resume_key is not None else {}),
         }
-        if keep_model:
+        if kept(adaptation):
             shutil.copyfile(model_path, stage / ADAPTED_MODEL)
         write_json(stage / "reconstruction.json", summary)
         write_contact_sheet(stage / "sheet.png", sampler.samples, shown, np.stack(path.poses),
@@ -290,6 +316,11 @@ def check_frame_range(source: FrameSource, frames: FrameRange) -> None:
     if source.length is not None and frames.start >= source.length:
         raise DataFormatError(source.description, f"--start {frames.start} is beyond its {source.length} frames "
                                                   f"(positions 0 to {source.length - 1})")
+
+
+def kept(adaptation: Optional[Adaptation]) -> bool:
+    """Whether a fit was made first and its model reconstructs."""
+    return adaptation is not None and adaptation.kept
 
 
 def predict_frames(model: torch.nn.Module, images: torch.Tensor, previous: Optional[torch.Tensor], scale: float,

@@ -29,7 +29,7 @@ from endoflow.data.frame_encoding import resize_rgb, stored_intrinsics
 from endoflow.data.intrinsics import check_intrinsics, read_intrinsics
 from endoflow.data.registry import open_reader
 from endoflow.data.video import video_sequence
-from endoflow.devices import images_to_device, resolve_device, to_compute_layout
+from endoflow.devices import images_to_device, resolve_device, to_compute_layout, use_cpu_threads
 from endoflow.errors import DataFormatError
 from endoflow.io import file_sha256
 from endoflow.losses.photometric import held_out_photometric_error
@@ -108,10 +108,11 @@ def fits_better(summary: dict) -> bool:
     started from: the one sign without ground truth that it helped. Where it does not, says so: ``reconstruct``
     then keeps the model as trained."""
     before, after = summary["held_out_photometric_before"], summary["held_out_photometric_after"]
-    if after < before:
+    if after < before:  # False for a NaN either side
         return True
-    print(f"[adapt] warning: the adapted model explains the held-out frames worse than the model as trained "
-          f"({before:.4f} -> {after:.4f}); reconstructing with the model as trained", file=sys.stderr)
+    print(f"[adapt] warning: the adapted model does not explain the held-out frames better than the model as "
+          f"trained (photometric error {before:.4f} -> {after:.4f}); reconstructing with the model as trained",
+          file=sys.stderr)
     return False
 
 
@@ -122,6 +123,7 @@ def adapt_to_reconstruct_sequence(params: Params, name: str, out_path: Path, pro
     cfg = params.reconstruct
     item = cfg.sequences[name]
     root = Path(project_root).resolve()
+    use_cpu_threads(params.threads)  # the stage's count, as for its reconstruction: the same model on any machine
     model_path = root / cfg.model
     sequence = input_sequence(root / getattr(params.data, item.dataset).root, item.sequence,
                               load_model_file(model_path).params)
