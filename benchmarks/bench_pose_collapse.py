@@ -22,7 +22,12 @@ Over the split's (cur, next) pairs, with the shards' exact depth and poses, prin
   on how many pairs a step against it moves the answer towards the truth (translation and rotation apart);
 - the output scaling: the answer is ``MEAN_SCALE * (bias + W . features)`` (the head's 1x1 convolution, averaged
   over the image); per component, the bias's part of the mean answer and the spread the features give it, against
-  the truth's mean and spread.
+  the truth's mean and spread;
+- with ``--probe-samples N``: whether the motion is in the features at all. Ridge regressions from the head's
+  input, averaged over the image as the head sees it or kept per position (the mean could cancel a radial flow,
+  which is what moving forward makes), are fitted to the true motion of N training pairs (the weight of the
+  ridge chosen by 5-fold cross-validation on them) and scored on the split's pairs: their correlation with the
+  truth beside the network's.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ from endoflow.models.endoflow_model import load_trained_model
 from endoflow.models.pose_net import MEAN_SCALE
 
 SCALES = (0.5, 0.75, 1.0, 1.25, 1.5)
+RIDGE_WEIGHTS = (1.0, 10.0, 100.0, 1000.0, 10000.0)
 
 
 def pairs(shards: str, split: str, count: int) -> list[dict]:
@@ -93,6 +99,61 @@ def print_output_scaling(model: torch.nn.Module, cur: torch.Tensor, nxt: torch.T
               f"{truth[:, i].mean():+.2e} ({truth[:, i].std():.2e})")
 
 
+def head_input(model: torch.nn.Module, cur: torch.Tensor, nxt: torch.Tensor) -> torch.Tensor:
+    """``[B, C, h, w]``: what the pose network's head reads (the trunk's output), per position."""
+    captured: list[torch.Tensor] = []
+    hook = model.pose_net.mean_head.register_forward_hook(lambda module, inputs, output: captured.append(inputs[0]))
+    with torch.no_grad():
+        model.forward_motion(cur, nxt, sample=False)
+    hook.remove()
+    return captured[0]
+
+
+def fitted_ridge(X: np.ndarray, y: np.ndarray, weights=RIDGE_WEIGHTS, folds: int = 5):
+    """A ridge regression on standardised ``X``, its weight chosen by ``folds``-fold cross-validation (squared
+    error) over contiguous folds (the pairs come in sequence order, and neighbouring frames are near copies of
+    each other); returns the predictor."""
+    def fit(Xa: np.ndarray, ya: np.ndarray, weight: float):
+        mean, scale = Xa.mean(0), Xa.std(0) + 1e-6
+        Z = (Xa - mean) / scale
+        w = np.linalg.solve(Z.T @ Z + weight * np.eye(Z.shape[1]), Z.T @ (ya - ya.mean()))
+        return lambda Xb: ((Xb - mean) / scale) @ w + ya.mean()
+    parts = np.arange(len(y)) * folds // len(y)
+
+    def error(weight: float) -> float:
+        return sum(float(np.square(fit(X[parts != k], y[parts != k], weight)(X[parts == k]) - y[parts == k]).sum())
+                   for k in range(folds))
+    return fit(X, y, min(weights, key=error))
+
+
+def print_linear_probes(model: torch.nn.Module, training: list[dict], cur: torch.Tensor, nxt: torch.Tensor,
+                        truth: np.ndarray, predicted: np.ndarray) -> None:
+    """Per pose component: the network's correlation with the truth, and that of ridge probes fitted on the
+    ``training`` pairs from the head's input averaged over the image and kept per position."""
+    train_cur, train_nxt, train_truth = pair_tensors(training)
+    features = {"averaged": lambda c, n: head_input(model, c, n).mean(dim=(2, 3)).double().numpy(),
+                "per position": lambda c, n: head_input(model, c, n).flatten(1).double().numpy()}
+    fitted = {name: (feature(train_cur, train_nxt), feature(cur, nxt)) for name, feature in features.items()}
+    print(f"linear probes fitted on {len(training)} training pairs: correlation with the truth, the network / the "
+          f"head's input averaged / per position")
+    for i, name in enumerate(("rx", "ry", "rz", "tx", "ty", "tz")):
+        probes = [np.corrcoef(fitted_ridge(X_train, train_truth[:, i])(X), truth[:, i])[0, 1]
+                  for X_train, X in fitted.values()]
+        print(f"  {name}: {np.corrcoef(predicted[:, i], truth[:, i])[0, 1]:+.2f} / {probes[0]:+.2f} / "
+              f"{probes[1]:+.2f}")
+
+
+def pair_tensors(samples: list[dict]) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+    """``cur``, ``next`` ``[B, 3, H, W]`` in [0, 1] and the true forward motion ``[B, 6]`` of ``samples``."""
+    cur = torch.stack([s["cur"] for s in samples]).float()
+    nxt = torch.stack([s["next"] for s in samples]).float()
+    if cur.max() > 1:
+        cur, nxt = cur / 255, nxt / 255
+    world = {name: torch.tensor(np.stack([s["meta"]["T_world_cam"][name] for s in samples]), dtype=torch.float32)
+             for name in ("cur", "next")}
+    return cur, nxt, matrix_to_pose_vec((invert_pose(world["next"]) @ world["cur"]).double()).numpy()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default="models/endoflow.pt")
@@ -100,6 +161,8 @@ def main() -> None:
     parser.add_argument("--split", default="val")
     parser.add_argument("--samples", type=int, default=240)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--probe-samples", type=int, default=0,
+                        help="fit linear probes on this many training pairs (0: none)")
     args = parser.parse_args()
     use_cpu_threads(args.threads)
     torch.manual_seed(0)
@@ -168,6 +231,8 @@ def main() -> None:
         f"x{scale:g} {value / base - 1:+.2%}" for scale, value in scaled.items()))
     print_pose_gradient(cur, nxt, depth, mean.float(), torch.from_numpy(truth).float(), K, cfg)
     print_output_scaling(model, cur, nxt, truth)
+    if args.probe_samples:
+        print_linear_probes(model, pairs(args.shards, "train", args.probe_samples), cur, nxt, truth, predicted)
     steps = mean_step(T_next_cur.double().numpy())
     print(f"the split's mean step {np.linalg.norm(steps[:3, 3]) * 10:.3f} mm; {time.perf_counter() - began:.0f} s")
 
