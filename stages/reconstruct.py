@@ -13,7 +13,7 @@ import tempfile
 from pathlib import Path
 
 from endoflow.config import load_params
-from endoflow.reconstruction.measure import format_measurement, run_reconstruction
+from endoflow.reconstruction.measure import format_measurement, run_reconstruction, stage_model_file
 from endoflow.reconstruction.reconstruct import ADAPTED_MODEL, Adaptation
 from endoflow.training.adapt import adapt_to_reconstruct_sequence, fits_better
 
@@ -24,13 +24,13 @@ def main() -> None:
     parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
     args = parser.parse_args()
     params = load_params(args.params)
-    with tempfile.TemporaryDirectory() as scratch:
+    with stage_model_file(params) as model_path, tempfile.TemporaryDirectory() as scratch:
         adaptation = None
         if params.reconstruct.adapt > 0:
             adapted = Path(scratch) / ADAPTED_MODEL
-            fit = adapt_to_reconstruct_sequence(params, args.name, adapted)
+            fit = adapt_to_reconstruct_sequence(params, args.name, model_path, adapted)
             adaptation = Adaptation.of(adapted, fit, fits_better(fit))
-        result = run_reconstruction(params, args.name, adaptation=adaptation)
+        result = run_reconstruction(params, args.name, model_path, adaptation=adaptation)
     print(format_measurement(args.name, result), end="")
 
 

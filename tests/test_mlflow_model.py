@@ -21,6 +21,7 @@ from endoflow.io import file_sha256
 from endoflow.models.endoflow_model import build_model, load_trained_model
 from endoflow.models.mlflow_model import example_frames, local_model_file, log_mlflow_model, using_store
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
+from endoflow.reconstruction.measure import stage_model_file
 from tests.small_model import small_model_params
 
 SIZE = 64
@@ -131,6 +132,16 @@ def test_reconstruct_takes_a_models_uri(logged, params, project, monkeypatch):
     assert code == 0
     summary = json.loads((project / "out" / "reconstruction.json").read_text())
     assert summary["frames"] == 4
+
+
+def test_the_reconstruct_stage_takes_a_models_uri(logged, params, project):
+    model_path, _, _ = logged
+    stage = params.replace(reconstruct=params.reconstruct.replace(model=f"models:/{NAME}/1"))
+    with stage_model_file(stage, project) as path:
+        assert file_sha256(path) == file_sha256(model_path)
+    relative = params.replace(reconstruct=params.reconstruct.replace(model="models/endoflow.pt"))
+    with stage_model_file(relative, project) as path:
+        assert path == model_path
 
 
 def test_evaluate_takes_a_models_uri_and_logs_into_the_models_training_run(logged, params, project):

@@ -162,7 +162,7 @@ def test_the_stage_adapts_the_model_to_its_sequence_first_as_the_command_does_an
         reconstruct=params.reconstruct.replace(model=str(model_file), adapt=2, sequences={
             "s1": {"dataset": "simcol", "sequence": "S1", "start": 0, "stop": None, "stride": 1}}))
     adapted = tmp_path / "adapted.pt"
-    fit = adapt_to_reconstruct_sequence(stage, "s1", adapted, tmp_path)
+    fit = adapt_to_reconstruct_sequence(stage, "s1", model_file, adapted, tmp_path)
     # the sequence's frames, as `endoflow adapt --sequence` reads them: the same model to the bit
     assert cli(["adapt", str(scene), "--sequence", "S1", "--model", str(model_file), "--out",
                 str(tmp_path / "command.pt"), "--steps", "2", "--no-mlflow"]) == 0
@@ -170,7 +170,7 @@ def test_the_stage_adapts_the_model_to_its_sequence_first_as_the_command_does_an
     assert all(torch.equal(ours[key], theirs[key]) for key in ours)
     assert not all(torch.equal(ours[key], value) for key, value in load_model_file(model_file).state.items())
 
-    run_reconstruction(stage, "s1", tmp_path, Adaptation.of(adapted, fit, kept=True))
+    run_reconstruction(stage, "s1", model_file, tmp_path, Adaptation.of(adapted, fit, kept=True))
     out = tmp_path / "reconstructions" / "s1"
     summary = json.loads((out / "reconstruction.json").read_text())
     assert summary["model"] == ADAPTED_MODEL and (out / ADAPTED_MODEL).read_bytes() == adapted.read_bytes()
@@ -190,7 +190,8 @@ def test_the_stage_reconstructs_with_the_model_as_trained_where_the_fit_is_not_b
     calls: list = []
     not_better = {"steps": 300, "held_out_photometric_before": 0.05, "held_out_photometric_after": 0.05}
     monkeypatch.setattr(stage, "adapt_to_reconstruct_sequence", lambda *args: calls.append("fit") or not_better)
-    monkeypatch.setattr(stage, "run_reconstruction", lambda params, name, adaptation: calls.append(adaptation) or {})
+    monkeypatch.setattr(stage, "run_reconstruction",
+                        lambda params, name, model, adaptation: calls.append(adaptation) or {})
     monkeypatch.setattr(stage, "format_measurement", lambda name, result: "")
     for steps in (0, 300):
         (tmp_path / "params.yaml").write_text(yaml.safe_dump({"reconstruct": {"adapt": steps}}))

@@ -30,6 +30,7 @@ Baselines with a metric scale are aligned by SE(3), the model by Sim(3): the usu
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 from typing import Iterator, Optional
@@ -45,6 +46,7 @@ from endoflow.data.trajectory_files import read_tum
 from endoflow.devices import use_cpu_threads
 from endoflow.geometry.direct_alignment import tracker_settings
 from endoflow.io import write_bytes, write_csv, write_json
+from endoflow.models.mlflow_model import is_model_uri, local_model_file
 from endoflow.models.model_file import TrainingBaselines, load_model_file
 from endoflow.reconstruction.alignment import Alignment, align_trajectory, trajectories
 from endoflow.reconstruction.frames import DatasetFrames, FrameRange, FrameSource, InputFrame
@@ -234,10 +236,25 @@ def metrics_summary(result: dict) -> dict:
     return {**result, "path": path}
 
 
-def run_reconstruction(params: Params, name: str, project_root: str | Path = ".",
+@contextlib.contextmanager
+def stage_model_file(params: Params, project_root: str | Path = ".") -> Iterator[Path]:
+    """The file of ``reconstruct.model``: a path in the project, or for a ``models:/`` URI the logged model's file,
+    downloaded from the store of ``tracking.uri`` for the duration."""
+    root = Path(project_root).resolve()
+    location = params.reconstruct.model
+    if not is_model_uri(location):
+        yield root / location
+        return
+    from endoflow.tracking import tracking_uri  # MLflow takes seconds to import: only a URI pays for it
+    with local_model_file(location, tracking_uri(params, root)) as path:
+        yield path
+
+
+def run_reconstruction(params: Params, name: str, model_path: Path, project_root: str | Path = ".",
                        adaptation: Optional[Adaptation] = None) -> dict:
     """The ``reconstruct`` stage for ``reconstruct.sequences.<name>``: reconstruct the sequence with the trained
-    model (or, where ``adaptation`` was kept, the model fitted to the sequence first) into
+    model at ``model_path`` (:func:`stage_model_file`; or, where ``adaptation`` was kept, the model fitted to the
+    sequence first) into
     ``<reconstruct.out>/<name>/``, measure it (:func:`measure_reconstruction`) and log the figures and pictures
     into the model's MLflow run (:func:`log_measurement`). Every figure goes beside the reconstruction
     (:data:`MEASUREMENT_FILE`, and per-frame path errors in :data:`PATH_ERRORS_FILE`);
@@ -248,7 +265,7 @@ def run_reconstruction(params: Params, name: str, project_root: str | Path = "."
     item = cfg.sequences[name]
     root = Path(project_root).resolve()
     use_cpu_threads(params.threads)
-    model_path = adaptation.model if kept(adaptation) else root / cfg.model
+    model_path = adaptation.model if kept(adaptation) else model_path
     record = load_model_file(model_path)
     source = DatasetFrames(root / getattr(params.data, item.dataset).root, item.sequence, params)
     out_dir = root / cfg.out / name

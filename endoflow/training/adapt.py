@@ -116,15 +116,15 @@ def fits_better(summary: dict) -> bool:
     return False
 
 
-def adapt_to_reconstruct_sequence(params: Params, name: str, out_path: Path, project_root: str | Path = ".") -> dict:
-    """The ``reconstruct`` stage's ``reconstruct.adapt``: the model of ``reconstruct.model`` fitted to the frames of
+def adapt_to_reconstruct_sequence(params: Params, name: str, model_path: Path, out_path: Path,
+                                  project_root: str | Path = ".") -> dict:
+    """The ``reconstruct`` stage's ``reconstruct.adapt``: the model at ``model_path`` fitted to the frames of
     ``reconstruct.sequences.<name>`` for that many steps, as ``endoflow reconstruct --sequence --adapt`` fits it
     (the sequence read with the model's params, its ground truth unused), written to ``out_path``."""
     cfg = params.reconstruct
     item = cfg.sequences[name]
     root = Path(project_root).resolve()
     use_cpu_threads(params.threads)  # the stage's count, as for its reconstruction: the same model on any machine
-    model_path = root / cfg.model
     sequence = input_sequence(root / getattr(params.data, item.dataset).root, item.sequence,
                               load_model_file(model_path).params)
     return adapt(sequence, model_path, out_path, AdaptOptions(steps=cfg.adapt, start=item.start, stop=item.stop,
