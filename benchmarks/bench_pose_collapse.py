@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -48,7 +49,7 @@ from endoflow.models.endoflow_model import load_trained_model
 from endoflow.models.pose_net import MEAN_SCALE
 
 SCALES = (0.5, 0.75, 1.0, 1.25, 1.5)
-RIDGE_WEIGHTS = (1.0, 10.0, 100.0, 1000.0, 10000.0)
+RIDGE_WEIGHTS = tuple(10.0 ** k for k in range(-2, 7))
 
 
 def pairs(shards: str, split: str, count: int) -> list[dict]:
@@ -84,12 +85,8 @@ def print_pose_gradient(cur: torch.Tensor, nxt: torch.Tensor, depth: torch.Tenso
 def print_output_scaling(model: torch.nn.Module, cur: torch.Tensor, nxt: torch.Tensor, truth: np.ndarray) -> None:
     """The answer's two parts: ``MEAN_SCALE * bias`` (the same for every pair) and ``MEAN_SCALE * W . features``."""
     head = model.pose_net.mean_head
-    captured: list[torch.Tensor] = []
-    hook = head.register_forward_hook(lambda module, inputs, output: captured.append(inputs[0]))
+    features = head_input(model, cur, nxt).mean(dim=(2, 3))
     with torch.no_grad():
-        model.forward_motion(cur, nxt, sample=False)
-        hook.remove()
-        features = captured[0].mean(dim=(2, 3))
         varying = (MEAN_SCALE * features @ head.weight[:, :, 0, 0].T).double().numpy()
     constant = MEAN_SCALE * head.bias.detach().double().numpy()
     print("output scaling (MEAN_SCALE * raw): per component, the bias's part / the features' mean part (their "
@@ -109,49 +106,64 @@ def head_input(model: torch.nn.Module, cur: torch.Tensor, nxt: torch.Tensor) -> 
     return captured[0]
 
 
-def fitted_ridge(X: np.ndarray, y: np.ndarray, weights=RIDGE_WEIGHTS, folds: int = 5):
-    """A ridge regression on standardised ``X``, its weight chosen by ``folds``-fold cross-validation (squared
-    error) over contiguous folds (the pairs come in sequence order, and neighbouring frames are near copies of
-    each other); returns the predictor."""
-    def fit(Xa: np.ndarray, ya: np.ndarray, weight: float):
-        mean, scale = Xa.mean(0), Xa.std(0) + 1e-6
-        Z = (Xa - mean) / scale
-        w = np.linalg.solve(Z.T @ Z + weight * np.eye(Z.shape[1]), Z.T @ (ya - ya.mean()))
-        return lambda Xb: ((Xb - mean) / scale) @ w + ya.mean()
+Predictor = Callable[[np.ndarray], np.ndarray]
+
+
+def fitted_ridge(X: np.ndarray, y: np.ndarray, weights: Sequence[float] = RIDGE_WEIGHTS,
+                 folds: int = 5) -> tuple[Predictor, float]:
+    """A ridge regression on standardised ``X`` and the weight chosen for it by ``folds``-fold cross-validation
+    (squared error) over contiguous folds (the pairs come in sequence order, and neighbouring frames are near
+    copies of each other)."""
     parts = np.arange(len(y)) * folds // len(y)
 
     def error(weight: float) -> float:
-        return sum(float(np.square(fit(X[parts != k], y[parts != k], weight)(X[parts == k]) - y[parts == k]).sum())
+        return sum(float(np.square(ridge(X[parts != k], y[parts != k], weight)(X[parts == k]) - y[parts == k]).sum())
                    for k in range(folds))
-    return fit(X, y, min(weights, key=error))
+    chosen = min(weights, key=error)
+    return ridge(X, y, chosen), chosen
+
+
+def ridge(X: np.ndarray, y: np.ndarray, weight: float) -> Predictor:
+    """Ridge regression of ``y`` on standardised ``X``, solved in the smaller of its two equivalent forms (more
+    features than samples: the samples' Gram matrix)."""
+    mean, scale = X.mean(0), X.std(0) + 1e-6
+    Z, centred = (X - mean) / scale, y - y.mean()
+    if Z.shape[1] <= Z.shape[0]:
+        w = np.linalg.solve(Z.T @ Z + weight * np.eye(Z.shape[1]), Z.T @ centred)
+    else:
+        w = Z.T @ np.linalg.solve(Z @ Z.T + weight * np.eye(Z.shape[0]), centred)
+    return lambda Xb: ((Xb - mean) / scale) @ w + y.mean()
 
 
 def print_linear_probes(model: torch.nn.Module, training: list[dict], cur: torch.Tensor, nxt: torch.Tensor,
                         truth: np.ndarray, predicted: np.ndarray) -> None:
     """Per pose component: the network's correlation with the truth, and that of ridge probes fitted on the
     ``training`` pairs from the head's input averaged over the image and kept per position."""
-    train_cur, train_nxt, train_truth = pair_tensors(training)
-    features = {"averaged": lambda c, n: head_input(model, c, n).mean(dim=(2, 3)).double().numpy(),
-                "per position": lambda c, n: head_input(model, c, n).flatten(1).double().numpy()}
-    fitted = {name: (feature(train_cur, train_nxt), feature(cur, nxt)) for name, feature in features.items()}
+    train_cur, train_nxt, T_train = pair_tensors(training)
+    train_truth = matrix_to_pose_vec(T_train.double()).numpy()
+    maps = [head_input(model, c, n).double() for c, n in ((train_cur, train_nxt), (cur, nxt))]  # training, scored
+    matrices = {"averaged": [m.mean(dim=(2, 3)).numpy() for m in maps],
+                "per position": [m.flatten(1).numpy() for m in maps]}
     print(f"linear probes fitted on {len(training)} training pairs: correlation with the truth, the network / the "
-          f"head's input averaged / per position")
+          f"head's input averaged / per position (the ridge weights chosen)")
     for i, name in enumerate(("rx", "ry", "rz", "tx", "ty", "tz")):
-        probes = [np.corrcoef(fitted_ridge(X_train, train_truth[:, i])(X), truth[:, i])[0, 1]
-                  for X_train, X in fitted.values()]
-        print(f"  {name}: {np.corrcoef(predicted[:, i], truth[:, i])[0, 1]:+.2f} / {probes[0]:+.2f} / "
-              f"{probes[1]:+.2f}")
+        probes = [fitted_ridge(fitted_on, train_truth[:, i]) for fitted_on, _ in matrices.values()]
+        scores = [np.corrcoef(predict(scored), truth[:, i])[0, 1]
+                  for (predict, _), (_, scored) in zip(probes, matrices.values())]
+        print(f"  {name}: {np.corrcoef(predicted[:, i], truth[:, i])[0, 1]:+.2f} / {scores[0]:+.2f} / "
+              f"{scores[1]:+.2f} ({probes[0][1]:g}, {probes[1][1]:g})")
 
 
-def pair_tensors(samples: list[dict]) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
-    """``cur``, ``next`` ``[B, 3, H, W]`` in [0, 1] and the true forward motion ``[B, 6]`` of ``samples``."""
+def pair_tensors(samples: list[dict]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``cur``, ``next`` ``[B, 3, H, W]`` in [0, 1] and the forward motion the network predicts, ``T_next_cur
+    [B, 4, 4]``, of ``samples``."""
     cur = torch.stack([s["cur"] for s in samples]).float()
     nxt = torch.stack([s["next"] for s in samples]).float()
     if cur.max() > 1:
         cur, nxt = cur / 255, nxt / 255
     world = {name: torch.tensor(np.stack([s["meta"]["T_world_cam"][name] for s in samples]), dtype=torch.float32)
              for name in ("cur", "next")}
-    return cur, nxt, matrix_to_pose_vec((invert_pose(world["next"]) @ world["cur"]).double()).numpy()
+    return cur, nxt, invert_pose(world["next"]) @ world["cur"]
 
 
 def main() -> None:
@@ -170,15 +182,9 @@ def main() -> None:
     model, record = load_trained_model(args.model, torch.device("cpu"))
     model.eval()
     samples = pairs(args.shards, args.split, args.samples)
-    cur = torch.stack([s["cur"] for s in samples]).float()
-    nxt = torch.stack([s["next"] for s in samples]).float()
-    if cur.max() > 1:
-        cur, nxt = cur / 255, nxt / 255
+    cur, nxt, T_next_cur = pair_tensors(samples)
     K = torch.stack([torch.as_tensor(s["meta"]["K"], dtype=torch.float32) for s in samples])
     gt_depth = torch.stack([s["depth"] for s in samples]).float()
-    world = {name: torch.tensor(np.stack([s["meta"]["T_world_cam"][name] for s in samples]), dtype=torch.float32)
-             for name in ("cur", "next")}
-    T_next_cur = invert_pose(world["next"]) @ world["cur"]  # the forward motion the network predicts
     truth = matrix_to_pose_vec(T_next_cur.double()).numpy()
     with torch.no_grad():
         _, mean, logvar = model.forward_motion(cur, nxt, sample=False)

@@ -131,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--adapt", type=int, default=0, metavar="STEPS",
                      help="first fit the model to the input with `endoflow adapt` for this many steps (0: not); "
                           "where the fit explains its held-out frames better, the fitted model reconstructs and is "
-                          "written into --out as model_adapted.pt (logged with --mlflow)")
+                          "written into --out as model_adapted.pt (with --mlflow the fit is logged, kept or not)")
 
     fit = commands.add_parser("adapt", help="fit a trained model to one video (self-supervised fine-tuning), "
                                             "measured on held-out frames")
@@ -341,7 +341,7 @@ def _reconstruct_one(args: argparse.Namespace, options: ReconstructOptions) -> i
     from endoflow.devices import use_cpu_threads
     from endoflow.models.model_file import load_model_file
     from endoflow.reconstruction.frames import intrinsics_for, open_frames
-    from endoflow.reconstruction.reconstruct import ADAPTED_MODEL, Adaptation, kept, log_reconstruction, reconstruct
+    from endoflow.reconstruction.reconstruct import ADAPTED_MODEL, Adaptation, log_reconstruction, reconstruct
     from endoflow.training.adapt import AdaptOptions, fits_better
 
     with _model_file(args.model, args.params) as model_path, tempfile.TemporaryDirectory() as scratch:
@@ -355,8 +355,7 @@ def _reconstruct_one(args: argparse.Namespace, options: ReconstructOptions) -> i
             fit = _run_adaptation(args, model_path, adapted, AdaptOptions(
                 steps=args.adapt, start=args.start, stop=args.stop, stride=args.stride, device=args.device))
             adaptation = Adaptation.of(adapted, fit, fits_better(fit))
-        used = adaptation.model if kept(adaptation) else model_path
-        summary = reconstruct(frames, K, used, args.out, options, adaptation=adaptation)
+        summary = reconstruct(frames, K, model_path, args.out, options, adaptation=adaptation)
     if args.mlflow:
         run = log_reconstruction(_params_if_present(args.params), Path(".").resolve(), record.mlflow_run_id,
                                  args.out.name, args.out)

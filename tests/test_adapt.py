@@ -112,6 +112,25 @@ def test_reconstruct_keeps_the_model_as_trained_where_the_fit_explains_the_held_
     assert not (tmp_path / "recon" / "model_adapted.pt").exists()
 
 
+def test_a_kept_fit_never_replaces_the_folder_that_holds_the_model_it_started_from(
+        clip: Path, model_file: Path, tmp_path: Path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert cli(["reconstruct", str(clip), "--model", str(model_file), "--out", "recon", "--no-fusion",
+                "--stop", "8"]) == 0
+    mine = tmp_path / "recon" / "mine.pt"  # a model kept in an earlier reconstruction's folder
+    mine.write_bytes(model_file.read_bytes())
+
+    def kept_fit(args, model_path: Path, out: Path, options) -> dict:
+        out.write_bytes(Path(model_path).read_bytes())
+        return {"steps": 2, "held_out_photometric_before": 0.06, "held_out_photometric_after": 0.05}
+
+    monkeypatch.setattr("endoflow.cli._run_adaptation", kept_fit)
+    assert cli(["reconstruct", str(clip), "--model", str(mine), "--out", "recon", "--adapt", "2", "--force",
+                "--no-fusion", "--stop", "8"]) != 0
+    assert "which this run reads" in capsys.readouterr().err
+    assert mine.read_bytes() == model_file.read_bytes()
+
+
 @pytest.mark.parametrize("before, after, better", [(0.06, 0.05, True), (0.05, 0.05, False), (0.05, float("nan"), False),
                                                    (float("nan"), 0.05, False)])
 def test_a_fit_is_better_only_where_its_held_out_error_is_lower(before: float, after: float, better: bool):

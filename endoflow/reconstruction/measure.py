@@ -51,7 +51,7 @@ from endoflow.models.model_file import TrainingBaselines, load_model_file
 from endoflow.reconstruction.alignment import Alignment, align_trajectory, trajectories
 from endoflow.reconstruction.frames import DatasetFrames, FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import TSDFVolume, read_ply_vertices
-from endoflow.reconstruction.reconstruct import (NETWORK_PATH_FILE, Adaptation, ReconstructOptions, kept,
+from endoflow.reconstruction.reconstruct import (NETWORK_PATH_FILE, Adaptation, ReconstructOptions,
                                                  log_reconstruction, reconstruct)
 
 SURFACE_ROWS = ("ground_truth", "model", "model_depth_gt_path", "constant_depth", "constant_velocity", "trivial")
@@ -265,8 +265,7 @@ def run_reconstruction(params: Params, name: str, model_path: Path, project_root
     item = cfg.sequences[name]
     root = Path(project_root).resolve()
     use_cpu_threads(params.threads)
-    model_path = adaptation.model if kept(adaptation) else model_path
-    record = load_model_file(model_path)
+    record = load_model_file(model_path)  # its baselines and run: a fitted model keeps both
     source = DatasetFrames(root / getattr(params.data, item.dataset).root, item.sequence, params)
     out_dir = root / cfg.out / name
     options = ReconstructOptions(FrameRange(item.start, item.stop, item.stride), cfg.size, 1.0, cfg.voxel_cm,

@@ -121,9 +121,13 @@ class Adaptation:
                    summary["held_out_photometric_after"], kept)
 
     def record(self) -> dict:
-        """What ``reconstruction.json`` says of it."""
-        return {"steps": self.steps, "held_out_photometric_before": self.held_out_before,
-                "held_out_photometric_after": self.held_out_after, "kept": self.kept}
+        """What ``reconstruction.json`` says of it (an error that is not a finite number as null: JSON has none)."""
+        return {"steps": self.steps, "held_out_photometric_before": finite_or_none(self.held_out_before),
+                "held_out_photometric_after": finite_or_none(self.held_out_after), "kept": self.kept}
+
+
+def finite_or_none(value: float) -> Optional[float]:
+    return value if math.isfinite(value) else None
 
 
 def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path: Path, out_dir: Path,
@@ -132,11 +136,13 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
     """Run the model over ``source`` and write the outputs listed in the module docstring; returns the summary
     written to ``reconstruction.json``. ``K_native`` None: the intrinsics are unknown (:func:`input_intrinsics`).
     ``resume_key``, where given, is recorded in the summary: what a run over many videos keeps a folder by
-    (:mod:`endoflow.reconstruction.many`). ``adaptation``, a fit made first, is recorded in the summary; where it
-    was kept, ``model_path`` is its model, which is written into the output as :data:`ADAPTED_MODEL`."""
+    (:mod:`endoflow.reconstruction.many`). ``model_path`` is the model as trained; ``adaptation``, a fit of it made
+    first, is recorded in the summary, and where it was kept its model reconstructs and is written into the output
+    as :data:`ADAPTED_MODEL` (the model as trained stays one of the inputs the output may not replace)."""
     check_frame_range(source, options.frames)
     device = resolve_device(options.device, "--device")
-    model, record = load_trained_model(model_path, device)
+    used = adaptation.model if uses_fitted_model(adaptation) else model_path
+    model, record = load_trained_model(used, device)
     size = options.size or record.params.data.size
     model = to_compute_layout(model, device, options.precision, size)
     region = frame_region(source.native_size, options.crop, source.description)
@@ -169,7 +175,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                 images = images_to_device(torch.from_numpy(np.stack([rgb for _, rgb in batch])).permute(0, 3, 1, 2)
                                           .contiguous(), device, options.precision)
                 with autocast(device, options.precision):
-                    predicted = predict_frames(model, images, previous, options.scale, model_path,
+                    predicted = predict_frames(model, images, previous, options.scale, used,
                                                [frame.index for frame, _ in batch])
                 for (frame, rgb), (depth, T_cur_prev) in zip(batch, predicted):
                     depth = np.where(valid, depth, np.float32(0))  # outside the field of view: unknown
@@ -200,7 +206,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
         seconds = progress.elapsed()
         summary = {
             "format": RECONSTRUCTION_FORMAT, "input": source.description,
-            "model": ADAPTED_MODEL if kept(adaptation) else str(model_path),
+            "model": ADAPTED_MODEL if uses_fitted_model(adaptation) else str(model_path),
             **({"adaptation": adaptation.record()} if adaptation is not None else {}),
             **({"adapted_from": record.adapted_from} if record.adapted_from is not None else {}),
             "frames": path.count, "frame_range": asdict(options.frames), "native_size": list(source.native_size),
@@ -220,8 +226,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             **path.ground_truth_scale(),
             **({"resume_key": resume_key} if resume_key is not None else {}),
         }
-        if kept(adaptation):
-            shutil.copyfile(model_path, stage / ADAPTED_MODEL)
+        if uses_fitted_model(adaptation):
+            shutil.copyfile(used, stage / ADAPTED_MODEL)
         write_json(stage / "reconstruction.json", summary)
         write_contact_sheet(stage / "sheet.png", sampler.samples, shown, np.stack(path.poses),
                             mesh.vertices if mesh is not None else np.zeros((0, 3)),
@@ -318,7 +324,7 @@ def check_frame_range(source: FrameSource, frames: FrameRange) -> None:
                                                   f"(positions 0 to {source.length - 1})")
 
 
-def kept(adaptation: Optional[Adaptation]) -> bool:
+def uses_fitted_model(adaptation: Optional[Adaptation]) -> bool:
     """Whether a fit was made first and its model reconstructs."""
     return adaptation is not None and adaptation.kept
 
