@@ -15,6 +15,7 @@ from endoflow.config import DATASETS
 from endoflow.io import file_sha256
 from endoflow.models.endoflow_model import build_model, load_trained_model
 from endoflow.models.model_file import ModelRecord, load_model_file, save_model_file
+from endoflow.reconstruction.reconstruct import Adaptation
 from endoflow.synth.writers import synthesize_layout
 from endoflow.training.adapt import AdaptOptions, adapt, fits_better, input_sequence
 from tests.small_model import small_model_params
@@ -134,7 +135,12 @@ def test_a_kept_fit_never_replaces_the_folder_that_holds_the_model_it_started_fr
 @pytest.mark.parametrize("before, after, better", [(0.06, 0.05, True), (0.05, 0.05, False), (0.05, float("nan"), False),
                                                    (float("nan"), 0.05, False)])
 def test_a_fit_is_better_only_where_its_held_out_error_is_lower(before: float, after: float, better: bool):
-    assert fits_better({"held_out_photometric_before": before, "held_out_photometric_after": after}) is better
+    fit = {"steps": 2, "held_out_photometric_before": before, "held_out_photometric_after": after}
+    assert fits_better(fit) is better
+    # what reconstruction.json records: JSON has no NaN, so an error that is not a number is null
+    record = Adaptation.of(Path("fit.pt"), fit, better).record()
+    assert json.loads(json.dumps(record, allow_nan=False))["kept"] is better
+    assert record["held_out_photometric_after"] == (None if np.isnan(after) else after)
 
 
 def test_too_few_frames_or_the_model_itself_as_output_are_refused(clip: Path, model_file: Path, tmp_path: Path):
