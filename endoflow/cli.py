@@ -341,7 +341,8 @@ def _reconstruct_one(args: argparse.Namespace, options: ReconstructOptions) -> i
     from endoflow.devices import use_cpu_threads
     from endoflow.models.model_file import load_model_file
     from endoflow.reconstruction.frames import intrinsics_for, open_frames
-    from endoflow.reconstruction.reconstruct import ADAPTED_MODEL, Adaptation, log_reconstruction, reconstruct
+    from endoflow.reconstruction.reconstruct import (ADAPTED_MODEL, Adaptation, check_output_folder,
+                                                     log_reconstruction, reconstruct)
     from endoflow.training.adapt import AdaptOptions, fits_better
 
     with _model_file(args.model, args.params) as model_path, tempfile.TemporaryDirectory() as scratch:
@@ -351,6 +352,7 @@ def _reconstruct_one(args: argparse.Namespace, options: ReconstructOptions) -> i
         K = intrinsics_for(args.intrinsics, frames, options.crop)
         adaptation = None
         if args.adapt:
+            check_output_folder(args.out, frames, model_path, options.force)  # before the fit's minutes
             adapted = Path(scratch) / ADAPTED_MODEL
             fit = _run_adaptation(args, model_path, adapted, AdaptOptions(
                 steps=args.adapt, start=args.start, stop=args.stop, stride=args.stride, device=args.device))

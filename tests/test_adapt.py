@@ -15,7 +15,9 @@ from endoflow.config import DATASETS
 from endoflow.io import file_sha256
 from endoflow.models.endoflow_model import build_model, load_trained_model
 from endoflow.models.model_file import ModelRecord, load_model_file, save_model_file
-from endoflow.reconstruction.reconstruct import Adaptation
+from endoflow.io import OutputFolderError
+from endoflow.reconstruction.frames import FrameRange, open_frames
+from endoflow.reconstruction.reconstruct import Adaptation, ReconstructOptions, reconstruct
 from endoflow.synth.writers import synthesize_layout
 from endoflow.training.adapt import AdaptOptions, adapt, fits_better, input_sequence
 from tests.small_model import small_model_params
@@ -121,7 +123,10 @@ def test_a_kept_fit_never_replaces_the_folder_that_holds_the_model_it_started_fr
     mine = tmp_path / "recon" / "mine.pt"  # a model kept in an earlier reconstruction's folder
     mine.write_bytes(model_file.read_bytes())
 
+    fits: list[Path] = []
+
     def kept_fit(args, model_path: Path, out: Path, options) -> dict:
+        fits.append(out)
         out.write_bytes(Path(model_path).read_bytes())
         return {"steps": 2, "held_out_photometric_before": 0.06, "held_out_photometric_after": 0.05}
 
@@ -129,6 +134,16 @@ def test_a_kept_fit_never_replaces_the_folder_that_holds_the_model_it_started_fr
     assert cli(["reconstruct", str(clip), "--model", str(mine), "--out", "recon", "--adapt", "2", "--force",
                 "--no-fusion", "--stop", "8"]) != 0
     assert "which this run reads" in capsys.readouterr().err
+    assert mine.read_bytes() == model_file.read_bytes()
+    assert not fits  # refused before the fit, which takes minutes
+
+    # and were the folder checked only before the fit, reconstruct's own check still refuses it
+    fitted = tmp_path / "fit.pt"
+    fit = kept_fit(None, mine, fitted, None)
+    with pytest.raises(OutputFolderError, match="which this run reads"):
+        reconstruct(open_frames(clip, None, load_model_file(mine).params), None, mine, tmp_path / "recon",
+                    ReconstructOptions(fuse=False, force=True, frames=FrameRange(stop=8)),
+                    adaptation=Adaptation.of(fitted, fit, kept=True))
     assert mine.read_bytes() == model_file.read_bytes()
 
 

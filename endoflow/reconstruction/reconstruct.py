@@ -32,7 +32,7 @@ from endoflow.devices import (autocast, compute_dtype, images_to_device, resolve
 from endoflow.errors import DataFormatError
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings
 from endoflow.geometry.pose import chain_step, invert_pose, relative_pose
-from endoflow.io import marked_output, staged_directory, write_bytes, write_json
+from endoflow.io import check_replaceable, marked_output, staged_directory, write_bytes, write_json
 from endoflow.losses.photometric import view_synthesis_error
 from endoflow.models.endoflow_model import EndoflowModel, load_trained_model
 from endoflow.progress import Progress, format_duration
@@ -64,6 +64,7 @@ Item = TypeVar("Item")
 # reconstruction.json's "format": what tells an earlier reconstruction, which a run may replace, from any other
 # folder, which it refuses to empty
 RECONSTRUCTION_FORMAT = "endoflow reconstruction 1"
+FORCE_OPTION = "--force"  # how a user replaces a folder that is not an earlier reconstruction
 EARLIER_RECONSTRUCTION = marked_output(f"an earlier endoflow reconstruction (its reconstruction.json's format "
                                        f"{RECONSTRUCTION_FORMAT!r})", "reconstruction.json",
                                        format=RECONSTRUCTION_FORMAT)
@@ -161,8 +162,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
     explained = PathPhotometry(K, record.baselines.mean_relative_pose, options.frames.stride, options.scale)
     progress = Progress(source_frame_count(source, options.frames), "frames")
     sampler = FrameSampler()
-    with staged_directory(out_dir, EARLIER_RECONSTRUCTION, options.force, (source.location, model_path),
-                          "--force") as stage, torch.no_grad():
+    with staged_directory(out_dir, EARLIER_RECONSTRUCTION, options.force, read_inputs(source, model_path),
+                          FORCE_OPTION) as stage, torch.no_grad():
         recording = Recording(stage / RECORDING_FILE, source.description)
         with SideBySideVideo(stage / "video.mp4", source.fps / options.frames.stride, size, size) as video, \
                 WriteBehind() as writes, contextlib.ExitStack() as stack:
@@ -322,6 +323,18 @@ def check_frame_range(source: FrameSource, frames: FrameRange) -> None:
     if source.length is not None and frames.start >= source.length:
         raise DataFormatError(source.description, f"--start {frames.start} is beyond its {source.length} frames "
                                                   f"(positions 0 to {source.length - 1})")
+
+
+def check_output_folder(out_dir: Path, source: FrameSource, model_path: Path, force: bool) -> None:
+    """The check :func:`reconstruct` makes of ``out_dir`` before it writes (never a folder holding the input or the
+    model), for a caller with minutes of work to do before it (a fit)."""
+    check_replaceable(out_dir, EARLIER_RECONSTRUCTION, force, read_inputs(source, model_path), FORCE_OPTION)
+
+
+def read_inputs(source: FrameSource, model_path: Path) -> tuple[str | Path, Path]:
+    """What a reconstruction reads, which its output folder may never be or hold: the frames and the model as
+    trained (a fit of it reconstructs from a scratch folder)."""
+    return source.location, model_path
 
 
 def uses_fitted_model(adaptation: Optional[Adaptation]) -> bool:
