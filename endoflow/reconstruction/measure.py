@@ -254,9 +254,9 @@ def run_reconstruction(params: Params, name: str, model_path: Path, project_root
                        adaptation: Optional[Adaptation] = None) -> dict:
     """The ``reconstruct`` stage for ``reconstruct.sequences.<name>``: reconstruct the sequence with the trained
     model at ``model_path`` (:func:`stage_model_file`; or, where ``adaptation`` was kept, the model fitted to the
-    sequence first) into
-    ``<reconstruct.out>/<name>/``, measure it (:func:`measure_reconstruction`) and log the figures and pictures
-    into the model's MLflow run (:func:`log_measurement`). Every figure goes beside the reconstruction
+    sequence first) into ``<reconstruct.out>/<name>/``, measure it (:func:`measure_reconstruction`) and log the
+    figures and pictures into the model's MLflow run (:func:`log_measurement`). Every figure goes beside the
+    reconstruction
     (:data:`MEASUREMENT_FILE`, and per-frame path errors in :data:`PATH_ERRORS_FILE`);
     ``<reconstruct.metrics>/<name>.json``, the file DVC reads, holds the headline (:func:`dvc_metrics`, shown by
     ``dvc exp show`` as ``reconstruct_simcol_S5.ate_cm``); ``<reconstruct.plots>/<name>/sheet.png`` is the picture
