@@ -243,6 +243,12 @@ class SynthConfig(Section):
     look: Literal["built-in", "second"] = setting(
         "built-in", "second: the same scenes in a look the default model never trains on: paler, yellower mucosa, "
                     "darker corners, strong highlights, a circular field of view, a shorter focal length")
+    # The default training sequences mostly advance (a 60-frame sequence is one phase two times in three), so the
+    # data asks a pose network for one step; shorter phases make each training sequence cross phases.
+    phase_frames: Optional[list[Count]] = setting(
+        None, "how many frames one phase of a training sequence's camera lasts (advancing, withdrawing, pausing; "
+              "drawn per phase between the two); null: each scene's own (30 to 120); test sequences keep their "
+              "script", unit="frames", min_length=2, max_length=2)
     simcol: SynthTubeLayoutConfig = setting(
         default_factory=lambda: SynthTubeLayoutConfig(sequences=15, frames=60, test_frames=120))
     # at most one sequence per UnityCam organ: the writers check that; with data.endoslam.split test, every one
@@ -251,6 +257,12 @@ class SynthConfig(Section):
     scenenet: SynthLayoutConfig = setting(default_factory=lambda: SynthLayoutConfig(sequences=60, frames=20))
     # unlabelled: video files and frame folders seen through an endoscope's circle, for data.video
     video: SynthLayoutConfig = setting(default_factory=lambda: SynthLayoutConfig(sequences=2, frames=90))
+
+    @model_validator(mode="after")
+    def _phase_range(self) -> "SynthConfig":
+        if self.phase_frames is not None and self.phase_frames[0] > self.phase_frames[1]:
+            raise _field_error("phase_frames", "[shortest, longest] with shortest <= longest", self.phase_frames)
+        return self
 
 
 # ------------------------------------------------------------------------------------------ preprocess

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from endoflow.config import Params
+from endoflow.config import ConfigError, Params
 from endoflow.data.check import check_dataset
 from endoflow.data.endoslam import EndoSLAMReader
 from endoflow.data.scenenet import SceneNetReader, scenenet_intrinsics
@@ -360,6 +360,44 @@ def test_test_sequences_follow_the_script_and_others_their_random_phases():
         assert (job.scripted, job.frames) == ((True, 120) if test else (False, 60))
     endoslam = plan_jobs("endoslam", Path("unused"), 2, 40, 48, 0, "cpu", params, test_frames=90)
     assert all(job.scripted and job.frames == 90 for job in endoslam)  # data.endoslam.split is test
+
+
+def _forward_steps(poses: np.ndarray) -> np.ndarray:
+    """Each frame's motion along its own optical axis, cm (positive: advancing)."""
+    return np.array([relative_pose(a, b)[2, 3] for a, b in zip(poses[:-1], poses[1:])])
+
+
+def test_shorter_phases_make_training_sequences_cross_phases_and_leave_test_sequences_as_they_were():
+    """synth.phase_frames: the default training sequences mostly advance (the data asks for one step); shorter
+    phases make each one pause or withdraw as well. The scripted test sequences, and every sequence under the
+    default, keep their paths to the bit."""
+    default, short = Params(), Params().replace(synth=Params().synth.replace(phase_frames=[10, 20]))
+    jobs = {params.synth.phase_frames is None: plan_jobs("simcol", Path("unused"), 2, 60, 16, 0, "cpu", params,
+                                                         test_frames=120)
+            for params in (default, short)}
+    assert all(job.phase_frames is None for job in jobs[True])
+    assert all(job.phase_frames == (10, 20) for job in jobs[False])
+    held_back = []
+    for before, after in zip(jobs[True], jobs[False]):
+        steps = {name: _forward_steps(tube_sequence(job).poses) for name, job in (("default", before),
+                                                                                  ("short", after))}
+        if before.scripted:
+            np.testing.assert_array_equal(tube_sequence(before).poses, tube_sequence(after).poses)
+            continue
+        held_back.append({name: np.mean(step < 0.5 * STYLES[before.group].motion.speed[0])
+                          for name, step in steps.items()})
+    assert len(held_back) == 4  # S1, S2, B1, B2; O1 and O2 are test sequences
+    assert np.mean([share["short"] for share in held_back]) > 0.2
+    assert np.mean([share["short"] for share in held_back]) > 2 * np.mean([share["default"] for share in held_back])
+
+
+def test_a_phase_range_longest_first_is_refused_naming_the_key():
+    with pytest.raises(ConfigError, match=r"synth.phase_frames must be \[shortest, longest\]"):
+        Params().synth.replace(phase_frames=[30, 10])
+    with pytest.raises(ConfigError, match="synth.phase_frames"):
+        Params().synth.replace(phase_frames=[0, 10])
+    with pytest.raises(ConfigError, match="synth.phase_frames"):
+        Params().synth.replace(phase_frames=[10])
 
 
 def test_a_scripted_camera_crosses_every_change_of_motion():

@@ -12,7 +12,7 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator, Optional
 
@@ -77,6 +77,7 @@ class Job:
     endoslam_translation_to_cm: float
     endoslam_fps: float
     look: str = "built-in"  # synth.look
+    phase_frames: Optional[tuple[int, int]] = None  # synth.phase_frames: overrides the style's for unscripted paths
 
 
 def synthesize_layout(
@@ -160,6 +161,7 @@ def plan_jobs(layout: str, out: Path, sequences: int, frames: int, size: int, se
         endoslam_translation_to_cm=params.data.endoslam.unitycam_translation_to_cm,
         endoslam_fps=params.data.endoslam.fps,
         look=params.synth.look,
+        phase_frames=None if params.synth.phase_frames is None else tuple(params.synth.phase_frames),
     )
     layout_id = SYNTH_LAYOUTS.index(layout)
     jobs = []
@@ -224,6 +226,8 @@ def job_rng(job: Job) -> np.random.Generator:
 def tube_sequence(job: Job) -> TubeSequence:
     """The scene and camera poses of a SimCol or EndoSLAM job (what its files are rendered from), in its look."""
     style = STYLES[job.group] if job.look == "built-in" else second_look(STYLES[job.group])
+    if job.phase_frames is not None:
+        style = replace(style, motion=replace(style.motion, phase_frames=job.phase_frames))
     return make_tube_sequence(style, job.frames, job_rng(job), torch.device(job.device), job.scripted)
 
 
