@@ -140,6 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--out", type=Path, required=True, help="the adapted model file to write")
     fit.add_argument("--steps", type=_positive_int, default=None, help="optimiser steps (default: 300)")
     fit.add_argument("--sequence", default=None, help="a sequence of the dataset at INPUT (its ground truth unused)")
+    fit.add_argument("--pattern", default=None, metavar="GLOB", help="as reconstruct's: the frames of a folder INPUT")
     fit.add_argument("--intrinsics", default=None,
                      help="as reconstruct's; without: learned on the video, from the model's video camera or the "
                           "assumed pinhole")
@@ -266,7 +267,7 @@ def _run_adaptation(args: argparse.Namespace, model_path: Path, out: Path, optio
 
     record = load_model_file(model_path)
     crop = Crop.parse(args.crop) if args.crop else None
-    sequence = input_sequence(args.input, args.sequence, record.params, crop, args.intrinsics)
+    sequence = input_sequence(args.input, args.sequence, record.params, crop, args.intrinsics, args.pattern)
     if not args.mlflow:
         return adapt(sequence, model_path, out, options)
     from endoflow import tracking

@@ -14,7 +14,9 @@ import torch
 
 from endoflow.cli import main as cli
 from endoflow.errors import DataFormatError
+from endoflow.models.model_file import load_model_file
 from endoflow.reconstruction.frames import FrameRange, open_frames
+from endoflow.training.adapt import input_sequence
 from tests.samples import C3VD_SAMPLE
 from tests.test_reconstruct import model_file, params  # noqa: F401 (fixtures)
 
@@ -61,6 +63,27 @@ def test_the_real_c3vd_layout_is_refused_without_a_pattern_and_read_with_one(par
     frames = open_frames(folder, None, params, "*_color.png")
     assert frames.length == 10 and frames.native_size == (1080, 1350)
     assert frames.files[1].name == "30_color.png"  # natural order: 30 before 120
+
+
+def test_the_fit_reads_the_frames_the_pattern_picks_as_reconstruct_does(params, model_file: Path,
+                                                                         tmp_path: Path) -> None:
+    """`adapt --pattern` and `reconstruct --adapt --pattern`: the fit trains on the colour frames alone (before, it
+    read the whole folder: refused, or the wrong images where they were of one kind)."""
+    folder = c3vd_like(tmp_path / "seq", count=6)
+    sequence = input_sequence(folder, None, params, pattern="*_color.png")
+    assert [Path(files[0]).name for files in sequence.source_files] == [f"{n}_color.png" for n in range(0, 180, 30)]
+    assert sequence.load_rgb(0).shape == (48, 64, 3)
+    with pytest.raises(DataFormatError, match="holds images of different kinds"):
+        input_sequence(folder, None, params)
+    with pytest.raises(DataFormatError, match=r"--pattern '\*_color\.png' picks images of a folder, not a dataset"):
+        input_sequence(folder, "S1", params, pattern="*_color.png")
+    (tmp_path / "clip.mp4").write_bytes(b"")
+    with pytest.raises(DataFormatError, match=r"clip\.mp4: --pattern '\*\.png' picks images of a folder; this input"):
+        input_sequence(tmp_path / "clip.mp4", None, params, pattern="*.png")
+    assert cli(["adapt", str(folder), "--pattern", "*_color.png", "--model", str(model_file), "--out",
+                str(tmp_path / "adapted.pt"), "--steps", "1", "--held-out", "0.34", "--intrinsics", "40,40,32,24",
+                "--no-mlflow", "--threads", "1"]) == 0
+    assert load_model_file(tmp_path / "adapted.pt").adapted_from["frames"] == 6
 
 
 def test_threads_sets_torchs_thread_count_and_the_summary_records_it(model_file: Path, tmp_path: Path) -> None:

@@ -316,23 +316,26 @@ class VideoReader(DatasetReader):
         return crop_intrinsics(K, region), True
 
 
-def read_recording(path: Path, folder_fps: float) -> Optional[Recording]:
-    """``path`` as a recording: a video file, or a folder of images (one every ``1 / folder_fps`` s); None for
-    anything else."""
+def read_recording(path: Path, folder_fps: float, pattern: Optional[str] = None) -> Optional[Recording]:
+    """``path`` as a recording: a video file, or a folder of images (those matching the glob ``pattern``, see
+    :func:`image_files`; one every ``1 / folder_fps`` s); None for anything else."""
     if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
         video = VideoFile(path)
         return Recording(path.stem, path, video, video.fps, video.size)
     if path.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in path.iterdir()):
-        files = image_files(path)
+        files = image_files(path, pattern)
         return Recording(path.name, path, files, folder_fps, read_rgb(files[0]).shape[:2])
     return None
 
 
-def video_sequence(path: Path, cfg: VideoConfig, assumed_fov_deg: float, intrinsics: Optional[str] = None
-                   ) -> Sequence:
+def video_sequence(path: Path, cfg: VideoConfig, assumed_fov_deg: float, intrinsics: Optional[str] = None,
+                   pattern: Optional[str] = None) -> Sequence:
     """One video file or folder of frames as one whole sequence (split ``train``), read as the video dataset reads
-    its sequences (``data.video``'s crop, frame rate and intrinsics, the sidecar beside it; ``intrinsics`` first)."""
-    recording = read_recording(Path(path), cfg.folder_fps)
+    its sequences (``data.video``'s crop, frame rate and intrinsics, the sidecar beside it; ``intrinsics`` first);
+    ``pattern`` picks a folder's frames (:func:`image_files`)."""
+    if pattern is not None and not Path(path).is_dir():
+        raise DataFormatError(path, f"--pattern {pattern!r} picks images of a folder; this input is not one")
+    recording = read_recording(Path(path), cfg.folder_fps, pattern)
     if recording is None:
         raise DataFormatError(path, f"is neither a video ({', '.join(VIDEO_SUFFIXES)}) nor a folder of images")
     reader = VideoReader(Path(path).parent, cfg, assumed_fov_deg, intrinsics)

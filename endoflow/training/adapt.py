@@ -80,16 +80,19 @@ class AdaptOptions:
 
 # ------------------------------------------------------------------------------------------------ input
 def input_sequence(source: Path, sequence: Optional[str], params: Params, crop: Optional[Crop] = None,
-                   intrinsics: Optional[str] = None) -> Sequence:
+                   intrinsics: Optional[str] = None, pattern: Optional[str] = None) -> Sequence:
     """What to adapt to: a video file or a folder of frames (read as the video dataset reads them, cut to ``crop``),
     or the sequence ``sequence`` of a dataset root (its ground truth unused). ``intrinsics`` (a file or
     ``fx,fy,cx,cy`` in pixels of the native frames, :mod:`endoflow.data.intrinsics`) replaces the input's own, a
-    sidecar's or the assumed K."""
+    sidecar's or the assumed K. ``pattern`` (a glob such as ``*_color.png``) picks a folder's frames, as
+    ``reconstruct --pattern`` does."""
     if not source.exists():
         raise FileNotFoundError(f"{source}: no such video, image folder or dataset root")
+    if pattern is not None and sequence is not None:
+        raise DataFormatError(source, f"--pattern {pattern!r} picks images of a folder, not a dataset sequence")
     if sequence is None:
         video = params.data.video.replace(crop=[crop.x, crop.y, crop.width, crop.height] if crop else None, fps=None)
-        return video_sequence(source, video, params.data.assumed_fov_deg, intrinsics)
+        return video_sequence(source, video, params.data.assumed_fov_deg, intrinsics, pattern)
     if crop is not None:
         raise DataFormatError(source, "--crop cuts a video or a folder of frames, not a dataset sequence")
     found = [s for s in open_reader(source, None, params).sequences() if s.name == sequence]
