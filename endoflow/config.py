@@ -246,9 +246,9 @@ class SynthConfig(Section):
     # The default training sequences mostly advance (a 60-frame sequence is one phase two times in three), so the
     # data asks a pose network for one step; shorter phases make each training sequence cross phases.
     phase_frames: Optional[list[Count]] = setting(
-        None, "how many frames one phase of the camera lasts in every sequence but the scripted test ones "
-              "(advancing, withdrawing, pausing; drawn per phase between the two); null: each scene's own (30 to "
-              "120)", unit="frames", min_length=2, max_length=2)
+        None, "how many frames one phase of the camera (advancing, withdrawing, pausing) lasts in every tube "
+              "sequence but the scripted test ones, drawn per phase between the two; their scenes are drawn anew "
+              "too; null: each scene's own (30 to 120)", unit="frames", min_length=2, max_length=2)
     simcol: SynthTubeLayoutConfig = setting(
         default_factory=lambda: SynthTubeLayoutConfig(sequences=15, frames=60, test_frames=120))
     # at most one sequence per UnityCam organ: the writers check that; with data.endoslam.split test, every one

@@ -84,6 +84,10 @@ def test_the_fit_reads_the_frames_the_pattern_picks_as_reconstruct_does(params, 
                 str(tmp_path / "adapted.pt"), "--steps", "1", "--held-out", "0.34", "--intrinsics", "40,40,32,24",
                 "--no-mlflow", "--threads", "1"]) == 0
     assert load_model_file(tmp_path / "adapted.pt").adapted_from["frames"] == 6
+    assert cli(["reconstruct", str(folder), "--pattern", "*_color.png", "--adapt", "1", "--model", str(model_file),
+                "--out", str(tmp_path / "out"), "--intrinsics", "40,40,32,24", "--no-fusion", "--threads", "1"]) == 0
+    summary = json.loads((tmp_path / "out" / "reconstruction.json").read_text())
+    assert summary["frames"] == 6 and summary["adaptation"]["steps"] == 1
 
 
 def test_threads_sets_torchs_thread_count_and_the_summary_records_it(model_file: Path, tmp_path: Path) -> None:

@@ -367,28 +367,44 @@ def _forward_steps(poses: np.ndarray) -> np.ndarray:
     return np.array([relative_pose(a, b)[2, 3] for a, b in zip(poses[:-1], poses[1:])])
 
 
+# The last pose of the first unscripted SimCol3D and video sequence (seed 0, 60 frames), recorded at commit c3ada67,
+# before synth.phase_frames existed: camera position (cm) and viewing direction in the world frame.
+DEFAULT_LAST_POSES = {"simcol": ([-32.7580415782, -26.5803382864, -27.7904777928], [0.5417867432, 0.7657569902,
+                                                                                      0.3465304559]),
+                      "video": ([35.6824815953, -32.1861475737, -21.8417164888], [0.0029813349, 0.3585230522,
+                                                                                  0.9335161127])}
+
+
+def test_the_default_phases_draw_the_paths_they_drew_before_the_key_existed():
+    for layout, (position, direction) in DEFAULT_LAST_POSES.items():
+        job = next(job for job in plan_jobs(layout, Path("unused"), 2, 60, 16, 0, "cpu", Params(), test_frames=120)
+                   if not job.scripted)
+        last = tube_sequence(job).poses[-1]
+        np.testing.assert_allclose(last[:3, 3], position, atol=1e-6)
+        np.testing.assert_allclose(last[:3, 2], direction, atol=1e-8)
+
+
 def test_shorter_phases_make_training_sequences_cross_phases_and_leave_test_sequences_as_they_were():
     """synth.phase_frames: the default training sequences mostly advance (the data asks for one step); shorter
-    phases make each one pause or withdraw as well. The scripted test sequences, and every sequence under the
-    default, keep their paths to the bit."""
-    default, short = Params(), Params().replace(synth=Params().synth.replace(phase_frames=[10, 20]))
-    jobs = {params.synth.phase_frames is None: plan_jobs("simcol", Path("unused"), 2, 60, 16, 0, "cpu", params,
-                                                         test_frames=120)
-            for params in (default, short)}
-    assert all(job.phase_frames is None for job in jobs[True])
-    assert all(job.phase_frames == (10, 20) for job in jobs[False])
-    held_back = []
-    for before, after in zip(jobs[True], jobs[False]):
-        steps = {name: _forward_steps(tube_sequence(job).poses) for name, job in (("default", before),
-                                                                                  ("short", after))}
+    phases make each one pause or withdraw as well. The scripted test sequences keep their paths to the bit."""
+    default = Params()
+    short = default.replace(synth=default.synth.replace(phase_frames=[10, 20]))
+    default_jobs, short_jobs = (plan_jobs("simcol", Path("unused"), 2, 60, 16, 0, "cpu", params, test_frames=120)
+                                for params in (default, short))
+    assert all(job.phase_frames is None for job in default_jobs)
+    assert all(job.phase_frames == (10, 20) for job in short_jobs)
+    held_back = {"default": [], "short": []}  # per training sequence: the share of frames pausing or withdrawing
+    for before, after in zip(default_jobs, short_jobs):
+        paths = {"default": tube_sequence(before).poses, "short": tube_sequence(after).poses}
         if before.scripted:
-            np.testing.assert_array_equal(tube_sequence(before).poses, tube_sequence(after).poses)
+            np.testing.assert_array_equal(paths["default"], paths["short"])
             continue
-        held_back.append({name: np.mean(step < 0.5 * STYLES[before.group].motion.speed[0])
-                          for name, step in steps.items()})
-    assert len(held_back) == 4  # S1, S2, B1, B2; O1 and O2 are test sequences
-    assert np.mean([share["short"] for share in held_back]) > 0.2
-    assert np.mean([share["short"] for share in held_back]) > 2 * np.mean([share["default"] for share in held_back])
+        slowest = STYLES[before.group].motion.speed[0]
+        for name, poses in paths.items():
+            held_back[name].append(np.mean(_forward_steps(poses) < 0.5 * slowest))
+    assert len(held_back["short"]) == 4  # S1, S2, B1, B2; O1 and O2 are test sequences
+    assert np.mean(held_back["short"]) > 0.2
+    assert np.mean(held_back["short"]) > 2 * np.mean(held_back["default"])
 
 
 def test_a_phase_range_longest_first_is_refused_naming_the_key():

@@ -317,8 +317,8 @@ class VideoReader(DatasetReader):
 
 
 def read_recording(path: Path, folder_fps: float, pattern: Optional[str] = None) -> Optional[Recording]:
-    """``path`` as a recording: a video file, or a folder of images (those matching the glob ``pattern``, see
-    :func:`image_files`; one every ``1 / folder_fps`` s); None for anything else."""
+    """``path`` as a recording: a video file, or a folder of images (those matching the glob ``pattern``, every
+    image when it is None, see :func:`image_files`; one every ``1 / folder_fps`` s); None for anything else."""
     if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
         video = VideoFile(path)
         return Recording(path.stem, path, video, video.fps, video.size)

@@ -77,7 +77,7 @@ class Job:
     endoslam_translation_to_cm: float
     endoslam_fps: float
     look: str = "built-in"  # synth.look
-    phase_frames: Optional[tuple[int, int]] = None  # synth.phase_frames: overrides the style's for unscripted paths
+    phase_frames: Optional[tuple[int, int]] = None  # synth.phase_frames (None: the style's); scripts ignore it
 
 
 def synthesize_layout(
@@ -161,7 +161,8 @@ def plan_jobs(layout: str, out: Path, sequences: int, frames: int, size: int, se
         endoslam_translation_to_cm=params.data.endoslam.unitycam_translation_to_cm,
         endoslam_fps=params.data.endoslam.fps,
         look=params.synth.look,
-        phase_frames=None if params.synth.phase_frames is None else tuple(params.synth.phase_frames),
+        phase_frames=None if params.synth.phase_frames is None else (params.synth.phase_frames[0],
+                                                                     params.synth.phase_frames[1]),
     )
     layout_id = SYNTH_LAYOUTS.index(layout)
     jobs = []
@@ -224,7 +225,8 @@ def job_rng(job: Job) -> np.random.Generator:
 
 
 def tube_sequence(job: Job) -> TubeSequence:
-    """The scene and camera poses of a SimCol or EndoSLAM job (what its files are rendered from), in its look."""
+    """The scene and camera poses of a SimCol, EndoSLAM or video job (what its files are rendered from), in its look,
+    its camera's phases lasting ``job.phase_frames`` where that is set."""
     style = STYLES[job.group] if job.look == "built-in" else second_look(STYLES[job.group])
     if job.phase_frames is not None:
         style = replace(style, motion=replace(style.motion, phase_frames=job.phase_frames))
