@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from endoflow.cli import build_parser
 from endoflow.cli import main as cli
 from endoflow.errors import DataFormatError
 from endoflow.models.model_file import load_model_file
@@ -80,14 +81,14 @@ def test_the_fit_reads_the_frames_the_pattern_picks_as_reconstruct_does(params, 
     (tmp_path / "clip.mp4").write_bytes(b"")
     with pytest.raises(DataFormatError, match=r"clip\.mp4: --pattern '\*\.png' picks images of a folder; this input"):
         input_sequence(tmp_path / "clip.mp4", None, params, pattern="*.png")
-    assert cli(["adapt", str(folder), "--pattern", "*_color.png", "--model", str(model_file), "--out",
-                str(tmp_path / "adapted.pt"), "--steps", "1", "--held-out", "0.34", "--intrinsics", "40,40,32,24",
-                "--no-mlflow", "--threads", "1"]) == 0
-    assert load_model_file(tmp_path / "adapted.pt").adapted_from["frames"] == 6
+    # both commands fit through one function (cli._run_adaptation), which reads args.pattern
+    assert build_parser().parse_args(["adapt", str(folder), "--pattern", "*_color.png", "--out", "a.pt"]).pattern \
+        == "*_color.png"
     assert cli(["reconstruct", str(folder), "--pattern", "*_color.png", "--adapt", "1", "--model", str(model_file),
                 "--out", str(tmp_path / "out"), "--intrinsics", "40,40,32,24", "--no-fusion", "--threads", "1"]) == 0
     summary = json.loads((tmp_path / "out" / "reconstruction.json").read_text())
     assert summary["frames"] == 6 and summary["adaptation"]["steps"] == 1
+    assert load_model_file(model_file).adapted_from is None  # what was fitted is a copy
 
 
 def test_threads_sets_torchs_thread_count_and_the_summary_records_it(model_file: Path, tmp_path: Path) -> None:
