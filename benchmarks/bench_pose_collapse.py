@@ -20,6 +20,10 @@ Over the split's (cur, next) pairs, with the shards' exact depth and poses, prin
   wrong side of what its loss prefers (time reversal, ``train.time_reversal``, asks a network for both directions);
 - the gradient the pose receives: the loss's gradient with respect to the network's answer (the pose vector), and
   on how many pairs a step against it moves the answer towards the truth (translation and rotation apart);
+- by phase of the true motion (advancing, paused, withdrawing: the forward component beyond ``PHASE_CM`` either
+  way, or within it): the network's forward component against the truth's, the share of pixels the warp at the
+  network's answer (the model's depth) explains better than the unwarped neighbour, the only pixels auto-masking
+  lets reach the pose, and the gradient the translation receives there; then the same without auto-masking;
 - the output scaling: the answer is ``MEAN_SCALE * (bias + W . features)`` (the head's 1x1 convolution, averaged
   over the image); per component, the bias's part of the mean answer and the spread the features give it, against
   the truth's mean and spread;
@@ -49,6 +53,7 @@ from endoflow.models.endoflow_model import load_trained_model
 from endoflow.models.pose_net import MEAN_SCALE
 
 SCALES = (0.5, 0.75, 1.0, 1.25, 1.5)
+PHASE_CM = 0.05  # half the colon styles' slowest speed: a step shorter than this along the axis is a pause
 RIDGE_WEIGHTS = tuple(10.0 ** k for k in range(-2, 7))
 
 
@@ -80,6 +85,31 @@ def print_pose_gradient(cur: torch.Tensor, nxt: torch.Tensor, depth: torch.Tenso
         print(f"  gradient at the network's answer, {part}: a step against it moves towards the truth on "
               f"{(cosine > 0).float().mean():.1%} of pairs (median cosine {cosine.median():+.2f}); median |gradient| "
               f"{descent[:, columns].norm(dim=1).median():.3e} per {'rad' if part == 'rotation' else 'cm'}")
+
+
+def print_by_phase(cur: torch.Tensor, nxt: torch.Tensor, depth: torch.Tensor, answer: torch.Tensor,
+                   truth: torch.Tensor, K: torch.Tensor, cfg: LossConfig) -> None:
+    """Per phase of the true motion (``T_next_cur``'s forward component: negative while advancing): the network's
+    forward component, the pixels auto-masking leaves to the warp at its answer, the translation's gradient."""
+    pose = answer.clone().requires_grad_(True)
+    warped = warp_frame(nxt, depth, pose_vec_to_matrix(pose), K)[0]
+    _, per_pixel, kept = reprojection_loss([warped], cur, [nxt], cfg, identity_error(cur, [nxt], cfg))
+    per_pixel.mean(dim=(1, 2, 3)).sum().backward()
+    descent, towards = -pose.grad[:, 3:], (truth - answer)[:, 3:]
+    cosine = torch.nn.functional.cosine_similarity(descent, towards, dim=1)
+    left = kept.float().mean(dim=(1, 2, 3))
+    forward = truth[:, 5]
+    phases = {"advancing": forward < -PHASE_CM, "paused": forward.abs() <= PHASE_CM, "withdrawing": forward > PHASE_CM}
+    print(f"by phase of the true motion (forward component beyond {PHASE_CM} cm, or within it), auto-masking "
+          f"{'on' if cfg.automask else 'off'}: pairs; tz truth / network (mean, cm); pixels left to the warp at the "
+          f"network's answer; translation gradient: median |.|, share towards the truth")
+    for name, chosen in phases.items():
+        if not chosen.any():
+            print(f"  {name}: no pairs")
+            continue
+        print(f"  {name}: {int(chosen.sum())}; {forward[chosen].mean():+.4f} / {answer[chosen, 5].mean():+.4f}; "
+              f"{left[chosen].mean():.1%}; {descent[chosen].norm(dim=1).median():.3e} per cm, "
+              f"{(cosine[chosen] > 0).float().mean():.1%}")
 
 
 def print_output_scaling(model: torch.nn.Module, cur: torch.Tensor, nxt: torch.Tensor, truth: np.ndarray) -> None:
@@ -236,6 +266,9 @@ def main() -> None:
     print("  true pose with its translation scaled: " + ", ".join(
         f"x{scale:g} {value / base - 1:+.2%}" for scale, value in scaled.items()))
     print_pose_gradient(cur, nxt, depth, mean.float(), torch.from_numpy(truth).float(), K, cfg)
+    for automask in (True, False):  # what the mask takes from the pose: the same pairs with it and without
+        print_by_phase(cur, nxt, depth, mean.float(), torch.from_numpy(truth).float(), K,
+                       LossConfig(**{**dict(cfg), "automask": automask}))
     print_output_scaling(model, cur, nxt, truth)
     if args.probe_samples:
         print_linear_probes(model, pairs(args.shards, "train", args.probe_samples), cur, nxt, truth, predicted)
