@@ -374,6 +374,11 @@ class LossConfig(Section):
     ssim_weight: Number = setting(0.85, "SSIM's share of ssim_l1", ge=0, le=1)
     min_reprojection: bool = setting(True, "per-pixel minimum over source frames (Monodepth2)")
     automask: bool = setting(True, "mask pixels the identity warp explains better (Monodepth2)")
+    # The mask silences the pose exactly where its answer is wrong: a forward step for a pause or a withdrawal warps
+    # worse than no motion, the unwarped neighbour wins, and the pose gets no gradient (docs/results.md).
+    automask_pose: bool = setting(True, "with automask, the mask also withholds the pose's gradient (Monodepth2); "
+                                        "false: the depth keeps the mask and the pose learns from every pixel's "
+                                        "reprojection error (one more warp per scale)")
     smoothness_weight: Number = setting(1e-3, "edge-aware disparity smoothness weight", ge=0)
     multiscale: bool = setting(True, "the loss at every decoder scale, upsampled to full resolution")
     # The paper gives no value; 1e-3 pushed the pose log-variance up until sampling noise (~0.03 rad) swamped the

@@ -20,7 +20,7 @@ from endoflow.models.endoflow_model import build_model
 from endoflow.losses.consistency import geometry_consistency
 from endoflow.losses.photometric import held_out_photometric_error
 from endoflow.losses.smoothness import edge_aware_smoothness
-from endoflow.training.objective import reprojection, training_step_losses
+from endoflow.training.objective import photometric_term, reprojection, training_step_losses
 from tests.samples import SIMCOL_SAMPLE
 
 SIZE = 64
@@ -317,3 +317,60 @@ def test_frames_with_a_black_circular_border_and_its_mask_learn_depth_and_motion
     start, no_motion, end = short_optimisation(bordered, cfg, loss_inside)
     assert end < 0.6 * start
     assert end < 0.6 * no_motion
+
+
+def differentiable_inputs(batch: dict) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+    """The batch's true depth and motion as leaves (motion as pose vectors), and the transforms they give."""
+    from endoflow.geometry.pose import matrix_to_pose_vec
+
+    depth = batch["depth"].clone().requires_grad_(True)
+    vecs = torch.stack([matrix_to_pose_vec(batch[key]) for key in ("T_prev_cur", "T_next_cur")]).requires_grad_(True)
+    return depth, vecs, [pose_vec_to_matrix(vecs[0]), pose_vec_to_matrix(vecs[1])]
+
+
+def gradients_of(term: Callable[[torch.Tensor, list[torch.Tensor]], torch.Tensor], batch: dict
+                 ) -> tuple[float, torch.Tensor, torch.Tensor]:
+    depth, vecs, transforms = differentiable_inputs(batch)
+    torch.manual_seed(0)  # auto-masking's tie-break noise
+    loss = term(depth, transforms)
+    loss.backward()
+    return float(loss.detach()), depth.grad, vecs.grad
+
+
+def test_without_the_mask_on_the_pose_the_depth_learns_from_the_masked_loss_and_the_pose_from_the_unmasked():
+    batch = simcol_triplets(size=32)
+    sources = [batch["prev"], batch["next"]]
+    masked_cfg, split_cfg = LossConfig(), LossConfig(automask_pose=False)
+    unmasked_cfg = LossConfig(automask=False)
+
+    def term(cfg: LossConfig):
+        return lambda depth, transforms: photometric_term(batch["cur"], sources, depth, transforms, batch["K"], cfg)
+
+    masked, split, unmasked = (gradients_of(term(cfg), batch) for cfg in (masked_cfg, split_cfg, unmasked_cfg))
+    assert split[0] == masked[0]  # the value logged is the masked loss's, so that runs compare
+    assert torch.equal(split[1], masked[1])  # the depth's gradient: the mask's
+    assert torch.allclose(split[2], unmasked[2], rtol=1e-5, atol=1e-9)  # the pose's: every pixel's
+    assert not torch.allclose(masked[2], unmasked[2], rtol=1e-2)  # the mask does change it on these frames
+    # the option means nothing without the mask: the same loss and gradients as the unmasked one
+    plain = gradients_of(term(LossConfig(automask=False, automask_pose=False)), batch)
+    assert plain[0] == unmasked[0] and torch.equal(plain[1], unmasked[1]) and torch.equal(plain[2], unmasked[2])
+
+
+def test_a_forward_answer_for_a_paused_camera_is_pulled_back_only_where_the_mask_spares_the_pose():
+    """The camera stops (each neighbour is the target itself) and the pose answers the true forward step. The
+    unwarped neighbours explain every pixel, so auto-masking leaves the pose nothing but its tie-break noise;
+    without the mask on the pose, a step against the gradient shortens the forward answer."""
+    batch = simcol_triplets(size=32)
+    paused = {**batch, "prev": batch["cur"], "next": batch["cur"]}
+    sources = [paused["cur"], paused["cur"]]
+
+    def pose_gradient(cfg: LossConfig) -> torch.Tensor:
+        term = lambda depth, transforms: photometric_term(paused["cur"], sources, depth, transforms, paused["K"], cfg)
+        return gradients_of(term, paused)[2]
+
+    masked, split = pose_gradient(LossConfig()), pose_gradient(LossConfig(automask_pose=False))
+    assert masked.abs().max() < 1e-3 * split.abs().max()
+    _, vecs, _ = differentiable_inputs(paused)
+    forward = vecs.detach()[..., 3:]
+    stepped = forward - 1e-3 * split[..., 3:] / split[..., 3:].norm()
+    assert stepped.norm() < forward.norm()
