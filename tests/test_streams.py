@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from endoflow.reconstruction.streams import WriteBehind, read_ahead
+from endoflow.reconstruction.streams import WriteBehind, encoder_pool, read_ahead
 
 
 def test_read_ahead_yields_every_item_in_order() -> None:
@@ -78,3 +78,9 @@ def test_leaving_on_an_error_cancels_the_writes_not_started() -> None:
                 writes.submit(lambda i: (started.append(i), time.sleep(0.05)), index)
             raise KeyboardInterrupt
     assert len(started) < 20
+
+
+@pytest.mark.parametrize("cores, threads", [(1, 1), (2, 1), (8, 2), (16, 4), (64, 4)])
+def test_one_encoding_thread_for_every_four_cores_at_least_one_and_at_most_four(cores, threads) -> None:
+    with encoder_pool(cores) as pool:
+        assert pool._max_workers == threads

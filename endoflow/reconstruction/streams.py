@@ -1,4 +1,5 @@
-"""Work beside the model's: frames read ahead in one thread, per-frame outputs written behind in another.
+"""Work beside the model's: frames read ahead in one thread, per-frame outputs written behind in another, each
+frame's depth PNGs encoded side by side in a few more.
 
 A frame's decoding (PyAV, OpenCV's PNG reader and resize) and its outputs' encoding (PNG, H.264, the recording)
 release the GIL, so on two cores they overlap the model and the fusion of the frame in hand instead of adding
@@ -8,6 +9,7 @@ threads, and two pools on two cores wait on each other.
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 from collections import deque
@@ -18,6 +20,10 @@ Item = TypeVar("Item")
 READ_AHEAD = 4  # frames decoded ahead of the model: enough to smooth a slow decode, few enough for 1080p memory
 WRITE_BEHIND = 4  # frames whose outputs may wait to be written before the next frame waits for them
 _POLL_SECONDS = 0.1
+# At 480 px a frame's two depth PNGs took 24 ms of one thread on the H100 machine, more than its GPU took for the
+# networks and the fusion of the frame (15 ms): one encoding thread for every four cores, at most four.
+CORES_PER_ENCODER = 4
+MOST_ENCODERS = 4
 
 
 def read_ahead(items: Iterable[Item], count: int = READ_AHEAD) -> Iterator[Item]:
@@ -91,3 +97,12 @@ class WriteBehind:
                 self._pending.popleft().result()
         finally:
             self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def encoder_pool(cores: int | None = None) -> ThreadPoolExecutor:
+    """Threads for work whose order does not matter (each frame's PNGs, each to its own file), one for every
+    :data:`CORES_PER_ENCODER` of ``cores`` (default: this machine's), at least one and at most
+    :data:`MOST_ENCODERS`. Use as a context manager: leaving it waits for every call submitted."""
+    cores = cores if cores is not None else (os.cpu_count() or 1)
+    workers = max(1, min(MOST_ENCODERS, cores // CORES_PER_ENCODER))
+    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="encode")
