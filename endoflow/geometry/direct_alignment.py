@@ -80,15 +80,19 @@ def align_to_keyframe(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb:
         key_depth: ``[1, H, W]`` z-depth of the keyframe (0: unknown), the unit of the translation.
         K: ``[3, 3]`` pixel intrinsics of both images.
         T_frame_key: ``[4, 4]`` start.
+
+    The work runs on the images' device; ``K`` and ``T_frame_key`` join them there.
     """
     sizes = check_shape("key_rgb", key_rgb, "3,H,W")
     check_shape("frame_rgb", frame_rgb, "3,H,W", **sizes)
     check_shape("key_depth", key_depth, "1,H,W", **sizes)
     check_shape("K", K, "3,3")
     check_shape("T_frame_key", T_frame_key, "4,4")
-    pyramid = _pyramid(key_rgb.to(PIXEL_DTYPE), key_depth.to(PIXEL_DTYPE), frame_rgb.to(PIXEL_DTYPE),
-                       K.to(PIXEL_DTYPE), settings.levels)
-    pose, brightness = T_frame_key.to(torch.float64).clone(), torch.zeros(2, dtype=torch.float64)
+    device = key_rgb.device
+    pyramid = _pyramid(key_rgb.to(PIXEL_DTYPE), key_depth.to(device, PIXEL_DTYPE), frame_rgb.to(device, PIXEL_DTYPE),
+                       K.to(device, PIXEL_DTYPE), settings.levels)
+    pose = T_frame_key.to(device, torch.float64).clone()
+    brightness = torch.zeros(2, dtype=torch.float64, device=device)
     start, start_brightness = pose.clone(), brightness.clone()
     prior = _RotationPrior(start[:3, :3], settings.rotation_prior)
     for level in reversed(pyramid):
@@ -126,9 +130,9 @@ class _RotationPrior:
         """The prior's terms ``[6, 6]``, ``[6]`` of the Gauss-Newton system in the pose's left increment
         ``(omega, t)`` over ``pixels`` pixels: its residual ``sqrt(weight) * theta`` once per pixel, with
         ``d theta / d omega`` taken as the identity (exact at the start, where the steps begin)."""
-        hessian = torch.zeros(6, 6, dtype=pose.dtype)
-        gradient = torch.zeros(6, dtype=pose.dtype)
-        hessian[:3, :3] = self.weight * pixels * torch.eye(3, dtype=pose.dtype)
+        hessian = torch.zeros(6, 6, dtype=pose.dtype, device=pose.device)
+        gradient = torch.zeros(6, dtype=pose.dtype, device=pose.device)
+        hessian[:3, :3] = self.weight * pixels * torch.eye(3, dtype=pose.dtype, device=pose.device)
         gradient[:3] = self.weight * pixels * self.departure(pose)
         return hessian, gradient
 
@@ -348,9 +352,9 @@ class KeyframeTracker:
     def track(self, rgb: torch.Tensor, depth: torch.Tensor, T_world_start: torch.Tensor) -> torch.Tensor:
         """``T_world_frame [4, 4]`` (float64) of the next frame (``rgb [3, H, W]`` in [0, 1], its depth
         ``[1, H, W]``), refined from ``T_world_start`` (made rigid); the first frame keeps its start and becomes a
-        keyframe."""
+        keyframe. It is computed, and returned, on the frame's device."""
         check_shape("T_world_start", T_world_start, "4,4")
-        start = nearest_rigid(T_world_start.to(torch.float64))
+        start = nearest_rigid(T_world_start.to(rgb.device, torch.float64))
         if self.keyframe is None:
             self._make_keyframe(rgb, depth, start)
             return start

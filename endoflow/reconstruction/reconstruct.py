@@ -183,8 +183,9 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                     depth = np.where(valid, depth, np.float32(0))  # outside the field of view: unknown
                     network_pose = path.network_step(T_cur_prev, options.scale)
                     pose = network_pose if tracker is None else tracker.track(
-                        unit_float_images(torch.from_numpy(rgb).permute(2, 0, 1)), torch.from_numpy(depth)[None],
-                        torch.from_numpy(path.step_from_last(T_cur_prev, options.scale))).numpy()
+                        unit_float_images(torch.from_numpy(rgb).to(device).permute(2, 0, 1)),
+                        torch.from_numpy(depth)[None].to(device),
+                        torch.from_numpy(path.step_from_last(T_cur_prev, options.scale))).cpu().numpy()
                     path.add(frame, pose, network_pose, depth, size)
                     explained.add(rgb, depth, path)
                     shown = shown or preview_range(depth, record.params.model, options.scale)
