@@ -136,15 +136,15 @@ def test_the_outputs_are_the_same_files_whatever_the_number_of_encoding_threads(
     from endoflow.reconstruction import streams
 
     outputs = {}
-    for cores in (1, 16):  # one encoding thread, then four
-        monkeypatch.setattr(reconstruction, "encoder_pool", lambda cores=cores: streams.encoder_pool(cores))
+    for cores in (2, 16):  # the writer encodes, then four encoding threads do
+        monkeypatch.setattr(reconstruction, "Encoders", lambda cores=cores: streams.Encoders(cores))
         out = tmp_path / f"cores{cores}"
         run(scene, model_file, out, params, "S1", npy=True)
         # every file but the contact sheet, whose title holds the frames/s
         outputs[cores] = {path.relative_to(out): file_sha256(path) for path in sorted(out.rglob("*"))
                           if path.is_file() and path.suffix in (".png", ".npy", ".mp4", ".ply", ".tum")
                           and path.name != "sheet.png"}
-    assert len(outputs[1]) > 3 * FRAMES and outputs[1] == outputs[16]
+    assert len(outputs[2]) > 3 * FRAMES and outputs[2] == outputs[16]
 
 
 def test_a_dataset_sequence_gives_depth_path_surface_and_the_scale_that_fits_its_ground_truth(

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from endoflow.reconstruction.streams import WriteBehind, encoder_pool, read_ahead
+from endoflow.reconstruction.streams import Encoders, WriteBehind, read_ahead
 
 
 def test_read_ahead_yields_every_item_in_order() -> None:
@@ -80,7 +80,28 @@ def test_leaving_on_an_error_cancels_the_writes_not_started() -> None:
     assert len(started) < 20
 
 
-@pytest.mark.parametrize("cores, threads", [(1, 1), (2, 1), (8, 2), (16, 4), (64, 4)])
-def test_one_encoding_thread_for_every_four_cores_at_least_one_and_at_most_four(cores, threads) -> None:
-    with encoder_pool(cores) as pool:
-        assert pool._max_workers == threads
+@pytest.mark.parametrize("cores, threads", [(1, 0), (4, 1), (8, 2), (16, 4), (64, 4)])
+def test_one_encoding_thread_for_every_four_cores_at_most_four(cores, threads) -> None:
+    with Encoders(cores) as encoders:
+        assert encoders.workers == threads
+
+
+@pytest.mark.parametrize("cores", [2, 16])
+def test_an_encoding_runs_beside_its_caller_where_two_threads_are_offered_else_in_the_thread_that_asks(cores) -> None:
+    with Encoders(cores) as encoders:
+        done = encoders.submit(lambda x: (x + 1, threading.current_thread()), 1)
+        asked_from = []
+        asker = threading.Thread(target=lambda: asked_from.append(done.result()))
+        asker.start()
+        asker.join()
+    value, ran_in = asked_from[0]
+    assert value == 2
+    assert (ran_in is asker) == (cores < 8)
+
+
+def test_leaving_the_encoders_waits_for_every_encoding() -> None:
+    finished = []
+    with Encoders(16) as encoders:
+        for i in range(6):
+            encoders.submit(lambda i=i: (time.sleep(0.01), finished.append(i)))
+    assert sorted(finished) == list(range(6))

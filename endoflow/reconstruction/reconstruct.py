@@ -44,7 +44,7 @@ from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply
 from endoflow.reconstruction.pictures import FrameSampler, SideBySideVideo, depth_preview, write_contact_sheet
 from endoflow.reconstruction.recording import RECORDING_FILE, Recording
-from endoflow.reconstruction.streams import READ_AHEAD, WriteBehind, encoder_pool, read_ahead
+from endoflow.reconstruction.streams import READ_AHEAD, Deferred, Encoders, WriteBehind, read_ahead
 
 if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for it
     from endoflow.tracking import RunHandle
@@ -167,7 +167,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                           FORCE_OPTION) as stage, torch.no_grad():
         recording = Recording(stage / RECORDING_FILE, source.description)
         with SideBySideVideo(stage / "video.mp4", source.fps / options.frames.stride, size, size) as video, \
-                WriteBehind() as writes, encoder_pool() as encoders, contextlib.ExitStack() as stack:
+                WriteBehind() as writes, Encoders() as encoders, contextlib.ExitStack() as stack:
             previous: Optional[torch.Tensor] = None
             shown: Optional[tuple[float, float]] = None
             per_call = frames_per_call(size, device)
@@ -408,10 +408,11 @@ class FrameOutputs:
     sampler: FrameSampler
 
 
-def write_frame_outputs(index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray, preview: Future,
+def write_frame_outputs(index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray,
+                        preview: Future | Deferred,
                         outputs: FrameOutputs) -> None:
     """Frame ``index``'s entries in the video, the recording and the contact sheet's sample, once ``preview``
-    (:func:`write_depth`'s, encoding beside it) is done: work for the write-behind thread, in frame order."""
+    (:func:`write_depth`'s, encoding beside it or here) is done: work for the write-behind thread, in frame order."""
     preview = preview.result()
     outputs.video.add(rgb, preview)
     outputs.recording.add_frame(index, rgb, depth, outputs.unit, outputs.K, pose)

@@ -21,7 +21,7 @@ READ_AHEAD = 4  # frames decoded ahead of the model: enough to smooth a slow dec
 WRITE_BEHIND = 4  # frames whose outputs may wait to be written before the next frame waits for them
 _POLL_SECONDS = 0.1
 # At 480 px a frame's two depth PNGs took 24 ms of one thread on the H100 machine, more than its GPU took for the
-# networks and the fusion of the frame (15 ms): one encoding thread for every four cores, at most four.
+# networks and the fusion of the frame (15 ms): one encoding thread for every four cores, at most four (Encoders).
 CORES_PER_ENCODER = 4
 MOST_ENCODERS = 4
 
@@ -99,10 +99,36 @@ class WriteBehind:
             self._pool.shutdown(wait=True, cancel_futures=True)
 
 
-def encoder_pool(cores: int | None = None) -> ThreadPoolExecutor:
-    """Threads for work whose order does not matter (each frame's PNGs, each to its own file), one for every
-    :data:`CORES_PER_ENCODER` of ``cores`` (default: this machine's), at least one and at most
-    :data:`MOST_ENCODERS`. Use as a context manager: leaving it waits for every call submitted."""
-    cores = cores if cores is not None else (os.cpu_count() or 1)
-    workers = max(1, min(MOST_ENCODERS, cores // CORES_PER_ENCODER))
-    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="encode")
+
+class Deferred:
+    """A call made by the thread that asks for its :meth:`result` (once)."""
+
+    def __init__(self, call: Callable[..., Item], *args: object) -> None:
+        self._call, self._args = call, args
+
+    def result(self) -> Item:
+        return self._call(*self._args)
+
+
+class Encoders:
+    """Threads for work whose order does not matter (each frame's PNGs, each to its own file): one for every
+    :data:`CORES_PER_ENCODER` of ``cores`` (default: this machine's), at most :data:`MOST_ENCODERS`. Where that
+    makes fewer than two, :meth:`submit` defers the call to the thread that asks for its result (the writer's):
+    one more thread only added a hand-off, which on 2 busy cores slowed a 64 px frame by about 40 %. Use as a
+    context manager: leaving it waits for every call submitted."""
+
+    def __init__(self, cores: int | None = None) -> None:
+        cores = cores if cores is not None else (os.cpu_count() or 1)
+        self.workers = min(MOST_ENCODERS, cores // CORES_PER_ENCODER)
+        self._pool = (ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="encode")
+                      if self.workers >= 2 else None)
+
+    def submit(self, call: Callable[..., Item], *args: object) -> Future | Deferred:
+        return self._pool.submit(call, *args) if self._pool is not None else Deferred(call, *args)
+
+    def __enter__(self) -> "Encoders":
+        return self
+
+    def __exit__(self, error_type, error, traceback) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
