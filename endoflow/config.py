@@ -378,7 +378,7 @@ class LossConfig(Section):
     # worse than no motion, the unwarped neighbour wins, and the pose gets no gradient (docs/results.md).
     automask_pose: bool = setting(True, "with automask, the mask also withholds the pose's gradient (Monodepth2); "
                                         "false: the depth keeps the mask and the pose learns from every pixel's "
-                                        "reprojection error (one more warp per scale)")
+                                        "reprojection error (each warp made twice)")
     smoothness_weight: Number = setting(1e-3, "edge-aware disparity smoothness weight", ge=0)
     multiscale: bool = setting(True, "the loss at every decoder scale, upsampled to full resolution")
     # The paper gives no value; 1e-3 pushed the pose log-variance up until sampling noise (~0.03 rad) swamped the

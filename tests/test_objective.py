@@ -20,7 +20,7 @@ from endoflow.models.endoflow_model import build_model
 from endoflow.losses.consistency import geometry_consistency
 from endoflow.losses.photometric import held_out_photometric_error
 from endoflow.losses.smoothness import edge_aware_smoothness
-from endoflow.training.objective import photometric_term, reprojection, training_step_losses
+from endoflow.training.objective import reprojection, training_step_losses
 from tests.samples import SIMCOL_SAMPLE
 
 SIZE = 64
@@ -344,7 +344,7 @@ def test_without_the_mask_on_the_pose_the_depth_learns_from_the_masked_loss_and_
     unmasked_cfg = LossConfig(automask=False)
 
     def term(cfg: LossConfig):
-        return lambda depth, transforms: photometric_term(batch["cur"], sources, depth, transforms, batch["K"], cfg)
+        return lambda depth, transforms: reprojection(batch["cur"], sources, depth, transforms, batch["K"], cfg)
 
     masked, split, unmasked = (gradients_of(term(cfg), batch) for cfg in (masked_cfg, split_cfg, unmasked_cfg))
     assert split[0] == masked[0]  # the value logged is the masked loss's, so that runs compare
@@ -365,7 +365,7 @@ def test_a_forward_answer_for_a_paused_camera_is_pulled_back_only_where_the_mask
     sources = [paused["cur"], paused["cur"]]
 
     def pose_gradient(cfg: LossConfig) -> torch.Tensor:
-        term = lambda depth, transforms: photometric_term(paused["cur"], sources, depth, transforms, paused["K"], cfg)
+        term = lambda depth, transforms: reprojection(paused["cur"], sources, depth, transforms, paused["K"], cfg)
         return gradients_of(term, paused)[2]
 
     masked, split = pose_gradient(LossConfig()), pose_gradient(LossConfig(automask_pose=False))
@@ -374,3 +374,24 @@ def test_a_forward_answer_for_a_paused_camera_is_pulled_back_only_where_the_mask
     forward = vecs.detach()[..., 3:]
     stepped = forward - 1e-3 * split[..., 3:] / split[..., 3:].norm()
     assert stepped.norm() < forward.norm()
+
+
+def test_training_without_the_mask_on_the_pose_changes_the_pose_networks_gradient_and_not_the_depth_networks():
+    batch = {key: value[:2] for key, value in simcol_triplets(size=32).items()}
+    batch["valid"] = circle_mask(32).expand(2, 1, 32, 32)  # inside a field of view, as real video trains
+    params = Params()
+    torch.manual_seed(0)
+    model = build_model(params, None)
+
+    def gradients(cfg: LossConfig) -> dict[str, torch.Tensor]:
+        model.zero_grad(set_to_none=True)
+        torch.manual_seed(1)  # the pose VAE's samples and auto-masking's tie-break noise
+        training_step_losses(model, batch, cfg)["total"].backward()
+        return {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
+
+    masked, split = gradients(params.loss), gradients(params.loss.replace(automask_pose=False))
+    depth = [name for name in masked if name.startswith("depth_net.")]
+    pose = [name for name in masked if name.startswith("pose_net.")]
+    assert depth and pose and set(split) == set(masked)
+    assert all(torch.allclose(split[name], masked[name], rtol=1e-4, atol=1e-10) for name in depth)
+    assert not all(torch.allclose(split[name], masked[name], rtol=1e-2) for name in pose)

@@ -80,8 +80,8 @@ def test_leaving_on_an_error_cancels_the_writes_not_started() -> None:
     assert len(started) < 20
 
 
-@pytest.mark.parametrize("cores, threads", [(1, 0), (4, 1), (8, 2), (16, 4), (64, 4)])
-def test_one_encoding_thread_for_every_four_cores_at_most_four(cores, threads) -> None:
+@pytest.mark.parametrize("cores, threads", [(1, 0), (4, 0), (7, 0), (8, 2), (16, 4), (64, 4)])
+def test_one_encoding_thread_for_every_four_cores_at_most_four_and_none_below_two(cores, threads) -> None:
     with Encoders(cores) as encoders:
         assert encoders.workers == threads
 

@@ -99,9 +99,9 @@ class WriteBehind:
             self._pool.shutdown(wait=True, cancel_futures=True)
 
 
-
 class Deferred:
-    """A call made by the thread that asks for its :meth:`result` (once)."""
+    """A call made by the thread that asks for its :meth:`result`, which must ask once: a second ask calls
+    again."""
 
     def __init__(self, call: Callable[..., Item], *args: object) -> None:
         self._call, self._args = call, args
@@ -112,16 +112,18 @@ class Deferred:
 
 class Encoders:
     """Threads for work whose order does not matter (each frame's PNGs, each to its own file): one for every
-    :data:`CORES_PER_ENCODER` of ``cores`` (default: this machine's), at most :data:`MOST_ENCODERS`. Where that
-    makes fewer than two, :meth:`submit` defers the call to the thread that asks for its result (the writer's):
-    one more thread only added a hand-off, which on 2 busy cores slowed a 64 px frame by about 40 %. Use as a
-    context manager: leaving it waits for every call submitted."""
+    :data:`CORES_PER_ENCODER` of ``cores`` (default: the cores this process may run on), at most
+    :data:`MOST_ENCODERS`. Where that makes fewer than two, there are none (``workers`` 0) and :meth:`submit`
+    defers the call to the thread that asks for its result (the writer's): a pool of one only added a hand-off,
+    which on 2 busy cores took a 64 px frame's rate down by about two fifths. Use as a context manager: leaving it
+    waits for every call started (on an error, those not started are dropped)."""
 
     def __init__(self, cores: int | None = None) -> None:
-        cores = cores if cores is not None else (os.cpu_count() or 1)
-        self.workers = min(MOST_ENCODERS, cores // CORES_PER_ENCODER)
+        cores = cores if cores is not None else len(os.sched_getaffinity(0))
+        workers = min(MOST_ENCODERS, cores // CORES_PER_ENCODER)
+        self.workers = workers if workers >= 2 else 0
         self._pool = (ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="encode")
-                      if self.workers >= 2 else None)
+                      if self.workers else None)
 
     def submit(self, call: Callable[..., Item], *args: object) -> Future | Deferred:
         return self._pool.submit(call, *args) if self._pool is not None else Deferred(call, *args)
@@ -131,4 +133,4 @@ class Encoders:
 
     def __exit__(self, error_type, error, traceback) -> None:
         if self._pool is not None:
-            self._pool.shutdown(wait=True)
+            self._pool.shutdown(wait=True, cancel_futures=error_type is not None)

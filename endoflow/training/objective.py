@@ -10,8 +10,8 @@ For a target frame ``cur`` and its neighbours ``prev`` and ``next``:
 - ``photometric``: :func:`reprojection_loss` (MSE as the paper, or SSIM + L1; per-pixel minimum and
   auto-masking as ``loss.*`` says), averaged over scales.
   With ``loss.automask`` on and ``loss.automask_pose`` off, the depth (and a learned ``K``) take the gradient of the
-  masked loss and the pose that of the unmasked one, each warp made once with the other detached; the value is the
-  masked loss's (:func:`photometric_term`).
+  masked loss and the pose that of the unmasked one (every warp made twice: once with the pose detached, once with
+  the depth detached); the value is the masked loss's (:func:`reprojection`).
 - ``smoothness``: edge-aware smoothness of each scale's disparity, divided by ``2^scale``, averaged.
 - ``kl``: the closed-form KL of both predicted pose distributions to N(0, I), summed over the two poses,
   averaged over the batch (zero without the pose VAE).
@@ -79,7 +79,18 @@ def reprojection(
     """Photometric loss of ``target [B, 3, H, W]`` rebuilt from each source with target ``depth [B, 1, H, W]``
     and ``T_source_target[i] [B, 4, 4]`` (one per source), as ``loss_cfg`` says; ``identity`` as
     :func:`reprojection_loss` takes it. ``valid [B, 1, H, W]`` bool: the field of view, the same in every frame of
-    a sequence (None: everywhere); a source counts where the target pixel is in it and lands in it."""
+    a sequence (None: everywhere); a source counts where the target pixel is in it and lands in it.
+
+    With ``automask`` on and ``automask_pose`` off, the mask keeps its effect on the depth (and ``K``) while the
+    pose learns from every pixel: auto-masking hands a pixel to the unwarped neighbour exactly where a wrong motion
+    warps worse than none, which would leave the pose no gradient there. The value is the masked loss's, so that
+    runs compare."""
+    if loss_cfg.automask and not loss_cfg.automask_pose:
+        masked = reprojection(target, sources, depth, [T.detach() for T in T_source_target], K,
+                              loss_cfg.replace(automask_pose=True), identity, valid)
+        unmasked = reprojection(target, sources, depth.detach(), T_source_target, K.detach(),
+                                loss_cfg.replace(automask=False), None, valid)
+        return masked + (unmasked - unmasked.detach())
     warped = [warp_frame(src, depth, T, K)[0] for src, T in zip(sources, T_source_target)]
     seen = None
     if valid is not None:
@@ -89,28 +100,6 @@ def reprojection(
         # SSIM's windows reach a pixel's neighbours: those out of view take part as values, not as gradient
         warped = [torch.where(s, w, w.detach()) for w, s in zip(warped, seen)]
     return reprojection_loss(warped, target, sources, loss_cfg, identity, seen)[0]
-
-
-def photometric_term(
-    target: torch.Tensor,
-    sources: list[torch.Tensor],
-    depth: torch.Tensor,
-    T_source_target: list[torch.Tensor],
-    K: torch.Tensor,
-    loss_cfg: LossConfig,
-    identity: torch.Tensor | None = None,
-    valid: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """:func:`reprojection` as training differentiates it. With ``automask`` on and ``automask_pose`` off, the mask
-    keeps its effect on the depth (and ``K``), while the pose learns from every pixel: auto-masking hands a pixel
-    to the unwarped neighbour exactly where a wrong motion warps worse than none, which would leave the pose no
-    gradient there. The value is the masked loss's, so that runs compare."""
-    if not loss_cfg.automask or loss_cfg.automask_pose:
-        return reprojection(target, sources, depth, T_source_target, K, loss_cfg, identity, valid)
-    masked = reprojection(target, sources, depth, [T.detach() for T in T_source_target], K, loss_cfg, identity, valid)
-    unmasked = reprojection(target, sources, depth.detach(), T_source_target, K.detach(),
-                            loss_cfg.replace(automask=False), None, valid)
-    return masked + (unmasked - unmasked.detach())
 
 
 def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig) -> dict[str, torch.Tensor]:
@@ -142,7 +131,7 @@ def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig
         if disp.shape[-2:] != cur.shape[-2:]:
             disp = F.interpolate(disp, size=cur.shape[-2:], mode="bilinear", align_corners=False)
         transforms = [pose.T_source_target for pose in poses]
-        loss = photometric_term(cur, sources, model.disp_to_depth(disp), transforms, K, loss_cfg, identity, valid)
+        loss = reprojection(cur, sources, model.disp_to_depth(disp), transforms, K, loss_cfg, identity, valid)
         smooth = edge_aware_smoothness(disps[s], cur, valid) / 2**s
         out[f"photometric/{s}"], out[f"smoothness/{s}"] = loss, smooth
         photometric.append(loss)
