@@ -194,6 +194,16 @@ def test_backproject_then_project_returns_pixels_and_depth() -> None:
     assert torch.allclose(project(points, K), grid.expand(2, 2, -1), atol=1e-10)
 
 
+def test_a_pixel_grid_first_made_in_inference_mode_serves_autograd_later() -> None:
+    # evaluation tracks under inference mode; a model fitted afterwards in the same process warps with the same grid
+    with torch.inference_mode():
+        backproject(torch.ones(1, 1, 7, 5), torch.eye(3)[None])
+    depth = torch.ones(1, 1, 7, 5, requires_grad=True)
+    backproject(depth, torch.eye(3)[None]).sum().backward()
+    assert not pixel_grid(7, 5, torch.device("cpu"), torch.float32).is_inference()
+    assert depth.grad is not None
+
+
 def test_shape_errors_name_the_argument() -> None:
     with pytest.raises(ValueError, match="depth"):
         backproject(torch.ones(1, 2, 4, 4), torch.eye(3)[None])

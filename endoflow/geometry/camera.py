@@ -59,14 +59,17 @@ def intrinsics_inverse(K: torch.Tensor) -> torch.Tensor:
 def pixel_grid(height: int, width: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
     """Homogeneous pixel coordinates ``[3, H*W]`` (rows ``u``, ``v``, ``1``), row-major over the image.
 
-    Cached per (H, W, device, dtype): the result is shared, never modify it in place.
+    Cached per (H, W, device, dtype): the result is shared, never modify it in place. Made outside inference mode
+    whatever the caller's: a grid first asked for under ``torch.inference_mode`` (evaluation's tracker) would
+    otherwise be an inference tensor, which training, fitting a model with the same grid, cannot use.
     """
-    v, u = torch.meshgrid(
-        torch.arange(height, device=device, dtype=dtype),
-        torch.arange(width, device=device, dtype=dtype),
-        indexing="ij",
-    )
-    return torch.stack([u.reshape(-1), v.reshape(-1), torch.ones_like(u).reshape(-1)])
+    with torch.inference_mode(False):
+        v, u = torch.meshgrid(
+            torch.arange(height, device=device, dtype=dtype),
+            torch.arange(width, device=device, dtype=dtype),
+            indexing="ij",
+        )
+        return torch.stack([u.reshape(-1), v.reshape(-1), torch.ones_like(u).reshape(-1)])
 
 
 def backproject(depth: torch.Tensor, K_inv: torch.Tensor) -> torch.Tensor:
