@@ -8,8 +8,8 @@ earlier one.
 measurement runs in a child process importing it. Both scenes are rendered by the built-in renderer (sequence S1
 of a SimCol3D layout, seed 1) with their exact depth, so the fusion has a real surface to fuse:
 
-- **speed**: ``--frames`` frames at 480 px, the voxel ``reconstruct`` picks there (``max_depth / 4 / fx``),
-  truncation 4 voxels; milliseconds a frame to integrate (the median of ``--rounds`` fusions of all frames, each
+- **speed**: ``--frames`` frames at 480 px, the voxel ``reconstruct`` picked there until it followed the depth
+  (``max_depth / 4 / fx``, fixed so that figures compare across commits), truncation 4 voxels; milliseconds a frame to integrate (the median of ``--rounds`` fusions of all frames, each
   into a new volume, so the volume's growth is counted), and the seconds to extract the mesh. Where the tree has
   both integrations (``TSDFVolume(compiled=...)``), both run on the same frames and the volumes are compared to the
   bit.
@@ -84,10 +84,9 @@ def speed(frames: int, rounds: int) -> dict:
     """Integration (ms a frame) of each integration the tree has, and mesh extraction (s)."""
     from endoflow.config import Params
     from endoflow.reconstruction.fusion import TSDFVolume
-    from endoflow.reconstruction.reconstruct import default_voxel_cm
 
     K, rendered = rendered_frames(frames, 480)
-    voxel = default_voxel_cm(K, Params().model.max_depth, 480)
+    voxel = Params().model.max_depth / 4 / K[0, 0]  # reconstruct's default until it followed the depth
     kinds = {"compiled loops": {"compiled": True}, "tensor code": {"compiled": False}} \
         if "compiled" in inspect.signature(TSDFVolume).parameters else {"tensor code": {}}
     fused(K, rendered[:2], voxel, 4 * voxel, **next(iter(kinds.values())))  # compiles or warms up, untimed

@@ -25,7 +25,8 @@ more of them, and each is read a second time inside the per-frame figure (a 1080
 
 - ``video64``: the 1080p video at the model's 64 px, fused (decoding large frames on the critical path or not);
 - ``data64``: the 480 px dataset sequence at 64 px, fused;
-- ``data480``: the dataset sequence at 480 px, fused (the TSDF at the pixel footprint's voxel);
+- ``data480``: the dataset sequence at 480 px, fused (every fused case with the voxel :func:`far_footprint_cm` of
+  the first frame's depth, the same in both versions);
 - ``data480-nofusion``: the same without fusion;
 - ``data480-refined``: ``data480`` with the path refined against keyframes (``refine`` of the default params, what
   ``endoflow reconstruct`` does unless told ``--no-refine``);
@@ -97,6 +98,7 @@ def run_worker(args: argparse.Namespace) -> dict:
     """One case with whichever endoflow this process's PYTHONPATH names: frames/s of the timed call."""
     if CASES[args.worker[0]][0] == "core":
         return run_core(args)
+    import numpy as np
     import torch
 
     from endoflow.config import Params
@@ -115,18 +117,19 @@ def run_worker(args: argparse.Namespace) -> dict:
 
         refine = tracker_settings(Params().refine)
 
-    def call(frames: FrameRange, folder: Path) -> dict:
+    def call(frames: FrameRange, folder: Path, voxel_cm: Optional[float] = None) -> dict:
         options = ReconstructOptions(frames=frames, size=size, fuse=fuse, device=args.device, refine=refine,
-                                     **precision_option(args))
+                                     voxel_cm=voxel_cm, **precision_option(args))
         with open(os.devnull, "w") as nowhere, contextlib.redirect_stderr(nowhere):
             return reconstruct(source, K, work / "model.pt", folder, options)
 
-    call(FrameRange(stop=WARM_UP_FRAMES), out / "warm-up")
+    warm_up = call(FrameRange(stop=WARM_UP_FRAMES), out / "warm-up")
+    voxel = far_footprint_cm(written_depth(out / "warm-up", 0), np.asarray(warm_up["K"])) if fuse else None
     timed = {}
     half = (args.video_frames if kind == "video" else args.frames) // 2
     for name, frames in (("half", FrameRange(stop=half)), ("all", FrameRange())):
         started = time.perf_counter()
-        summary = call(frames, out / name)
+        summary = call(frames, out / name, voxel)
         timed[name] = {"frames": summary["frames"], "seconds": time.perf_counter() - started}
     shutil.rmtree(out)
     return timed
@@ -156,7 +159,6 @@ def run_core(args: argparse.Namespace) -> dict:
     model, record = load_trained_model(work / "model.pt", device)
     region = frame_region(source.native_size, None, source.description)
     K, _ = steps.input_intrinsics(source.K, region, size, model, record.params.data.assumed_fov_deg)
-    voxel = steps.default_voxel_cm(K, record.params.model.max_depth, size)
     batched = hasattr(steps, "predict_frames")  # this version; the earlier one predicts frame by frame
     batch = steps.frames_per_call(size, device) if batched else 1
     arithmetic = contextlib.nullcontext()
@@ -167,8 +169,7 @@ def run_core(args: argparse.Namespace) -> dict:
         arithmetic = autocast(device, args.precision)
 
     def fuse(frames: list) -> None:
-        volume = TSDFVolume(voxel, 4 * voxel, device) if batched else TSDFVolume(voxel, 4 * voxel)
-        pose, previous = np.eye(4), None
+        volume, pose, previous = None, np.eye(4), None
         with torch.no_grad():
             for start in range(0, len(frames), batch):
                 chunk = frames[start:start + batch]
@@ -182,6 +183,9 @@ def run_core(args: argparse.Namespace) -> dict:
                     predicted = [steps.predict_frame(model, images, previous, 1.0, work / "model.pt", start)]
                 for rgb, (depth, T_cur_prev) in zip(chunk, predicted):
                     pose = pose if T_cur_prev is None else pose @ invert_pose(T_cur_prev)
+                    if volume is None:
+                        voxel = far_footprint_cm(depth, K)
+                        volume = TSDFVolume(voxel, 4 * voxel, device) if batched else TSDFVolume(voxel, 4 * voxel)
                     volume.integrate(depth, rgb, K, pose)
                 previous = images[-1:]
         if device.type == "cuda":
@@ -194,6 +198,24 @@ def run_core(args: argparse.Namespace) -> dict:
         fuse(frames)
         timed[name] = {"frames": len(frames), "seconds": time.perf_counter() - started}
     return timed
+
+
+def far_footprint_cm(depth_cm: "np.ndarray", K: "np.ndarray") -> float:
+    """The voxel both versions fuse with: one pixel's footprint at the 95th percentile of the first frame's depth,
+    the rule of this tree's ``reconstruct`` (``default_voxel_cm``), which the earlier one may predate. (Before it
+    followed the depth, the default was the footprint at 5 cm, where the untrained model sees everything at about 0.2
+    cm: its surface then fused into a few voxels, and fusion looked cheap.)"""
+    import numpy as np
+
+    return float(np.quantile(depth_cm[depth_cm > 0], 0.95) / K[0, 0])
+
+
+def written_depth(folder: Path, index: int) -> "np.ndarray":
+    """Frame ``index``'s depth (cm) as a reconstruction in ``folder`` wrote it."""
+    import cv2
+
+    unit = json.loads((folder / "depth" / "depth.json").read_text())["unit_cm"]
+    return cv2.imread(str(folder / "depth" / f"{index:06d}.png"), cv2.IMREAD_UNCHANGED) * unit
 
 
 def precision_option(args: argparse.Namespace) -> dict:

@@ -541,7 +541,7 @@ class ReconstructConfig(Section):
         default_factory=_default_reconstructions, doc="by name (a reconstruct@<name> stage each): frames start, "
         "start + stride, ... below stop (null: to the end) of a sequence of data.<dataset>.root")
     size: Optional[ImageSize] = setting(None, "null: the model's data.size", unit="px")
-    voxel_cm: Optional[Number] = setting(None, "null: about one pixel's footprint at a quarter of the depth range",
+    voxel_cm: Optional[Number] = setting(None, "null: about one pixel's footprint at the first frame's far depth (its 95th percentile)",
                                          unit="cm", gt=0)
     trunc_cm: Optional[Number] = setting(None, "null: 4 voxels", unit="cm", gt=0)
     device: Device = setting("auto", "auto, cpu, cuda or cuda:N (endoflow.devices)")

@@ -220,14 +220,37 @@ def test_the_stage_reconstructs_with_the_model_as_trained_where_the_fit_is_not_b
 
 def test_an_empty_surface_is_written_and_said_with_the_voxel_that_would_give_one(
         scene: Path, model_file: Path, params: Params, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    # the untrained model sees everything at about 0.2 cm, and the default voxel is as wide as the view
-    summary = run(scene, model_file, tmp_path / "out", params, "S1", frames=FrameRange(stop=3))
+    # the untrained model sees everything at about 0.2 cm, and a voxel of 0.16 cm is as wide as the view
+    summary = run(scene, model_file, tmp_path / "out", params, "S1", frames=FrameRange(stop=3), voxel_cm=0.16)
     assert summary["mesh"]["vertices"] == 0 and len(read_ply_vertices(tmp_path / "out" / "points.ply")) == 0
     warning = capsys.readouterr().err
     assert "the fused surface is empty" in warning and "--voxel-cm about the pixel footprint" in warning
     footprint = float(warning.split("footprint there, ")[1].split(" cm")[0])
     finer = run(scene, model_file, tmp_path / "finer", params, "S1", frames=FrameRange(stop=3), voxel_cm=footprint)
     assert finer["mesh"]["vertices"] > 0
+
+
+def test_the_default_voxel_is_a_pixels_footprint_at_the_far_part_of_the_known_depth() -> None:
+    K = np.array([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]])
+    depth = np.zeros((8, 8), np.float32)
+    depth[:5] = np.arange(1, 41, dtype=np.float32).reshape(5, 8)  # 40 known pixels, 1 to 40 cm; the rest unknown
+    # the 95th percentile of 1..40 by linear interpolation: 1 + 0.95 * 39 = 38.05 cm, over fx
+    assert default_voxel_cm(depth, K) == pytest.approx(38.05 / 50.0, rel=1e-6)  # the quantile in float32
+    with pytest.raises(ValueError, match="no known pixel"):
+        default_voxel_cm(np.zeros((8, 8), np.float32), K)
+
+
+def test_depth_at_another_scale_fuses_the_same_surface_at_that_scale(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
+    # the voxel follows the depth: a model whose depth is 8 times larger (a power of two, so every product is
+    # exact) fuses the same surface 8 times larger, voxel for voxel
+    one, eight = (run(scene, model_file, tmp_path / f"x{scale}", params, "S1", frames=FrameRange(stop=4), scale=scale)
+                  for scale in (1.0, 8.0))
+    assert eight["tsdf"]["voxel_cm"] == 8 * one["tsdf"]["voxel_cm"]
+    assert one["tsdf"]["voxel_from"] == "the first frame's depth (0.95 quantile)"
+    vertices = read_ply_vertices(tmp_path / "x1.0" / "mesh.ply")
+    assert len(vertices) > 100
+    np.testing.assert_allclose(read_ply_vertices(tmp_path / "x8.0" / "mesh.ply"), 8 * vertices, rtol=1e-6)
 
 
 def test_a_folder_and_a_lossless_video_of_the_same_frames_give_the_dataset_sequences_depth(
@@ -447,10 +470,10 @@ def test_ground_truth_depth_along_ground_truth_poses_fuses_to_the_exact_surface_
         scene: Path, params: Params) -> None:
     seq = sequence(scene, params)
     K = stored_intrinsics(seq.K, seq.image_size, SIZE)
-    voxel = default_voxel_cm(K, params.model.max_depth, SIZE)
-    volume = TSDFVolume(voxel, 4 * voxel)
     frames = [seq.frame(i) for i in range(len(seq))]
     depths = [resize_depth(f.depth_cm, SIZE) for f in frames]
+    voxel = default_voxel_cm(depths[0], K)
+    volume = TSDFVolume(voxel, 4 * voxel)
     for frame, depth in zip(frames, depths):
         volume.integrate(depth, cv2.resize(frame.rgb, (SIZE, SIZE)), K, frame.T_world_cam)
     mesh = volume.extract_mesh()

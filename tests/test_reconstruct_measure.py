@@ -90,7 +90,8 @@ def write_ground_truth_as_reconstruction(source: DatasetFrames, out: Path) -> tu
     write_ply(out / "mesh.ply", mesh.vertices, mesh.colours, mesh.triangles)
     write_json(out / "reconstruction.json", {
         "frame_range": {"start": 0, "stop": None, "stride": 1}, "size": SIZE, "K": K.tolist(),
-        "depth_unit_cm": UNIT_CM, "frames_per_second": 10.0, "tsdf": {"voxel_cm": voxel, "trunc_cm": 4 * voxel},
+        "depth_unit_cm": UNIT_CM, "frames_per_second": 10.0,
+        "tsdf": {"voxel_cm": volume.voxel_cm, "trunc_cm": volume.trunc_cm},  # in its own unit, as it fused
         "ground_truth_scale": {"median": s, "spread": 0.0, "frames": FRAMES}})
     return R, t, s
 

@@ -47,6 +47,10 @@ class SurfaceMesh:
     triangles: np.ndarray
     colours: np.ndarray
 
+    @classmethod
+    def empty(cls) -> "SurfaceMesh":
+        return cls(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
+
 
 class TSDFVolume:
     """``voxel_cm``: voxel edge; ``trunc_cm``: truncation distance (a few voxels); ``device``: where the voxels live
@@ -201,7 +205,7 @@ class TSDFVolume:
         parts = [grid.chunk_mesh(index) for index in range(len(grid.chunks))]
         parts = [part for part in parts if len(part.vertices)]
         if not parts:
-            return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
+            return SurfaceMesh.empty()
         offsets = np.cumsum([0] + [len(part.vertices) for part in parts[:-1]])
         return SurfaceMesh(np.concatenate([part.vertices for part in parts]),
                            np.concatenate([part.triangles + offset for part, offset in zip(parts, offsets)]),
@@ -226,7 +230,7 @@ class _HostGrid:
         """The mesh of chunk ``index`` (of :attr:`chunks`), in world cm, coloured by each vertex's nearest voxel."""
         from skimage.measure import marching_cubes
 
-        empty = SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
+        empty = SurfaceMesh.empty()
         low = self.chunks[index] * CHUNK_BLOCKS
         size = CHUNK_BLOCKS * BLOCK + 1  # the chunk's voxels and the first layer of the next chunk's
         reads = slice(self.starts[index], self.starts[index + 1])

@@ -15,7 +15,9 @@ What is compared (all in the ground truth's world frame, cm):
   to the nearest ground-truth point, *completeness* from each ground-truth point to the nearest vertex (mean and
   median, cm), and ``completeness_ratio`` the share of ground-truth points within two voxels of the mesh.
 
-Rows of the surface table, each fused with the same TSDF (voxel, truncation) as the reconstruction:
+Rows of the surface table, each fused with the reconstruction's TSDF (voxel, truncation) brought to the ground
+truth's scale (times the median ratio of the ground truth's depth to the model's, which also sets the distance
+``completeness_ratio`` counts within):
 
 - ``ground_truth``: GT depth along the GT path, the fusion's floor;
 - ``model``: the reconstruction's own mesh (model depth along the model path);
@@ -82,8 +84,10 @@ def measure_reconstruction(source: FrameSource, out_dir: Path, baselines: Traini
         raise ValueError(f"{out_dir}: the reconstruction was run without fusion; measuring needs its surface")
     frames = FrameRange(**summary["frame_range"])
     size, K = int(summary["size"]), np.asarray(summary["K"], np.float64)
-    voxel, trunc = float(summary["tsdf"]["voxel_cm"]), float(summary["tsdf"]["trunc_cm"])
     depth_scale = float(summary.get("ground_truth_scale", {}).get("median", 1.0))
+    # the rows fuse depth at the ground truth's scale: the reconstruction's voxel and truncation are brought there,
+    # so that a voxel spans as much of the scene in every row as in the model's own surface
+    voxel, trunc = (float(summary["tsdf"][key]) * depth_scale for key in ("voxel_cm", "trunc_cm"))
     _, model_poses = read_tum(out_dir / "trajectory.tum")
     step = np.linalg.matrix_power(np.asarray(baselines.mean_relative_pose, np.float64), frames.stride)
     volumes = {row: TSDFVolume(voxel, trunc) for row in SURFACE_ROWS if row != "model"}
