@@ -1,13 +1,13 @@
 """The path refinement (``KeyframeTracker``) of an earlier version of the code against this one, in one run.
 
-    python benchmarks/bench_tracker.py --baseline DIR [--sizes 64 256 480] [--frames 12] [--threads 2]
+    python benchmarks/bench_tracker.py --baseline DIR [--sizes 64 256 480] [--frames 12] [--threads 2] [--device cpu]
 
 ``DIR`` holds an earlier ``endoflow`` package (``git archive <commit> endoflow | tar -x -C DIR``). For each size,
 sequence S1 of a synthetic SimCol3D layout is rendered once by this tree (``--frames`` frames with their exact depth,
-intrinsics and poses). Each version then tracks it in a fresh process with ``--threads`` torch threads and the
-default ``refine`` params: every frame from the previous refined pose times the previous refined step (constant
-velocity; the first step from the truth), aligned to the keyframes with the exact depth. One untimed pass, then a
-timed one. Printed per size: ms a tracked frame of each version and their ratio, how far this tree's steps are from
+intrinsics and poses). Each version then tracks it in a fresh process with ``--threads`` torch threads, the
+default ``refine`` params and the frames on ``--device`` (``cuda``: a GPU, waited for before the clock stops): every
+frame from the previous refined pose times the previous refined step (constant velocity; the first step from the
+truth), aligned to the keyframes with the exact depth. One untimed pass, then a timed one. Printed per size: ms a tracked frame of each version and their ratio, how far this tree's steps are from
 the earlier one's (translation relative to the step's length, rotation in degrees, the largest over the frames), and
 each version's mean step errors against the truth (translation in cm, rotation in degrees). Figures are printed, not
 asserted.
@@ -38,6 +38,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 256, 480])
     parser.add_argument("--frames", type=int, default=12)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu", help="where the frames are: cpu or cuda")
     parser.add_argument("--worker", nargs=2, metavar=("INPUTS", "OUT"), help=argparse.SUPPRESS)
     return parser.parse_args()
 
@@ -64,7 +65,7 @@ def make_inputs(folder: Path, size: int, frames: int, threads: int) -> Path:
     return path
 
 
-def run_worker(inputs: Path, out: Path, threads: int) -> None:
+def run_worker(inputs: Path, out: Path, threads: int, device: str) -> None:
     """Track the inputs with whichever endoflow this process's PYTHONPATH names; write the poses and the time."""
     import torch
 
@@ -73,15 +74,19 @@ def run_worker(inputs: Path, out: Path, threads: int) -> None:
 
     torch.set_num_threads(threads)
     data = torch.load(inputs, weights_only=True)
+    rgbs, depths = data["rgb"].to(device), data["depth"].to(device)
 
     def track() -> list[np.ndarray]:
         tracker = KeyframeTracker(data["K"], tracker_settings(Params().refine))
         truth = data["poses"].double()
-        poses = [tracker.track(data["rgb"][0], data["depth"][0], truth[0])]
+        # poses on the CPU whatever a version returns (an earlier one returned them on the frames' device)
+        poses = [tracker.track(rgbs[0], depths[0], truth[0]).cpu()]
         step = torch.linalg.inv(truth[0]) @ truth[1]
-        for rgb, depth in zip(data["rgb"][1:], data["depth"][1:]):
-            poses.append(tracker.track(rgb, depth, poses[-1] @ step))
+        for rgb, depth in zip(rgbs[1:], depths[1:]):
+            poses.append(tracker.track(rgb, depth, poses[-1] @ step).cpu())
             step = torch.linalg.inv(poses[-2]) @ poses[-1]
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
         return [pose.numpy() for pose in poses]
 
     track()
@@ -115,7 +120,7 @@ def step_errors(truth: np.ndarray, poses: np.ndarray) -> tuple[float, float]:
 def main() -> None:
     args = parse_args()
     if args.worker:
-        run_worker(Path(args.worker[0]), Path(args.worker[1]), args.threads)
+        run_worker(Path(args.worker[0]), Path(args.worker[1]), args.threads, args.device)
         return
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_tracker_") as folder:
@@ -127,7 +132,7 @@ def main() -> None:
                 tree = args.baseline.resolve() if version == "before" else ROOT
                 out = work / f"{version}{size}.json"
                 command = [sys.executable, __file__, "--baseline", str(args.baseline), "--threads", str(args.threads),
-                           "--worker", str(inputs), str(out)]
+                           "--device", args.device, "--worker", str(inputs), str(out)]
                 subprocess.run(command, env=environment_importing(tree), check=True)
                 results[version] = json.loads(out.read_text())
                 print(f"{size} px {version:6s} {results[version]['ms_per_frame']:8.1f} ms a tracked frame", flush=True)
@@ -137,8 +142,8 @@ def main() -> None:
             before, after = (np.array(results[v]["poses"]) for v in VERSIONS)
             rows.append((size, results["before"]["ms_per_frame"], results["after"]["ms_per_frame"],
                          *step_differences(before, after), *step_errors(truth, before), *step_errors(truth, after)))
-    print(f"\nKeyframeTracker, {args.frames} rendered frames with exact depth, {args.threads} torch threads; "
-          f"before: {args.baseline}")
+    print(f"\nKeyframeTracker, {args.frames} rendered frames with exact depth, {args.threads} torch threads, "
+          f"frames on {args.device}; before: {args.baseline}")
     print(f"{'size':>5s} {'before ms':>10s} {'after ms':>9s} {'before/after':>13s} {'steps: d trans':>15s} "
           f"{'d rot (deg)':>12s} {'error before: cm':>17s} {'deg':>7s} {'after: cm':>10s} {'deg':>7s}")
     for size, slow, fast, d_trans, d_rot, t_before, r_before, t_after, r_after in rows:

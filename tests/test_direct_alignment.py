@@ -66,6 +66,33 @@ def test_a_known_motion_is_recovered_from_a_start_a_frames_motion_off(rendered: 
     assert result.gain == pytest.approx(1.0, abs=0.05) and result.offset == pytest.approx(0.0, abs=0.02)
 
 
+@pytest.mark.parametrize("settings", [EXACT, AlignmentSettings()], ids=["light fall-off", "rotation prior"])
+def test_trying_several_dampings_at_once_as_a_gpu_does_takes_the_step_one_at_a_time_would(
+        rendered: dict, settings: AlignmentSettings, monkeypatch: pytest.MonkeyPatch):
+    truth = relative_pose(rendered["poses"][3], rendered["poses"][0])
+    # far enough off that steps are refused and the damping climbs: 1.5 degrees and 0.5 cm
+    nudge = pose_vec_to_matrix(torch.tensor([0.02, -0.015, 0.01, 0.3, -0.25, 0.3], dtype=torch.float64))
+    judged = []  # (states compared, refused) of each comparison
+    original = direct_alignment._compare
+    monkeypatch.setattr(direct_alignment, "_compare", lambda *a: judged.append(
+        (len(result := original(*a)), sum(after >= before for before, after, _ in result))) or result)
+
+    def aligned(at_once: int) -> direct_alignment.Alignment:
+        monkeypatch.setattr(direct_alignment, "candidates_at_once", lambda device: at_once)
+        judged.clear()
+        return align_to_keyframe(rendered["rgb"][0], rendered["depth"][0], rendered["rgb"][3], rendered["K"],
+                                 nudge @ torch.from_numpy(truth), settings)
+
+    one = aligned(1)
+    one_at_a_time = list(judged)
+    three = aligned(3)
+    assert sum(refused for _, refused in one_at_a_time) >= 3  # the damping climbed on the way
+    assert max(states for states, _ in one_at_a_time) == 1 and max(states for states, _ in judged) == 3
+    assert len(judged) < len(one_at_a_time)  # fewer waits for the device
+    torch.testing.assert_close(three.T_frame_key, one.T_frame_key, rtol=0, atol=1e-6)
+    assert three.cost_end == pytest.approx(one.cost_end, rel=1e-5) and three.valid_share == one.valid_share
+
+
 def test_a_strong_rotation_prior_keeps_the_start_rotation_and_leaves_the_translation_to_the_frames(rendered: dict):
     truth = relative_pose(rendered["poses"][3], rendered["poses"][0])
     turned = pose_vec_to_matrix(torch.tensor([0.003, -0.002, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)).numpy()

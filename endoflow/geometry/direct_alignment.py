@@ -37,6 +37,10 @@ from endoflow.shapes import check_shape
 SATURATED = 0.98  # a keyframe pixel with a channel above this is a highlight
 BLACK = 0.02  # a keyframe pixel with every channel below this is outside the field of view
 KEPT_SHARE = 0.5  # a step that leaves fewer than this share of the pixels taking part is refused
+# On a GPU the dampings a step would try one after the other are tried this many at a time: one more costs little
+# there, and each wait for the device costs much (with the untrained model's depth at 480 px a step tried 1.6
+# candidates on average). A CPU tries one at a time: there every candidate costs its full share.
+CANDIDATES_AT_ONCE = 3
 REFINE = RefineConfig()  # the defaults' one source, the config schema
 # The pixels' arithmetic (images, points, residuals, Jacobians, the normal equations' sums); the pose, the brightness
 # and each step are solved and composed in float64. Against all-float64, float32 moved the steps of 12 tracked frames
@@ -60,7 +64,7 @@ class AlignmentSettings:
 
 @dataclass(frozen=True)
 class Alignment:
-    """The result: ``T_frame_key [4, 4]`` (float64), the brightness ``gain``/``offset``, the robust cost at the
+    """The result: ``T_frame_key [4, 4]`` (float64, on the CPU), the brightness ``gain``/``offset``, the robust cost at the
     start and at the end (finest level, same pixels), and the share of keyframe pixels that took part."""
 
     T_frame_key: torch.Tensor
@@ -81,7 +85,9 @@ def align_to_keyframe(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb:
         K: ``[3, 3]`` pixel intrinsics of both images.
         T_frame_key: ``[4, 4]`` start.
 
-    The work runs on the images' device; ``K`` and ``T_frame_key`` join them there.
+    The pixels' work runs on the images' device (``K`` joins them there); the 8 parameters, each step's solve and
+    the decisions stay on the CPU, so a GPU is waited for about three times a Gauss-Newton step (the pixels taking
+    part, the normal equations, each candidate's costs), not at every small operation. The result is on the CPU.
     """
     sizes = check_shape("key_rgb", key_rgb, "3,H,W")
     check_shape("frame_rgb", frame_rgb, "3,H,W", **sizes)
@@ -91,19 +97,19 @@ def align_to_keyframe(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb:
     device = key_rgb.device
     pyramid = _pyramid(key_rgb.to(PIXEL_DTYPE), key_depth.to(device, PIXEL_DTYPE), frame_rgb.to(device, PIXEL_DTYPE),
                        K.to(device, PIXEL_DTYPE), settings.levels)
-    pose = T_frame_key.to(device, torch.float64).clone()
-    brightness = torch.zeros(2, dtype=torch.float64, device=device)
+    pose = T_frame_key.detach().to("cpu", torch.float64).clone()
+    brightness = torch.zeros(2, dtype=torch.float64)
     start, start_brightness = pose.clone(), brightness.clone()
     prior = _RotationPrior(start[:3, :3], settings.rotation_prior)
     for level in reversed(pyramid):
         pose, brightness = _refine_level(level, pose, brightness, settings, prior)
     finest = pyramid[0]
-    cost_start, cost_end, both = _compare(_costs(finest, (start, start_brightness), settings, prior),
-                                          _costs(finest, (pose, brightness), settings, prior))
+    (cost_start, cost_end, both), = _compare(_costs(finest, start[None], start_brightness[None], settings, prior),
+                                             _costs(finest, pose[None], brightness[None], settings, prior))
     if not cost_end <= cost_start:  # coarse levels can mislead: never hand back worse than the start
         pose, brightness, cost_end = start, start_brightness, cost_start
     return Alignment(pose, float(torch.exp(brightness[0])), float(brightness[1]), cost_start, cost_end,
-                     float(both.sum() / finest.usable.sum().clamp(min=1)))
+                     both / max(1, int(finest.usable.sum())))
 
 
 @dataclass(frozen=True)
@@ -186,9 +192,9 @@ def _well_exposed(rgb: torch.Tensor) -> torch.Tensor:
 
 
 class _Sample(NamedTuple):
-    """The frame at the keyframe points moved by a pose: its colours ``[3, N]``, the moved points ``[3, N]``, their
-    pixels ``[2, N]``, the sampling grid and which points take part (land inside, one pixel from the border, in
-    front, among well-exposed frame pixels)."""
+    """The frame at the keyframe points moved by each of ``B`` poses: its colours ``[B, 3, N]``, the moved points
+    ``[B, 3, N]``, their pixels ``[B, 2, N]``, the sampling grid ``[1, B, N, 2]`` and which points take part ``[B,
+    N]`` (land inside, one pixel from the border, in front, among well-exposed frame pixels)."""
 
     values: torch.Tensor
     moved: torch.Tensor
@@ -196,24 +202,32 @@ class _Sample(NamedTuple):
     grid: torch.Tensor
     inside: torch.Tensor
 
+    def pick(self, index: int) -> "_Sample":
+        """The sample of pose ``index`` alone (``B`` = 1)."""
+        return _Sample(self.values[index:index + 1], self.moved[index:index + 1], self.pixels[index:index + 1],
+                       self.grid[:, index:index + 1], self.inside[index:index + 1])
 
-def _sample(level: _Level, pose: torch.Tensor) -> _Sample:
-    """The frame's colours at the keyframe points moved by ``pose`` (a cost needs no more; a step also samples the
-    gradients there, :func:`_sampled_gradients`: most candidates are refused, so they are not sampled for nothing)."""
-    moved = pose[:3, :3].to(level.points.dtype) @ level.points + pose[:3, 3:4].to(level.points.dtype)
-    z = moved[2]
+
+def _sample(level: _Level, rigid: torch.Tensor) -> _Sample:
+    """The frame's colours at the keyframe points moved by each of ``rigid [B, 3, 4]`` (``[R | t]`` on the pixels'
+    device; a cost needs no more; a step also samples the gradients there, :func:`_sampled_gradients`: most
+    candidates are refused, so they are not sampled for nothing)."""
+    moved = rigid[:, :, :3] @ level.points + rigid[:, :, 3:]
+    z = moved[:, 2]
     projected = level.K @ moved
-    u, v = projected[0] / z.clamp(min=1e-9), projected[1] / z.clamp(min=1e-9)
+    u, v = projected[:, 0] / z.clamp(min=1e-9), projected[:, 1] / z.clamp(min=1e-9)
     height, width = level.frame.shape[-2:]
     inside = (z > 1e-6) & (u >= 1) & (u <= width - 2) & (v >= 1) & (v <= height - 2)
-    grid = sampling_grid(u, v, height, width)[None, None]
-    sampled = _grid_sample(level.frame, grid)
-    return _Sample(sampled[:3], moved, torch.stack([u, v]), grid, inside & (sampled[3] > 0.999))
+    grid = sampling_grid(u, v, height, width)[None]
+    sampled = F.grid_sample(level.frame, grid, mode="bilinear", padding_mode="border", align_corners=True)[0]
+    return _Sample(sampled[:3].transpose(0, 1), moved, torch.stack([u, v], dim=1), grid,
+                   inside & (sampled[3] > 0.999))
 
 
-def _sampled_gradients(level: _Level, sample: _Sample) -> torch.Tensor:
-    """``[6, N]``: the frame's horizontal and vertical gradients where ``sample`` sampled its colours."""
-    return _grid_sample(level.gradients, sample.grid)
+def _sampled_gradients(level: _Level, sample: _Sample, points: torch.Tensor) -> torch.Tensor:
+    """``[6, M]``: the frame's horizontal and vertical gradients where ``sample`` sampled the colours of ``points``
+    (indices ``[M]`` into its points; each point is sampled on its own, so a subset samples as the whole would)."""
+    return _grid_sample(level.gradients, sample.grid.index_select(2, points))
 
 
 def _grid_sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
@@ -228,83 +242,118 @@ def _huber(residual: torch.Tensor, delta: float) -> torch.Tensor:
 
 
 def _lit(level: _Level, moved: torch.Tensor, falloff: float) -> torch.Tensor | float:
-    """``[N]`` factor that brings a frame pixel's brightness to the keyframe's light: (distance in the frame /
-    distance in the keyframe) ^ falloff; 1 without a fall-off (the default), where the distances, the dearest part
-    of a cost at 480 px, would only be raised to the power 0."""
+    """``[..., 1, N]`` factor that brings a frame pixel's brightness to the keyframe's light, for points ``moved [...,
+    3, N]``: (distance in the frame / distance in the keyframe) ^ falloff; 1 without a fall-off (the default), where
+    the distances, the dearest part of a cost at 480 px, would only be raised to the power 0."""
     if not falloff:
         return 1.0
-    return (moved.norm(dim=0).clamp(min=1e-9) / level.distance) ** falloff
+    return (moved.norm(dim=-2, keepdim=True).clamp(min=1e-9) / level.distance) ** falloff
 
 
-def _costs(level: _Level, state: tuple[torch.Tensor, torch.Tensor], settings: AlignmentSettings,
+def _costs(level: _Level, poses: torch.Tensor, brightness: torch.Tensor, settings: AlignmentSettings,
            prior: _RotationPrior) -> tuple[torch.Tensor, torch.Tensor, _Sample]:
-    """Per-pixel cost ``[N]`` (Huber, summed over channels, plus the rotation prior's share) at ``state`` (pose,
-    brightness), where the pixels take part, and the frame sampled at the pose (what a step from it linearises)."""
-    pose, brightness = state
-    sample = _sample(level, pose)
-    lit = _lit(level, sample.moved, settings.light_falloff)
-    residual = torch.exp(brightness[0]) * lit * sample.values + brightness[1] - level.key_values
-    return _huber(residual, settings.huber).sum(dim=0) + prior.cost(pose), level.usable & sample.inside, sample
+    """Per-pixel costs ``[B, N]`` (Huber, summed over channels, plus the rotation prior's share) at each of ``B``
+    states (``poses [B, 4, 4]`` and ``brightness [B, 2]``, float64 on the CPU), where the pixels take part ``[B,
+    N]``, and the frame sampled at the poses (what a step from one linearises)."""
+    prior_costs = torch.tensor([prior.cost(pose) for pose in poses], dtype=poses.dtype)
+    # each state as [R | t], gain, offset and prior cost, sent to the pixels' device in one copy that does not wait
+    # for the device (from pageable memory the bytes are staged at once)
+    packed = torch.cat([poses[:, :3].reshape(len(poses), 12), brightness[:, :1].exp(), brightness[:, 1:],
+                        prior_costs[:, None]], dim=1).to(level.points.dtype).to(level.points.device, non_blocking=True)
+    sample = _sample(level, packed[:, :12].reshape(-1, 3, 4))
+    gain, offset, prior_cost = packed[:, 12:13, None], packed[:, 13:14, None], packed[:, 14:15]
+    residual = gain * _lit(level, sample.moved, settings.light_falloff) * sample.values + offset - level.key_values
+    return _huber(residual, settings.huber).sum(dim=1) + prior_cost, level.usable & sample.inside, sample
+
+
+def _pick(costs: tuple[torch.Tensor, torch.Tensor, _Sample], index: int) -> tuple[torch.Tensor, torch.Tensor, _Sample]:
+    """State ``index`` alone of :func:`_costs`' result."""
+    cost, part, sample = costs
+    return cost[index:index + 1], part[index:index + 1], sample.pick(index)
 
 
 def _compare(before: tuple[torch.Tensor, torch.Tensor, _Sample], after: tuple[torch.Tensor, torch.Tensor, _Sample]
-             ) -> tuple[float, float, torch.Tensor]:
-    """Mean costs before and after (each :func:`_costs`) over the pixels taking part in both, and those pixels."""
+             ) -> list[tuple[float, float, int]]:
+    """For each state of ``after`` (:func:`_costs`), the mean costs before (one state) and after over the pixels
+    taking part in both, and how many those are: sums in float64 on the pixels' device, read back at once. A state
+    that keeps fewer than :data:`KEPT_SHARE` of the pixels taking part before costs infinity."""
     (cost_before, part_before, _), (cost_after, part_after, _) = before, after
     both = part_before & part_after
-    if not both.any() or int(both.sum()) < KEPT_SHARE * int(part_before.sum()):
-        return float(cost_before[part_before].mean()) if part_before.any() else 0.0, float("inf"), both
-    return float(cost_before[both].mean()), float(cost_after[both].mean()), both
+    sums = [part_before, both] + [torch.where(mask, cost, 0) for mask, cost in
+                                  ((part_before, cost_before), (both, cost_before), (both, cost_after))]
+    judged = []
+    for taking_part, in_both, before_all, before_both, after_both in torch.stack(
+            [values.sum(dim=1, dtype=torch.float64).expand(len(both)) for values in sums], dim=1).tolist():
+        if not in_both or in_both < KEPT_SHARE * taking_part:
+            judged.append((before_all / taking_part if taking_part else 0.0, float("inf"), int(in_both)))
+        else:
+            judged.append((before_both / in_both, after_both / in_both, int(in_both)))
+    return judged
+
+
+def candidates_at_once(device: torch.device) -> int:
+    """How many dampings a Gauss-Newton step tries at a time on ``device`` (:data:`CANDIDATES_AT_ONCE`)."""
+    return 1 if device.type == "cpu" else CANDIDATES_AT_ONCE
 
 
 def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor, settings: AlignmentSettings,
                   prior: _RotationPrior) -> tuple[torch.Tensor, torch.Tensor]:
     damping = 1e-3
-    current = _costs(level, (pose, brightness), settings, prior)  # then the accepted candidate's: computed once
+    at_once = candidates_at_once(level.points.device)
+    current = _costs(level, pose[None], brightness[None], settings, prior)  # then the accepted candidate's
     for _ in range(settings.iterations):
         sample = current[2]  # the frame sampled at the pose
-        mask = level.usable & sample.inside
-        taking_part = int(mask.sum())
-        if taking_part < settings.min_pixels:
+        points = (level.usable & sample.inside[0]).nonzero()[:, 0]  # the pixels taking part
+        if len(points) < settings.min_pixels:
             break
-        residual, jacobian = _linearise(level, sample, _sampled_gradients(level, sample), brightness, mask,
+        residual, jacobian = _linearise(level, sample, _sampled_gradients(level, sample, points), brightness, points,
                                         settings.light_falloff)
         weights = torch.where(residual.abs() <= settings.huber, torch.ones_like(residual),
                               settings.huber / residual.abs().clamp(min=1e-12))
-        hessian = (jacobian.T @ (weights[:, None] * jacobian)).to(pose.dtype)
-        gradient = (jacobian.T @ (weights * residual)).to(pose.dtype)
+        # [8, 9]: the Hessian and the gradient, read back in one transfer
+        normal = torch.cat([jacobian.T @ (weights[:, None] * jacobian), (jacobian.T @ (weights * residual))[:, None]],
+                           dim=1).cpu().to(pose.dtype)
+        hessian, gradient = normal[:, :8], normal[:, 8]
         if prior.weight:
-            prior_hessian, prior_gradient = prior.normal_equations(pose, taking_part)
+            prior_hessian, prior_gradient = prior.normal_equations(pose, len(points))
             hessian[:6, :6] += prior_hessian
             gradient[:6] += prior_gradient
-        improved = False
-        while damping < 1e6:
-            step = -torch.linalg.solve(hessian + damping * torch.diag(hessian.diagonal().clamp(min=1e-12)), gradient)
-            candidate = (pose_vec_to_matrix(step[:6]) @ pose, brightness + step[6:])
-            candidate_costs = _costs(level, candidate, settings, prior)
-            before, after, _ = _compare(current, candidate_costs)
-            if after < before:
-                (pose, brightness), current, damping, improved = candidate, candidate_costs, damping / 3, True
-                break
-            damping *= 4
-        if not improved or float(step[:6].abs().max()) < 1e-7:
+        step = None  # the accepted one
+        while damping < 1e6 and step is None:
+            # the next dampings Levenberg-Marquardt would try one after the other; the first that lowers the cost wins
+            dampings = [damping * 4 ** k for k in range(at_once) if damping * 4 ** k < 1e6]
+            steps = [-torch.linalg.solve(hessian + tried * torch.diag(hessian.diagonal().clamp(min=1e-12)), gradient)
+                     for tried in dampings]
+            poses = torch.stack([pose_vec_to_matrix(tried[:6]) @ pose for tried in steps])
+            brightnesses = torch.stack([brightness + tried[6:] for tried in steps])
+            candidates = _costs(level, poses, brightnesses, settings, prior)
+            damping = dampings[-1] * 4
+            for index, (before, after, _) in enumerate(_compare(current, candidates)):
+                if after < before:
+                    pose, brightness, current = poses[index], brightnesses[index], _pick(candidates, index)
+                    step, damping = steps[index], dampings[index] / 3
+                    break
+        if step is None or float(step[:6].abs().max()) < 1e-7:
             break
     return pose, brightness
 
 
-def _linearise(level: _Level, sample: _Sample, gradients: torch.Tensor, brightness: torch.Tensor, mask: torch.Tensor,
-               falloff: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Residuals ``[M]`` and their Jacobian ``[M, 8]`` in (omega, t, gain, offset), over the masked pixels' three
-    channels. A left increment moves a point ``X`` to ``X + omega x X + t``."""
-    lit = _lit(level, sample.moved, falloff)
-    gain = torch.exp(brightness[0]) * (lit[mask] if falloff else lit)
-    X = sample.moved[:, mask]
-    u, v = sample.pixels[0, mask], sample.pixels[1, mask]
+def _linearise(level: _Level, sample: _Sample, gradients: torch.Tensor, brightness: torch.Tensor,
+               points: torch.Tensor, falloff: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residuals ``[M]`` and their Jacobian ``[M, 8]`` in (omega, t, gain, offset), over the three channels of the
+    ``points [M]`` (indices) taking part, whose ``gradients [6, M]`` are sampled. A left increment moves a point
+    ``X`` to ``X + omega x X + t``."""
+    lit = _lit(level, sample.moved[0], falloff)
+    gain = torch.exp(brightness[0]) * (lit.index_select(1, points) if falloff else lit)
+    # what the step reads of each point taking part, gathered in one pass
+    X, pixels, values, key_values = torch.cat([sample.moved[0], sample.pixels[0], sample.values[0],
+                                               level.key_values]).index_select(1, points).split([3, 2, 3, 3])
+    u, v = pixels
     z = X[2]
     K = level.K
     du = (K[0][:, None] - u * K[2][:, None]) / z  # [3, M]: d u / d X
     dv = (K[1][:, None] - v * K[2][:, None]) / z
-    values, gx, gy = sample.values[:, mask], gradients[0:3, mask], gradients[3:6, mask]
+    gx, gy = gradients[0:3], gradients[3:6]
     # d image / d X per channel: [3 channels, 3 coordinates, M]; the light's factor grows with |X|
     d_image = gx[:, None, :] * du[None] + gy[:, None, :] * dv[None]
     if falloff:
@@ -314,7 +363,7 @@ def _linearise(level: _Level, sample: _Sample, gradients: torch.Tensor, brightne
     # d X / d omega = -[X]_x, so d image / d omega = X x (d image / d X)
     d_omega = torch.cross(X[None].expand_as(d_image), d_image, dim=1)
     jacobian = torch.cat([d_omega, d_image, (gain * values)[:, None, :], torch.ones_like(values)[:, None, :]], dim=1)
-    residual = gain * values + brightness[1] - level.key_values[:, mask]
+    residual = gain * values + brightness[1] - key_values
     return residual.reshape(-1), jacobian.permute(0, 2, 1).reshape(-1, 8)
 
 
@@ -352,9 +401,9 @@ class KeyframeTracker:
     def track(self, rgb: torch.Tensor, depth: torch.Tensor, T_world_start: torch.Tensor) -> torch.Tensor:
         """``T_world_frame [4, 4]`` (float64) of the next frame (``rgb [3, H, W]`` in [0, 1], its depth
         ``[1, H, W]``), refined from ``T_world_start`` (made rigid); the first frame keeps its start and becomes a
-        keyframe. It is computed, and returned, on the frame's device."""
+        keyframe. The pixels' work runs on the frame's device, the poses are kept and returned on the CPU."""
         check_shape("T_world_start", T_world_start, "4,4")
-        start = nearest_rigid(T_world_start.to(rgb.device, torch.float64))
+        start = nearest_rigid(T_world_start.detach().to("cpu", torch.float64))
         if self.keyframe is None:
             self._make_keyframe(rgb, depth, start)
             return start
