@@ -9,8 +9,9 @@ measurement runs in a child process importing it. Both scenes are rendered by th
 of a SimCol3D layout, seed 1) with their exact depth, so the fusion has a real surface to fuse:
 
 - **speed**: ``--frames`` frames at 480 px, the voxel ``reconstruct`` picked there until it followed the depth
-  (``max_depth / 4 / fx``, fixed so that figures compare across commits), truncation 4 voxels; milliseconds a frame to integrate (the median of ``--rounds`` fusions of all frames, each
-  into a new volume, so the volume's growth is counted), and the seconds to extract the mesh. Where the tree has
+  (``max_depth / 4 / fx``, fixed so that figures compare across commits), truncation 4 voxels; milliseconds a
+  frame to integrate (the median of ``--rounds`` fusions of all frames, each into a new volume, so the volume's
+  growth is counted), and the seconds to extract the mesh. Where the tree has
   both integrations (``TSDFVolume(compiled=...)``), both run on the same frames and the volumes are compared to the
   bit.
 - **floor**: ``--frames`` frames at 64 px, voxel 0.15 cm (``tests/test_reconstruct_measure.py``'s scene and voxel),

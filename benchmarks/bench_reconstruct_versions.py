@@ -202,7 +202,8 @@ def run_core(args: argparse.Namespace) -> dict:
 
 def far_footprint_cm(depth_cm: "np.ndarray", K: "np.ndarray") -> float:
     """The voxel both versions fuse with: one pixel's footprint at the 95th percentile of the first frame's depth,
-    the rule of this tree's ``reconstruct`` (``default_voxel_cm``), which the earlier one may predate. (Before it
+    the rule of this tree's ``reconstruct`` (``default_voxel_cm``, there on the float depth, here on the depth as
+    written in 10 micrometre steps), which the earlier one may predate. (Before it
     followed the depth, the default was the footprint at 5 cm, where the untrained model sees everything at about 0.2
     cm: its surface then fused into a few voxels, and fusion looked cheap.)"""
     import numpy as np

@@ -7,10 +7,10 @@ sequence S1 of a synthetic SimCol3D layout is rendered once by this tree (``--fr
 intrinsics and poses). Each version then tracks it in a fresh process with ``--threads`` torch threads, the
 default ``refine`` params and the frames on ``--device`` (``cuda``: a GPU, waited for before the clock stops): every
 frame from the previous refined pose times the previous refined step (constant velocity; the first step from the
-truth), aligned to the keyframes with the exact depth. One untimed pass, then a timed one. Printed per size: ms a tracked frame of each version and their ratio, how far this tree's steps are from
-the earlier one's (translation relative to the step's length, rotation in degrees, the largest over the frames), and
-each version's mean step errors against the truth (translation in cm, rotation in degrees). Figures are printed, not
-asserted.
+truth), aligned to the keyframes with the exact depth. One untimed pass, then a timed one. Printed per size: ms a
+tracked frame of each version and their ratio, how far this tree's steps are from the earlier one's (translation
+relative to the step's length, rotation in degrees, the largest over the frames), and each version's mean step
+errors against the truth (translation in cm, rotation in degrees). Figures are printed, not asserted.
 """
 
 from __future__ import annotations

@@ -541,8 +541,9 @@ class ReconstructConfig(Section):
         default_factory=_default_reconstructions, doc="by name (a reconstruct@<name> stage each): frames start, "
         "start + stride, ... below stop (null: to the end) of a sequence of data.<dataset>.root")
     size: Optional[ImageSize] = setting(None, "null: the model's data.size", unit="px")
-    voxel_cm: Optional[Number] = setting(None, "null: about one pixel's footprint at the first frame's far depth (its 95th percentile)",
-                                         unit="cm", gt=0)
+    voxel_cm: Optional[Number] = setting(
+        None, "in the model's depth unit; null: about one pixel's footprint at the first frame's far depth (its 95th "
+        "percentile)", unit="cm", gt=0)
     trunc_cm: Optional[Number] = setting(None, "null: 4 voxels", unit="cm", gt=0)
     device: Device = setting("auto", "auto, cpu, cuda or cuda:N (endoflow.devices)")
     # self-supervised, the sequence's ground truth unused: what `endoflow reconstruct --adapt` does for a user's video

@@ -64,8 +64,8 @@ class AlignmentSettings:
 
 @dataclass(frozen=True)
 class Alignment:
-    """The result: ``T_frame_key [4, 4]`` (float64, on the CPU), the brightness ``gain``/``offset``, the robust cost at the
-    start and at the end (finest level, same pixels), and the share of keyframe pixels that took part."""
+    """The result: ``T_frame_key [4, 4]`` (float64, on the CPU), the brightness ``gain``/``offset``, the robust
+    cost at the start and at the end (finest level, same pixels), and the share of keyframe pixels that took part."""
 
     T_frame_key: torch.Tensor
     gain: float

@@ -33,6 +33,7 @@ from endoflow.reconstruction.reconstruct import (
     EARLIER_RECONSTRUCTION,
     RECONSTRUCTION_FORMAT,
     ReconstructOptions,
+    VOXEL_DEFAULT,
     reconstruct,
 )
 
@@ -183,9 +184,10 @@ def resume_key(video: Path, settings: ManySettings, model_sha256: str) -> str:
     """A hash of what a video's folder is made from: the reconstruction format, the video file (path, size and
     modification time: hashing hours of video would read all of it on every run), the model's bytes, the
     intrinsics given (a file by its path, size and time), the options but ``force`` (which changes no output),
-    and the thread count (another count sums in another order)."""
+    the default voxel's rule (where none is given) and the thread count (another count sums in another order)."""
     spec = settings.intrinsics
-    record = {"format": RECONSTRUCTION_FORMAT, "video": file_state(video), "model": model_sha256,
+    record = {"format": RECONSTRUCTION_FORMAT, "voxel_default": VOXEL_DEFAULT, "video": file_state(video),
+              "model": model_sha256,
               "intrinsics": file_state(Path(spec)) if spec is not None and Path(spec).is_file() else spec,
               "options": {**asdict(settings.options), "force": None}, "threads": settings.threads}
     return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()

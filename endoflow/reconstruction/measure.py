@@ -17,7 +17,9 @@ What is compared (all in the ground truth's world frame, cm):
 
 Rows of the surface table, each fused with the reconstruction's TSDF (voxel, truncation) brought to the ground
 truth's scale (times the median ratio of the ground truth's depth to the model's, which also sets the distance
-``completeness_ratio`` counts within):
+``completeness_ratio`` counts within). The model's own mesh is mapped by its path's Sim(3) scale, so its voxel
+there is the reconstruction's times the path's scale: the same as the rows' where path and depth share one scale
+(``scale_over_depth`` 1), coarser where the path's scale is larger:
 
 - ``ground_truth``: GT depth along the GT path, the fusion's floor;
 - ``model``: the reconstruction's own mesh (model depth along the model path);

@@ -74,7 +74,8 @@ EARLIER_RECONSTRUCTION = marked_output(f"an earlier endoflow reconstruction (its
 @dataclass(frozen=True)
 class ReconstructOptions:
     """``size``: square model input in px (None: the model's ``data.size``); ``scale``: factor on depth and path;
-    ``voxel_cm``/``trunc_cm``: TSDF voxel and truncation (None: from the model's depth range and ``size``);
+    ``voxel_cm``/``trunc_cm``: TSDF voxel and truncation in the depth's unit (None: from the first frame's depth,
+    :func:`default_voxel_cm`; 4 voxels);
     ``npy``: also write float32 depth; ``fuse``: build the surface; ``device``: ``auto``, ``cpu`` or ``cuda``;
     ``force``: replace an output folder that holds something other than an earlier reconstruction; ``crop``: the
     region of the frames to use (None: all of it; see :mod:`endoflow.data.crop`); ``refine``: the
@@ -192,7 +193,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                     writes.submit(write_frame_outputs, frame.index, rgb, depth, pose, preview,
                                   FrameOutputs(unit, K, video, recording, sampler))
                     if options.fuse:
-                        volume = volume or fusion_volume(depth, K, options, device)
+                        if volume is None:
+                            volume = fusion_volume(depth, K, options, device)
                         volume.integrate(depth, rgb, K, pose)
                     report_progress(path.count, progress)
                 previous = images[-1:]
@@ -422,8 +424,11 @@ def write_frame_outputs(index: int, rgb: np.ndarray, depth: np.ndarray, pose: np
 # The default voxel is one pixel's footprint at this quantile of the first frame's depth (inside the field of view):
 # the far part of the scene. For a model whose depth is metric (one trained on phase-crossing data) that is close to
 # the default before it followed the depth, the footprint at a quarter of the model's 20 cm range: 0.13-0.16 cm on
-# the built-in S5, O1 and EndoSLAM colon at 64 px, against 0.16. Finer wastes memory and time on noise.
+# the built-in S5, O1 and EndoSLAM colon at 64 px, against 0.163. Finer wastes memory and time on noise.
 VOXEL_DEPTH_QUANTILE = 0.95
+# What reconstruction.json says of the default voxel, and what a run over many videos keys its folders by: a folder
+# fused by an earlier rule is made again.
+VOXEL_DEFAULT = f"the first frame's depth ({VOXEL_DEPTH_QUANTILE:g} quantile)"
 
 
 def default_voxel_cm(depth_cm: np.ndarray, K: np.ndarray) -> float:
@@ -447,7 +452,7 @@ def fusion_volume(depth_cm: np.ndarray, K: np.ndarray, options: ReconstructOptio
 
 def fusion_summary(volume: TSDFVolume, options: ReconstructOptions) -> dict:
     """``reconstruction.json``'s ``tsdf``: voxel, truncation and where the voxel came from."""
-    voxel_from = "given" if options.voxel_cm else f"the first frame's depth ({VOXEL_DEPTH_QUANTILE:g} quantile)"
+    voxel_from = "given" if options.voxel_cm else VOXEL_DEFAULT
     return {"voxel_cm": volume.voxel_cm, "trunc_cm": volume.trunc_cm, "voxel_from": voxel_from}
 
 
