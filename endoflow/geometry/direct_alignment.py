@@ -219,7 +219,7 @@ def _sample(level: _Level, rigid: torch.Tensor) -> _Sample:
     height, width = level.frame.shape[-2:]
     inside = (z > 1e-6) & (u >= 1) & (u <= width - 2) & (v >= 1) & (v <= height - 2)
     grid = sampling_grid(u, v, height, width)[None]
-    sampled = F.grid_sample(level.frame, grid, mode="bilinear", padding_mode="border", align_corners=True)[0]
+    sampled = _grid_sample(level.frame, grid)
     return _Sample(sampled[:3].transpose(0, 1), moved, torch.stack([u, v], dim=1), grid,
                    inside & (sampled[3] > 0.999))
 
@@ -227,13 +227,13 @@ def _sample(level: _Level, rigid: torch.Tensor) -> _Sample:
 def _sampled_gradients(level: _Level, sample: _Sample, points: torch.Tensor) -> torch.Tensor:
     """``[6, M]``: the frame's horizontal and vertical gradients where ``sample`` sampled the colours of ``points``
     (indices ``[M]`` into its points; each point is sampled on its own, so a subset samples as the whole would)."""
-    return _grid_sample(level.gradients, sample.grid.index_select(2, points))
+    return _grid_sample(level.gradients, sample.grid.index_select(2, points))[:, 0]
 
 
 def _grid_sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """``image [1, C, H, W]`` sampled bilinearly at ``grid [1, 1, N, 2]``: ``[C, N]`` (each channel on its own, so
-    sampling the channels apart gives what sampling them together does, to the bit)."""
-    return F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)[0, :, 0]
+    """``image [1, C, H, W]`` sampled bilinearly at ``grid [1, B, N, 2]``: ``[C, B, N]`` (each channel and point on
+    its own, so sampling channels or points apart gives what sampling them together does, to the bit)."""
+    return F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)[0]
 
 
 def _huber(residual: torch.Tensor, delta: float) -> torch.Tensor:
