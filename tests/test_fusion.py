@@ -152,6 +152,27 @@ def test_the_chunked_mesh_is_the_mesh_of_the_whole_grid_at_once() -> None:
         assert cKDTree(those).query(these)[0].max() < 0.01 * volume.voxel_cm
 
 
+def test_each_vertex_takes_the_colour_of_its_nearest_voxel() -> None:
+    from endoflow.reconstruction.fusion import BLOCK
+
+    volume = TSDFVolume(0.02, 0.08)
+    for frame in wavy_frames():
+        volume.integrate(*frame)
+    mesh = volume.extract_mesh()
+    row_of = dict(zip(map(tuple, unpack_block_keys(volume._keys).tolist()), volume._rows.tolist()))
+    voxels = mesh.vertices / volume.voxel_cm - 0.5  # voxel centres sit at (index + 0.5) voxels
+    clear = np.all(np.abs(voxels - np.floor(voxels) - 0.5) > 1e-3, axis=1)  # not halfway: one nearest voxel
+    nearest = np.round(voxels[clear]).astype(np.int64)
+    expected = []
+    for voxel in nearest:  # the plainest reading: the block, its row, the voxel's place in it
+        block = tuple(np.floor_divide(voxel, BLOCK).tolist())
+        i, j, k = voxel - np.array(block) * BLOCK
+        expected.append(volume._colour[row_of[block], (i * BLOCK + j) * BLOCK + k].numpy())
+    expected = np.clip(np.round(np.array(expected)), 0, 255).astype(np.uint8)
+    assert clear.mean() > 0.9 and len(np.unique(expected, axis=0)) > 100  # the frames' random colours, mixed
+    np.testing.assert_array_equal(mesh.colours[clear], expected)
+
+
 def test_no_face_reaches_a_voxel_never_observed() -> None:
     tsdf = np.ones((4, 4, 4), np.float32)
     tsdf[1, 1, 1] = -1.0  # behind the surface: a crossing on each edge from it

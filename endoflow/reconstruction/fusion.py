@@ -21,6 +21,7 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -31,7 +32,9 @@ from endoflow.reconstruction import tsdf_loops
 
 BLOCK = 8  # voxels per block edge
 CHUNK_BLOCKS = 8  # blocks per chunk edge when extracting the mesh: 64^3 voxels at a time
-UPDATE_BLOCKS = 4096  # blocks updated at once: bounded temporaries, 4096 blocks of 512 voxels
+# Blocks updated at once: bounded temporaries (about 50 bytes a voxel, 512 voxels a block). On a GPU each pass waits
+# for it once, and a 480 px frame touches about 10,000 blocks: one pass there, within half a gigabyte.
+UPDATE_BLOCKS = {"cpu": 4096, "cuda": 16384}
 # A block's integer coordinates are packed into one int64 key, 21 bits per axis: +-2^20 blocks, 1.7 km at the
 # 0.02 cm voxel of 480 px input. Keys sort as their coordinates do (x, then y, then z).
 _KEY_BITS = 21
@@ -90,8 +93,9 @@ class TSDFVolume:
         rows = self._rows_of(keys)
         colour = torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device)
         T_cam_world = np.linalg.inv(np.asarray(T_world_cam, np.float64))
-        for start in range(0, len(keys), UPDATE_BLOCKS):
-            chunk = slice(start, start + UPDATE_BLOCKS)
+        at_once = UPDATE_BLOCKS.get(self.device.type, UPDATE_BLOCKS["cpu"])
+        for start in range(0, len(keys), at_once):
+            chunk = slice(start, start + at_once)
             self._update(keys[chunk], rows[chunk], depth, colour, np.asarray(K, np.float64), T_cam_world)
 
     def _touched_keys(self, depth: torch.Tensor, K: np.ndarray, T_world_cam: np.ndarray) -> torch.Tensor:
@@ -209,35 +213,52 @@ class TSDFVolume:
         offsets = np.cumsum([0] + [len(part.vertices) for part in parts[:-1]])
         return SurfaceMesh(np.concatenate([part.vertices for part in parts]),
                            np.concatenate([part.triangles + offset for part, offset in zip(parts, offsets)]),
-                           np.concatenate([part.colours for part in parts]))
+                           self._colours_of(np.concatenate([part.voxels for part in parts])))
+
+    def _colours_of(self, voxels: np.ndarray) -> np.ndarray:
+        """The uint8 colours ``[V, 3]`` of the voxels at flat indices ``voxels [V]`` (``row * BLOCK^3`` plus the
+        voxel's place in its block; -1: none, black), gathered where the voxels live: only the surface's colours
+        leave a GPU, not the volume's (at 480 px, 60 frames: 370 MB)."""
+        index = torch.from_numpy(voxels).to(self.device)
+        colours = self._colour.view(-1, 3).index_select(0, index.clamp(min=0))
+        colours = torch.where((index >= 0)[:, None], colours, torch.zeros((), device=self.device))
+        return colours.round().clamp(0, 255).to(torch.uint8).cpu().numpy()
+
+
+class _ChunkMesh(NamedTuple):
+    """A chunk's part of the mesh: vertices ``[V, 3]`` (world, cm), triangles ``[F, 3]`` (the chunk's vertex
+    indices) and each vertex's nearest voxel (flat, as :meth:`TSDFVolume._colours_of` takes them)."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    voxels: np.ndarray
 
 
 class _HostGrid:
-    """A volume's voxels copied to host memory once, with the blocks each chunk reads (:func:`_chunk_reads`): what
-    marching cubes reads, chunk by chunk."""
+    """What marching cubes reads of a volume, copied to host memory once: the TSDF and which voxels were observed
+    (not the colours: :meth:`TSDFVolume._colours_of` reads those for the vertices alone), with the blocks each
+    chunk reads (:func:`_chunk_reads`)."""
 
     def __init__(self, volume: TSDFVolume) -> None:
         count = volume.block_count
         coords = unpack_block_keys(volume._keys).cpu().numpy()
         rows = volume._rows.cpu().numpy()
         self.tsdf = volume._tsdf[:count].cpu().numpy().reshape(-1, BLOCK, BLOCK, BLOCK)
-        self.weight = volume._weight[:count].cpu().numpy().reshape(-1, BLOCK, BLOCK, BLOCK)
-        self.colour = volume._colour[:count].cpu().numpy().reshape(-1, BLOCK, BLOCK, BLOCK, 3)
+        self.observed = (volume._weight[:count] > 0).cpu().numpy().reshape(-1, BLOCK, BLOCK, BLOCK)
         self.voxel_cm = volume.voxel_cm
         self.chunks, self.places, self.rows, self.starts = _chunk_reads(coords, rows)
 
-    def chunk_mesh(self, index: int) -> SurfaceMesh:
-        """The mesh of chunk ``index`` (of :attr:`chunks`), in world cm, coloured by each vertex's nearest voxel."""
+    def chunk_mesh(self, index: int) -> _ChunkMesh:
+        """The mesh of chunk ``index`` (of :attr:`chunks`), in world cm, with each vertex's nearest voxel."""
         from skimage.measure import marching_cubes
 
-        empty = SurfaceMesh.empty()
+        empty = _ChunkMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.int64))
         low = self.chunks[index] * CHUNK_BLOCKS
         size = CHUNK_BLOCKS * BLOCK + 1  # the chunk's voxels and the first layer of the next chunk's
         reads = slice(self.starts[index], self.starts[index + 1])
         places, rows = tuple(self.places[reads].T), self.rows[reads]
         tsdf = _dense(self.tsdf, places, rows, 1.0)
-        weight = _dense(self.weight, places, rows, 0.0)
-        observed = weight > 0
+        observed = _dense(self.observed, places, rows, False)
         cubes = observed_cubes(observed)
         if not (cubes.any() and tsdf[observed].min() < 0 < tsdf[observed].max()):
             return empty
@@ -246,19 +267,20 @@ class _HostGrid:
         except (ValueError, RuntimeError):  # no crossing among the masked cubes
             return empty
         nearest = np.clip(np.round(vertices).astype(np.int64), 0, size - 1)
-        colours = self._colours_at(nearest, places, rows)
         world = (vertices + low * BLOCK + 0.5) * self.voxel_cm
-        return SurfaceMesh(world, triangles.astype(np.int64), np.clip(np.round(colours), 0, 255).astype(np.uint8))
+        return _ChunkMesh(world, triangles.astype(np.int64), _voxels_at(nearest, places, rows))
 
-    def _colours_at(self, voxels: np.ndarray, places: tuple[np.ndarray, ...], rows: np.ndarray) -> np.ndarray:
-        """The colours ``[V, 3]`` of a chunk's voxels ``voxels [V, 3]`` (indices into the chunk's voxel grid)
-        whose blocks are ``rows`` at ``places``; black where no block is (never observed)."""
-        row_at = np.full((CHUNK_BLOCKS + 1,) * 3, -1, np.int64)
-        row_at[places] = rows
-        block, local = np.divmod(voxels, BLOCK)
-        row = row_at[block[:, 0], block[:, 1], block[:, 2]]
-        colours = self.colour[np.maximum(row, 0), local[:, 0], local[:, 1], local[:, 2]]
-        return np.where((row >= 0)[:, None], colours, np.float32(0))
+
+def _voxels_at(voxels: np.ndarray, places: tuple[np.ndarray, ...], rows: np.ndarray) -> np.ndarray:
+    """The flat indices (``row * BLOCK^3 + i * BLOCK^2 + j * BLOCK + k``) of a chunk's voxels ``voxels [V, 3]``
+    (indices into the chunk's voxel grid) whose blocks are ``rows`` at ``places``; -1 where no block is (never
+    observed)."""
+    row_at = np.full((CHUNK_BLOCKS + 1,) * 3, -1, np.int64)
+    row_at[places] = rows
+    block, local = np.divmod(voxels, BLOCK)
+    row = row_at[block[:, 0], block[:, 1], block[:, 2]]
+    flat = row * BLOCK**3 + (local[:, 0] * BLOCK + local[:, 1]) * BLOCK + local[:, 2]
+    return np.where(row >= 0, flat, -1)
 
 
 def _chunk_reads(coords: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
