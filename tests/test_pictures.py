@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
+from endoflow.reconstruction import pictures
 from endoflow.reconstruction.pictures import (
     BACKGROUND,
     DEFAULT_FPS,
@@ -322,6 +323,28 @@ def test_every_depth_picture_of_the_sheet_has_a_colour_bar_in_cm_with_the_previe
     np.testing.assert_allclose(bars["depth (cm)"].mappable.to_rgba(depths)[:, :3], expected, atol=0.04)
     ticks = bars["depth (cm)"].get_ticks()
     assert ticks.min() == pytest.approx(near) and ticks.max() == pytest.approx(far)
+
+
+def surface_views(sheet: Figure) -> list:
+    """The pixels of the sheet's two views of the surface, in colour and by depth."""
+    views = [axes for axes in sheet.axes if axes.get_title().startswith(("fused surface", "by depth"))]
+    return [axes.get_images()[0].get_array() for axes in views]
+
+
+def test_a_surface_of_more_vertices_than_the_splat_takes_is_drawn_from_every_kth_and_titled_with_all(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    vertices, colours = tube(2_000)
+    poses = path_along_z(20)
+    alone = contact_sheet([sample(0)], PREVIEW_RANGE_CM, poses, vertices, colours, "t")
+    monkeypatch.setattr(pictures, "SPLAT_POINTS", 2_000)
+    # each vertex three times over, the second and third in red: every third vertex is the tube once, while all of
+    # them would show red (of points at one depth the last listed wins)
+    tripled, red = np.repeat(vertices, 3, axis=0), np.repeat(colours, 3, axis=0)
+    red[1::3] = red[2::3] = (255, 0, 0)
+    threefold = contact_sheet([sample(0)], PREVIEW_RANGE_CM, poses, tripled, red, "t")
+    for drawn, expected in zip(surface_views(threefold), surface_views(alone), strict=True):
+        np.testing.assert_array_equal(drawn, expected)
+    assert "fused surface (6,000 vertices)" in [axes.get_title() for axes in threefold.axes]
 
 
 def test_the_sheet_draws_the_ground_truth_path_beside_the_models_where_given() -> None:

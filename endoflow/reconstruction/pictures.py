@@ -62,6 +62,9 @@ SHEET_MIN_COLUMNS = 6  # sample slots per row, so one sample is as big as one of
 SPLAT_SIZE = 320  # px of the surface views, about as large as they show on the sheet
 FOOTPRINT_BLOCK = 8  # px: splats grow up to this size to close the gaps between sparse points
 SPLAT_BUDGET = 2_000_000  # point squares per splat: 200k vertices at 3 x 3 px take about 0.2 s
+# Vertices splatted at most (every k-th beyond): a 320 px view has 100k pixels, and a long video's surface has
+# millions of vertices (15 million took the sheet 13 s), which add time and memory but nothing the view can show.
+SPLAT_POINTS = 1_000_000
 BACKGROUND = (24, 24, 24)  # dark, so the tissue's colours stand out
 DIRECTION_MARKS = 12  # viewing-direction segments drawn along the path
 EMPTY_SURFACE_TEXT = "no surface (fusion off or nothing observed)"
@@ -410,7 +413,8 @@ def draw_path(axis: Axes, poses: np.ndarray, horizontal: int, vertical: int,
 
 def draw_surface(colour_axis: Axes, depth_axis: Axes, vertices: np.ndarray, colours: np.ndarray,
                  first_pose: np.ndarray) -> None:
-    """The surface splatted from the overview camera in its own colours and coloured by depth from it."""
+    """The surface splatted from the overview camera in its own colours and coloured by depth from it (at most
+    :data:`SPLAT_POINTS` of its vertices, evenly through the list)."""
     for axis in (colour_axis, depth_axis):
         axis.axis("off")
     if len(vertices) == 0:
@@ -418,12 +422,14 @@ def draw_surface(colour_axis: Axes, depth_axis: Axes, vertices: np.ndarray, colo
                          transform=colour_axis.transAxes)
         colour_axis.set_title("fused surface")
         return
+    colour_axis.set_title(f"fused surface ({len(vertices):,} vertices)")
+    every = math.ceil(len(vertices) / SPLAT_POINTS)
+    vertices, colours = vertices[::every], colours[::every]
     K, pose = overview_camera(vertices, first_pose, SPLAT_SIZE)
     point_px = splat_footprint(nearest_points(vertices, K, pose, SPLAT_SIZE, SPLAT_SIZE)[0], SPLAT_SIZE,
                                len(vertices))
     visible = nearest_points(vertices, K, pose, SPLAT_SIZE, SPLAT_SIZE, point_px)
     colour_axis.imshow(paint(visible, colours, SPLAT_SIZE, SPLAT_SIZE), interpolation="nearest")
-    colour_axis.set_title(f"fused surface ({len(vertices):,} vertices)")
     z = (vertices - pose[:3, 3]) @ pose[:3, 2]
     near, far = np.percentile(z, [1, 99])
     near = max(float(near), 1e-3)  # points behind the view are not drawn; inverse depth needs near > 0
