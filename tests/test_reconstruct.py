@@ -23,12 +23,14 @@ from endoflow.errors import DataFormatError
 from endoflow.io import file_sha256
 from endoflow.models.endoflow_model import build_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_model_file, save_model_file
-from endoflow.reconstruction.frames import FrameRange, intrinsics_for, open_frames
+from endoflow.reconstruction.frames import FrameRange, InputFrame, intrinsics_for, open_frames
 from endoflow.reconstruction.fusion import TSDFVolume, read_ply_vertices
 from endoflow.reconstruction.measure import run_reconstruction
 from endoflow.reconstruction.reconstruct import (
     ADAPTED_MODEL,
     Adaptation,
+    CameraPath,
+    PathPhotometry,
     RECONSTRUCTION_FORMAT,
     ReconstructOptions,
     default_voxel_cm,
@@ -130,14 +132,15 @@ def depth_of(out: Path, index: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------- outputs
-def test_the_outputs_are_the_same_files_whatever_the_number_of_encoding_threads(
+def test_the_outputs_are_the_same_files_whatever_the_number_of_encoding_and_decoding_threads(
         scene: Path, model_file: Path, params: Params, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import endoflow.reconstruction.reconstruct as reconstruction
     from endoflow.reconstruction import streams
 
     outputs = {}
-    for cores in (2, 16):  # the writer encodes, then four encoding threads do
+    for cores in (2, 16):  # the writer encodes and one thread decodes, then four threads do each
         monkeypatch.setattr(reconstruction, "Encoders", lambda cores=cores: streams.Encoders(cores))
+        monkeypatch.setattr(reconstruction, "side_threads", lambda cores=cores: streams.side_threads(cores))
         out = tmp_path / f"cores{cores}"
         run(scene, model_file, out, params, "S1", npy=True)
         # every file but the contact sheet, whose title holds the frames/s
@@ -164,6 +167,7 @@ def test_a_dataset_sequence_gives_depth_path_surface_and_the_scale_that_fits_its
     assert len((out / "trajectory.kitti").read_text().splitlines()) == FRAMES
     assert len(list((out / "simcol" / "pose").glob("FrameBuffer_*_to_FrameBuffer_*.txt"))) == FRAMES - 1
     assert len(read_ply_vertices(out / "points.ply")) == summary["mesh"]["vertices"] > 0
+    assert 0 < summary["surface_seconds"] < summary["seconds"]  # the time of the call spent on the surface
     assert summary["ground_truth_scale"]["frames"] == FRAMES and summary["ground_truth_scale"]["median"] > 0
     assert json.loads((out / "reconstruction.json").read_text())["frames"] == FRAMES
     rows = recorded_rows(out / "recording.rrd")
@@ -272,7 +276,7 @@ def test_a_folder_and_a_lossless_video_of_the_same_frames_give_the_dataset_seque
 def test_start_stop_and_stride_pick_frames_and_name_outputs_by_input_position(
         scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
     summary = run(scene, model_file, tmp_path / "out", params, "S1", frames=FrameRange(1, 7, 2), fuse=False)
-    assert summary["frames"] == 3
+    assert summary["frames"] == 3 and summary["surface_seconds"] is None  # no surface, no time for it
     assert sorted(p.name for p in (tmp_path / "out" / "depth").glob("*.png")) == \
         ["000001.png", "000003.png", "000005.png"]
 
@@ -498,8 +502,6 @@ def test_ground_truth_depth_along_ground_truth_poses_fuses_to_the_exact_surface_
 
 
 def test_a_long_path_stays_rigid_however_many_float32_steps_it_chains() -> None:
-    from endoflow.reconstruction.frames import InputFrame
-    from endoflow.reconstruction.reconstruct import CameraPath
 
     rng = np.random.default_rng(0)
     angle = 0.01
@@ -572,3 +574,63 @@ def test_small_frames_share_a_network_call_on_a_cpu_and_large_ones_go_alone() ->
     cpu, gpu = torch.device("cpu"), torch.device("cuda")
     assert frames_per_call(64, cpu) == 8 and frames_per_call(128, cpu) == 2 and frames_per_call(480, cpu) == 1
     assert frames_per_call(480, gpu) == frames_per_call(64, gpu) > 1
+
+
+def test_each_paths_photometric_error_is_the_mean_over_frames_of_its_own_steps_warp_error() -> None:
+    from endoflow.losses.photometric import view_synthesis_error
+
+    rng = np.random.default_rng(5)
+    K = np.array([[24.0, 0.0, 15.5], [0.0, 24.0, 15.5], [0.0, 0.0, 1.0]])
+    v, u = np.mgrid[0:32, 0:32]
+    frames = [np.clip(np.stack([4 * u + 3 * i, 4 * v, 128 + 2 * u - v], -1) + rng.normal(0, 6, (32, 32, 3)), 0, 255)
+              .astype(np.uint8) for i in range(4)]
+    depths = [np.full((32, 32), 4.0 + i, np.float32) for i in range(4)]
+    for depth in depths:
+        depth[:, :3] = 0  # unknown: outside the field of view
+    refined, network = [np.eye(4)], [np.eye(4)]
+    for i in range(1, 4):
+        refined.append(refined[-1] @ pose_step(0.02 * i, (0.01, 0.0, 0.05 * i)))
+        network.append(network[-1] @ pose_step(-0.01, (0.0, 0.02, 0.1)))
+    mean_step = pose_step(0.005, (0.0, 0.0, 0.08))
+    path, photometry = CameraPath(), PathPhotometry(K, mean_step, 1, 1.0)
+    for i in range(4):
+        path.add(InputFrame(i, i / 30, frames[i]), refined[i], network[i], depths[i], 32)
+        photometry.add(frames[i], depths[i], path)
+
+    def alone(i: int, T_cur_prev: np.ndarray) -> float:
+        image = [torch.from_numpy(frames[j]).permute(2, 0, 1).float()[None] / 255 for j in (i - 1, i)]
+        depth = torch.from_numpy(depths[i - 1])[None, None]
+        return float(view_synthesis_error(image[0], image[1], depth, torch.from_numpy(T_cur_prev).float()[None],
+                                          torch.from_numpy(K).float()[None], depth > 0)[0])
+
+    expected = {name: np.mean([alone(i, np.linalg.inv(poses[i]) @ poses[i - 1] if poses is not None
+                                     else np.linalg.inv(mean_step)) for i in range(1, 4)])
+                for name, poses in (("path", refined), ("network", network), ("constant_velocity", None))}
+    means = photometry.means()
+    assert means == pytest.approx(expected, rel=1e-6)
+    assert len(set(means.values())) == 3  # three different steps: a mix-up of names would show
+
+
+def pose_step(angle: float, translation: tuple[float, float, float]) -> np.ndarray:
+    step = np.eye(4)
+    step[:3, :3] = cv2.Rodrigues(np.array([0.0, angle, 0.0]))[0]
+    step[:3, 3] = translation
+    return step
+
+
+def test_a_datasets_and_a_folders_frames_decode_in_any_order_as_they_stream(scene: Path, params: Params,
+                                                                             tmp_path: Path) -> None:
+    dataset = open_frames(scene, "S1", params)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for frame in dataset.frames(FrameRange()):
+        cv2.imwrite(str(folder / f"{frame.index}.png"), np.ascontiguousarray(frame.rgb[..., ::-1]))
+    selection = FrameRange(1, None, 2)
+    for source in (dataset, open_frames(folder, None, params)):
+        streamed = list(source.frames(selection))
+        backwards = [read() for read in reversed(list(source.readers(selection)))][::-1]
+        assert [frame.index for frame in backwards] == [frame.index for frame in streamed] == \
+            list(range(1, FRAMES, 2))
+        for alone, together in zip(backwards, streamed):
+            for name in ("rgb", "depth_cm", "T_world_cam"):
+                assert np.array_equal(getattr(alone, name), getattr(together, name)), name

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from endoflow.reconstruction.streams import Encoders, WriteBehind, read_ahead
+from endoflow.reconstruction.streams import Encoders, WriteBehind, decoded_ahead, read_ahead, side_threads
 
 
 def test_read_ahead_yields_every_item_in_order() -> None:
@@ -47,6 +47,61 @@ def test_stopping_early_stops_the_reading_thread() -> None:
     assert not [t for t in set(threading.enumerate()) - before if t.name == "read-ahead"]
 
 
+def slow_reads(count: int, made: list[int]) -> list:
+    """Calls that return their number after a wait that shrinks along the list (from 60 ms): side by side, later
+    ones finish first."""
+    def read(number: int) -> int:
+        time.sleep(0.06 * (count - number) / count)
+        made.append(number)
+        return number
+    return [lambda number=number: read(number) for number in range(count)]
+
+
+@pytest.mark.parametrize("workers", [0, 1, 3])
+def test_decoding_side_by_side_yields_every_result_in_the_order_of_the_reads(workers: int) -> None:
+    made: list[int] = []
+    assert list(decoded_ahead(slow_reads(30, made), count=4, workers=workers)) == list(range(30))
+    assert sorted(made) == list(range(30))
+
+
+def test_reads_run_side_by_side_in_several_threads() -> None:
+    threads = set()
+
+    def read() -> None:
+        threads.add(threading.current_thread().name)
+        time.sleep(0.01)
+
+    list(decoded_ahead([read] * 12, count=4, workers=3))
+    assert len(threads) == 3 and all(name.startswith("decode") for name in threads)
+
+
+def test_a_failed_read_is_raised_in_its_place_after_the_results_before_it() -> None:
+    def damaged() -> int:
+        raise ValueError("frame 5 is damaged")
+
+    reads = slow_reads(10, [])
+    reads[5] = damaged
+    seen = []
+    with pytest.raises(ValueError, match="frame 5 is damaged"):
+        for item in decoded_ahead(reads, count=3, workers=3):
+            seen.append(item)
+    assert seen == list(range(5))
+
+
+def test_stopping_early_stops_the_decoding_threads_and_reads_no_further() -> None:
+    made: list[int] = []
+    before = set(threading.enumerate())
+    results = decoded_ahead(slow_reads(1000, made), count=2, workers=3)
+    for item in results:
+        if item == 3:
+            break
+    results.close()
+    count = len(made)
+    time.sleep(0.3)
+    assert len(made) == count < 20  # the consumer's, the queue's and those running when it stopped
+    assert not [t for t in set(threading.enumerate()) - before if t.name.startswith(("decode", "read-ahead"))]
+
+
 def test_writes_run_in_submission_order_and_all_finish_before_the_block_is_left() -> None:
     written = []
     with WriteBehind(waiting=2) as writes:
@@ -81,9 +136,9 @@ def test_leaving_on_an_error_cancels_the_writes_not_started() -> None:
 
 
 @pytest.mark.parametrize("cores, threads", [(1, 0), (4, 0), (7, 0), (8, 2), (16, 4), (64, 4)])
-def test_one_encoding_thread_for_every_four_cores_at_most_four_and_none_below_two(cores, threads) -> None:
+def test_one_encoding_or_decoding_thread_for_every_four_cores_at_most_four_and_none_below_two(cores, threads) -> None:
     with Encoders(cores) as encoders:
-        assert encoders.workers == threads
+        assert encoders.workers == side_threads(cores) == threads
 
 
 @pytest.mark.parametrize("cores", [2, 16])

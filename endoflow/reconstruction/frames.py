@@ -9,8 +9,9 @@ depth and poses come along). ``K`` is always in pixels of the input's native fra
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Callable, Iterator, Optional
 
 import numpy as np
 
@@ -66,7 +67,10 @@ class FrameSource:
     """A streamed input: ``frames(selection)`` yields :class:`InputFrame` in temporal order; ``location`` is the
     file or folder it reads; ``native_size`` is ``(height, width)``; ``K`` the intrinsics the input itself carries
     (a dataset's), else None; ``length`` its number of frames where known (a video's container may not say);
-    ``fps`` its frame rate."""
+    ``fps`` its frame rate. ``readers(selection)`` yields, in the same order, one call per frame that returns it:
+    a source whose frames decode independently (a folder, a dataset) leaves the decoding to the call, so that
+    frames may decode side by side (:func:`endoflow.reconstruction.streams.decoded_ahead`); any other decodes as
+    it goes, and its calls hand back what it decoded."""
 
     description: str
     location: Path
@@ -76,6 +80,25 @@ class FrameSource:
     fps: float = DEFAULT_FOLDER_FPS
 
     def frames(self, selection: FrameRange) -> Iterator[InputFrame]:
+        raise NotImplementedError
+
+    def readers(self, selection: FrameRange) -> Iterator[Callable[[], InputFrame]]:
+        for frame in self.frames(selection):
+            yield partial(_decoded, frame)
+
+
+def _decoded(frame: InputFrame) -> InputFrame:
+    return frame
+
+
+class IndependentFrames(FrameSource):
+    """A source whose frames decode one by one, in any order: ``readers`` is its own, ``frames`` calls them."""
+
+    def frames(self, selection: FrameRange) -> Iterator[InputFrame]:
+        for read in self.readers(selection):
+            yield read()
+
+    def readers(self, selection: FrameRange) -> Iterator[Callable[[], InputFrame]]:
         raise NotImplementedError
 
 
@@ -122,7 +145,7 @@ class VideoFrames(FrameSource):
                                              f"the frames before that point)")
 
 
-class FolderFrames(FrameSource):
+class FolderFrames(IndependentFrames):
     """Images in a folder, in natural name order (``frame_2`` before ``frame_10``), one every 1/``fps`` s: those
     whose names match ``pattern`` (a glob such as ``*_color.png``), or every image when it is None, refusing
     images of different kinds (:func:`endoflow.data.video.image_files`)."""
@@ -135,19 +158,22 @@ class FolderFrames(FrameSource):
         self.native_size = read_rgb(self.files[0]).shape[:2]
         self.description = f"{len(self.files)} images in {folder}"
 
-    def frames(self, selection: FrameRange) -> Iterator[InputFrame]:
+    def readers(self, selection: FrameRange) -> Iterator[Callable[[], InputFrame]]:
         for index, path in enumerate(self.files):
             if selection.past(index):
                 return
             if selection.selects(index):
-                rgb = read_rgb(path)
-                if rgb.shape[:2] != self.native_size:
-                    raise DataFormatError(path, f"image of {rgb.shape[1]}x{rgb.shape[0]} px, expected "
-                                                f"{self.native_size[1]}x{self.native_size[0]} as the first image")
-                yield InputFrame(index, index / self.fps, rgb)
+                yield partial(self._read, index, path)
+
+    def _read(self, index: int, path: Path) -> InputFrame:
+        rgb = read_rgb(path)
+        if rgb.shape[:2] != self.native_size:
+            raise DataFormatError(path, f"image of {rgb.shape[1]}x{rgb.shape[0]} px, expected "
+                                        f"{self.native_size[1]}x{self.native_size[0]} as the first image")
+        return InputFrame(index, index / self.fps, rgb)
 
 
-class DatasetFrames(FrameSource):
+class DatasetFrames(IndependentFrames):
     """A sequence of a dataset read through our readers, with its K, ground-truth depth and poses."""
 
     def __init__(self, root: Path, sequence: str, params: Params) -> None:
@@ -164,13 +190,16 @@ class DatasetFrames(FrameSource):
         self.K = np.asarray(self.sequence.K, dtype=np.float64)
         self.description = f"{self.sequence.dataset} sequence {sequence} of {root}"
 
-    def frames(self, selection: FrameRange) -> Iterator[InputFrame]:
+    def readers(self, selection: FrameRange) -> Iterator[Callable[[], InputFrame]]:
         for index in range(len(self.sequence)):
             if selection.past(index):
                 return
             if selection.selects(index):
-                frame = self.sequence.frame(index)
-                yield InputFrame(index, index / DEFAULT_FOLDER_FPS, frame.rgb, frame.depth_cm, frame.T_world_cam)
+                yield partial(self._read, index)
+
+    def _read(self, index: int) -> InputFrame:
+        frame = self.sequence.frame(index)
+        return InputFrame(index, index / DEFAULT_FOLDER_FPS, frame.rgb, frame.depth_cm, frame.T_world_cam)
 
 
 def sequence_names(sequences: list[Sequence], shown: int = 12) -> str:

@@ -19,8 +19,9 @@ import shutil
 import sys
 from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator, Optional, TypeVar
+from typing import TYPE_CHECKING, Callable, Iterator, Optional, TypeVar
 
 import numpy as np
 import torch
@@ -44,7 +45,7 @@ from endoflow.reconstruction.frames import FrameRange, FrameSource, InputFrame
 from endoflow.reconstruction.fusion import SurfaceMesh, TSDFVolume, write_ply
 from endoflow.reconstruction.pictures import FrameSampler, SideBySideVideo, depth_preview, write_contact_sheet
 from endoflow.reconstruction.recording import RECORDING_FILE, Recording
-from endoflow.reconstruction.streams import READ_AHEAD, Deferred, Encoders, WriteBehind, read_ahead
+from endoflow.reconstruction.streams import READ_AHEAD, Deferred, Encoders, WriteBehind, decoded_ahead, side_threads
 
 if TYPE_CHECKING:  # MLflow takes seconds to import: only runs that log pay for it
     from endoflow.tracking import RunHandle
@@ -172,7 +173,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             shown: Optional[tuple[float, float]] = None
             per_call = frames_per_call(size, device)
             inputs = stack.enter_context(contextlib.closing(
-                read_ahead(model_inputs(source, options.frames, region, size), per_call + READ_AHEAD)))
+                decoded_ahead(model_inputs(source, options.frames, region, size), per_call + READ_AHEAD,
+                              side_threads())))
             for batch in in_batches(inputs, per_call):
                 images = images_to_device(torch.from_numpy(np.stack([rgb for _, rgb in batch])).permute(0, 3, 1, 2)
                                           .contiguous(), device, options.precision)
@@ -204,7 +206,9 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             "unit_cm": unit, "meaning": "z-depth along the optical axis (OpenCV camera), in counts of unit_cm",
             "unknown": 0, "scale_applied": options.scale, "preview_range_cm": shown})
         path.write(stage)
+        surface_started = progress.elapsed()
         mesh = write_surface(stage, volume) if volume is not None else None
+        surface_seconds = progress.elapsed() - surface_started
         if mesh is not None and len(mesh.vertices) == 0:
             print(f"[reconstruct] warning: {empty_surface_warning(depth, K, volume.voxel_cm)}", file=sys.stderr)
         ground_truth = ground_truth_in_path_world(path.gt_poses, path.poses)
@@ -218,7 +222,9 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             "frames": path.count, "frame_range": asdict(options.frames), "native_size": list(source.native_size),
             "crop": asdict(region), "model_view": asdict(model_view(region)), "size": size,
             "K": K.tolist(), "intrinsics": intrinsics_from, "scale": options.scale, "depth_unit_cm": unit,
-            "seconds": seconds, "frames_per_second": path.count / seconds, "device": str(device),
+            "seconds": seconds, "frames_per_second": path.count / seconds,
+            # the surface is extracted once, at the end: its time follows the surface seen, not the frames
+            "surface_seconds": surface_seconds if mesh is not None else None, "device": str(device),
             "precision": "bf16" if compute_dtype(device, options.precision) == torch.bfloat16 else "float32",
             "threads": torch.get_num_threads(),
             "tsdf": fusion_summary(volume, options) if volume is not None else None,
@@ -239,8 +245,9 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                             mesh.vertices if mesh is not None else np.zeros((0, 3)),
                             mesh.colours if mesh is not None else np.zeros((0, 3), np.uint8),
                             sheet_title(source, summary), ground_truth)
-    print(f"[reconstruct] {path.count} frames in {format_duration(seconds)} ({path.count / seconds:.1f} frames/s) "
-          f"-> {out_dir}", file=sys.stderr)
+    surface = f"; the surface took {format_duration(surface_seconds)} of it" if mesh is not None else ""
+    print(f"[reconstruct] {path.count} frames in {format_duration(seconds)} ({path.count / seconds:.1f} frames/s"
+          f"{surface}) -> {out_dir}", file=sys.stderr)
     return summary
 
 
@@ -261,29 +268,36 @@ class PathPhotometry:
         constant[:3, 3] *= scale
         self.constant_step = constant  # T_prev_cur between selected frames
         self.previous: Optional[tuple[torch.Tensor, torch.Tensor]] = None
-        self.errors: dict[str, list[float]] = {"path": [], "network": [], "constant_velocity": []}
+        self.errors: dict[str, list[torch.Tensor]] = {"path": [], "network": [], "constant_velocity": []}
 
     def add(self, rgb: np.ndarray, depth: np.ndarray, path: "CameraPath") -> None:
         image = torch.from_numpy(rgb).to(self.device).permute(2, 0, 1).float()[None] / 255
         if self.previous is not None:
-            prev_image, prev_depth = self.previous
-            T_cur_prev = {"path": relative_pose(path.poses[-1], path.poses[-2]),
-                          "network": relative_pose(path.network_poses[-1], path.network_poses[-2]),
-                          "constant_velocity": invert_pose(self.constant_step)}
-            for name, T in T_cur_prev.items():
-                if name == "network" and np.array_equal(T, T_cur_prev["path"]):  # the path written is the network's
-                    self.errors[name].append(self.errors["path"][-1])
-                    continue
-                self.errors[name].append(self._error(prev_image, prev_depth, image,
-                                                     torch.from_numpy(T).float()[None].to(self.device)))
+            steps = {"path": relative_pose(path.poses[-1], path.poses[-2]),
+                     "network": relative_pose(path.network_poses[-1], path.network_poses[-2]),
+                     "constant_velocity": invert_pose(self.constant_step)}
+            if np.array_equal(steps["network"], steps["path"]):  # the path written is the network's
+                del steps["network"]
+            errors = self._errors(*self.previous, image, np.stack(list(steps.values())))
+            for name, error in zip(steps, errors):
+                self.errors[name].append(error)
+            if "network" not in steps:
+                self.errors["network"].append(self.errors["path"][-1])
         self.previous = (image, torch.from_numpy(depth).to(self.device).float()[None, None])
 
-    def _error(self, target: torch.Tensor, depth: torch.Tensor, source: torch.Tensor, T_source_target: torch.Tensor
-               ) -> float:
-        return float(view_synthesis_error(target, source, depth, T_source_target, self.K, depth > 0)[0])
+    def _errors(self, target: torch.Tensor, depth: torch.Tensor, source: torch.Tensor, T_source_target: np.ndarray
+                ) -> torch.Tensor:
+        """The error of each step of ``T_source_target [n, 4, 4]``, all warped in one call and left on the
+        device: a GPU is waited for once, by :meth:`means`, not three times a frame."""
+        count = len(T_source_target)
+        return view_synthesis_error(target.expand(count, -1, -1, -1), source.expand(count, -1, -1, -1),
+                                    depth.expand(count, -1, -1, -1),
+                                    torch.from_numpy(T_source_target).float().to(self.device), self.K,
+                                    (depth > 0).expand(count, -1, -1, -1))
 
     def means(self) -> dict[str, float]:
-        return {name: float(np.mean(values)) for name, values in self.errors.items() if values}
+        return {name: float(np.mean(torch.stack(values).cpu().numpy(), dtype=np.float64))
+                for name, values in self.errors.items() if values}
 
 
 def input_intrinsics(K_native: Optional[np.ndarray], region: Crop, size: int, model: EndoflowModel,
@@ -315,16 +329,22 @@ def learned_camera(model: EndoflowModel) -> Optional[str]:
 def input_field_of_view(source: FrameSource, frames: FrameRange, region: Crop, size: int) -> np.ndarray:
     """``size x size`` bool: where the model's view of the input sees the scene (:mod:`endoflow.data.field_of_view`),
     from its first :data:`FIELD_OF_VIEW_FRAMES` selected frames."""
-    selected = itertools.islice(source.frames(frames), FIELD_OF_VIEW_FRAMES)
-    first = next(selected, None)
-    if first is None:  # no frames: the run itself says so, naming the input
-        return np.ones((size, size), bool)
-    # one frame at a time: 60 frames of a 1080p video are 370 MB
-    looked_at = (frame.cropped(region).rgb for frame in itertools.chain([first], selected))
-    try:
-        return resized_field_of_view(field_of_view(looked_at), size)
-    except NoFieldOfView as exc:
-        raise DataFormatError(source.description, f"{exc}; --start skips dark frames at the start") from None
+    # a few frames at a time (60 frames of a 1080p video are 370 MB), decoded side by side where the input allows
+    reads = (partial(cropped_rgb, read, region) for read in
+             itertools.islice(source.readers(frames), FIELD_OF_VIEW_FRAMES))
+    with contextlib.closing(decoded_ahead(reads, READ_AHEAD, side_threads())) as selected:
+        first = next(selected, None)
+        if first is None:  # no frames: the run itself says so, naming the input
+            return np.ones((size, size), bool)
+        try:
+            return resized_field_of_view(field_of_view(itertools.chain([first], selected)), size)
+        except NoFieldOfView as exc:
+            raise DataFormatError(source.description, f"{exc}; --start skips dark frames at the start") from None
+
+
+def cropped_rgb(read: Callable[[], InputFrame], region: Crop) -> np.ndarray:
+    """The RGB of the frame ``read`` decodes, cut to ``region``."""
+    return read().cropped(region).rgb
 
 
 def check_frame_range(source: FrameSource, frames: FrameRange) -> None:
@@ -391,11 +411,16 @@ def in_batches(items: Iterator[Item], count: int) -> Iterator[list[Item]]:
 
 
 def model_inputs(source: FrameSource, frames: FrameRange, region: Crop, size: int
-                 ) -> Iterator[tuple[InputFrame, np.ndarray]]:
-    """Each selected frame cropped to ``region``, with its RGB resized to the model's ``size`` x ``size``."""
-    for frame in source.frames(frames):
-        cropped = frame.cropped(region)
-        yield cropped, resize_rgb(cropped.rgb, size)
+                 ) -> Iterator[Callable[[], tuple[InputFrame, np.ndarray]]]:
+    """One call per selected frame, in order (:meth:`FrameSource.readers`: they may run side by side), that
+    returns the frame cropped to ``region`` with its RGB resized to the model's ``size`` x ``size``."""
+    for read in source.readers(frames):
+        yield partial(model_input, read, region, size)
+
+
+def model_input(read: Callable[[], InputFrame], region: Crop, size: int) -> tuple[InputFrame, np.ndarray]:
+    cropped = read().cropped(region)
+    return cropped, resize_rgb(cropped.rgb, size)
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
-"""Work beside the model's: frames read ahead in one thread, per-frame outputs written behind in another, each
-frame's depth PNGs encoded side by side in a few more.
+"""Work beside the model's: frames read ahead in one thread (decoded side by side in a few more where the input
+allows), per-frame outputs written behind in another, each frame's depth PNGs encoded side by side in a few more.
 
 A frame's decoding (PyAV, OpenCV's PNG reader and resize) and its outputs' encoding (PNG, H.264, the recording)
 release the GIL, so on two cores they overlap the model and the fusion of the frame in hand instead of adding
@@ -22,6 +22,8 @@ WRITE_BEHIND = 4  # frames whose outputs may wait to be written before the next 
 _POLL_SECONDS = 0.1
 # At 480 px a frame's two depth PNGs took 24 ms of one thread on the H100 machine, more than its GPU took for the
 # networks and the fusion of the frame (15 ms): one encoding thread for every four cores, at most four (Encoders).
+# Decoding is the same on the way in (a 480 px dataset frame's colour and depth PNGs kept its reading thread 80 %
+# busy there): as many decoding threads (decoded_ahead).
 CORES_PER_ENCODER = 4
 MOST_ENCODERS = 4
 
@@ -65,6 +67,34 @@ def read_ahead(items: Iterable[Item], count: int = READ_AHEAD) -> Iterator[Item]
     finally:
         stopped.set()
         thread.join()
+
+
+def decoded_ahead(reads: Iterable[Callable[[], Item]], count: int = READ_AHEAD, workers: int = 0) -> Iterator[Item]:
+    """What each of ``reads`` returns, in order, made up to ``count`` ahead of the consumer: by ``workers`` threads
+    side by side (calls that may run in any order, such as the decoding of a folder's images), or, for
+    ``workers`` below 2, one after another in :func:`read_ahead`'s thread. An error is raised in its place, as
+    :func:`read_ahead` raises it; leaving the loop early stops the threads before this generator closes (a
+    decoding already running finishes)."""
+    if workers < 2:
+        yield from read_ahead((read() for read in reads), count)
+        return
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="decode") as pool:
+        futures = read_ahead((pool.submit(read) for read in reads), count)
+        try:
+            for future in futures:
+                yield future.result()
+        finally:
+            futures.close()
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def side_threads(cores: int | None = None) -> int:
+    """Threads for work beside the model's that may run side by side (encoding, decoding): one for every
+    :data:`CORES_PER_ENCODER` of ``cores`` (default: the cores this process may run on), at most
+    :data:`MOST_ENCODERS`; 0 where that makes fewer than two (one more thread only adds a hand-off)."""
+    cores = cores if cores is not None else len(os.sched_getaffinity(0))
+    threads = min(MOST_ENCODERS, cores // CORES_PER_ENCODER)
+    return threads if threads >= 2 else 0
 
 
 class WriteBehind:
@@ -111,17 +141,14 @@ class Deferred:
 
 
 class Encoders:
-    """Threads for work whose order does not matter (each frame's PNGs, each to its own file): one for every
-    :data:`CORES_PER_ENCODER` of ``cores`` (default: the cores this process may run on), at most
-    :data:`MOST_ENCODERS`. Where that makes fewer than two, there are none (``workers`` 0) and :meth:`submit`
-    defers the call to the thread that asks for its result (the writer's): a pool of one only added a hand-off,
-    which on 2 busy cores took a 64 px frame's rate down by about two fifths. Use as a context manager: leaving it
-    waits for every call started (on an error, those not started are dropped)."""
+    """Threads for work whose order does not matter (each frame's PNGs, each to its own file): :func:`side_threads`
+    of ``cores``. Where that makes none (``workers`` 0), :meth:`submit` defers the call to the thread that asks for
+    its result (the writer's): a pool of one only added a hand-off, which on 2 busy cores took a 64 px frame's rate
+    down by about two fifths. Use as a context manager: leaving it waits for every call started (on an error, those
+    not started are dropped)."""
 
     def __init__(self, cores: int | None = None) -> None:
-        cores = cores if cores is not None else len(os.sched_getaffinity(0))
-        workers = min(MOST_ENCODERS, cores // CORES_PER_ENCODER)
-        self.workers = workers if workers >= 2 else 0
+        self.workers = side_threads(cores)
         self._pool = (ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="encode")
                       if self.workers else None)
 
