@@ -245,7 +245,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                             mesh.vertices if mesh is not None else np.zeros((0, 3)),
                             mesh.colours if mesh is not None else np.zeros((0, 3), np.uint8),
                             sheet_title(source, summary), ground_truth)
-    surface = f"; the surface took {format_duration(surface_seconds)} of it" if mesh is not None else ""
+    surface = f"; the surface took {surface_seconds:.1f} s of it" if mesh is not None else ""
     print(f"[reconstruct] {path.count} frames in {format_duration(seconds)} ({path.count / seconds:.1f} frames/s"
           f"{surface}) -> {out_dir}", file=sys.stderr)
     return summary
