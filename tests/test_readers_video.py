@@ -19,7 +19,8 @@ from endoflow.data.intrinsics import assumed_intrinsics
 from endoflow.data.video import VAL_SUFFIX, VideoFile, frame_stride
 from endoflow.data.video_encoding import write_video
 from endoflow.errors import DataFormatError
-from endoflow.reconstruction.frames import FrameRange, VideoFrames
+from endoflow.reconstruction.frames import FrameRange, VideoFrames, open_frames
+from endoflow.reconstruction.streams import decoded_ahead
 from tests.samples import COLONOSCOPY_CLIP
 
 SIZE = 48
@@ -108,6 +109,17 @@ def test_frames_are_the_same_read_in_any_order_as_decoded_in_sequence(tmp_path: 
     assert len(video) == len(in_order) == 60
     for index in (59, 3, 4, 40, 0, 41, 2):
         np.testing.assert_array_equal(video(index), in_order[index])
+
+
+def test_a_video_sequences_frames_decoded_side_by_side_are_its_frames_in_order(tmp_path: Path):
+    root = video_root(tmp_path / "videos", frames=60)
+    in_order = [frame.rgb for frame in open_frames(root, "clip_a", video_params()).frames(FrameRange())]
+    # four threads share the sequence's one decoder (reconstruct's reading on 16 cores)
+    readers = open_frames(root, "clip_a", video_params()).readers(FrameRange())
+    side_by_side = [frame.rgb for frame in decoded_ahead(readers, count=8, workers=4)]
+    assert len(side_by_side) == len(in_order) == 48
+    for together, alone in zip(side_by_side, in_order):
+        np.testing.assert_array_equal(together, alone)
 
 
 def test_shards_of_video_have_no_ground_truth_and_say_so(tmp_path: Path):

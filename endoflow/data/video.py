@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import re
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from fnmatch import fnmatch
@@ -109,7 +110,9 @@ class VideoFile:
     Opening it reads the container's packets, not its pictures, to list every frame's presentation time: positions
     then map to times exactly, whatever the codec's frame reordering. A frame is found by seeking to the key
     frame before it and decoding forward; the last :data:`KEPT_FRAMES` decoded stay, so frames asked for in order
-    are each decoded about once. The open container is not pickled: a copy in another process opens its own.
+    are each decoded about once. One decoder serves one thread at a time: threads decoding a sequence's frames side
+    by side (``reconstruct`` on many cores) take turns, and frames asked for a little out of order are still among
+    those kept. The open container is not pickled: a copy in another process opens its own.
 
     Raises:
         DataFormatError: naming the file: no video stream, not decodable, or a frame that cannot be reached.
@@ -133,16 +136,19 @@ class VideoFile:
         if not self.times:
             raise DataFormatError(self.path, "holds no frames")
         self._position = {time: index for index, time in enumerate(self.times)}
+        self._lock = threading.Lock()
         self._reset()
 
     def __len__(self) -> int:
         return len(self.times)
 
     def __getstate__(self) -> dict:
-        return {key: value for key, value in self.__dict__.items() if key not in ("_container", "_frames", "_kept")}
+        return {key: value for key, value in self.__dict__.items()
+                if key not in ("_container", "_frames", "_kept", "_lock")}
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
+        self._lock = threading.Lock()
         self._reset()
 
     def _reset(self) -> None:
@@ -155,9 +161,10 @@ class VideoFile:
         """``H x W x 3`` uint8 RGB of the frame at ``index``."""
         if not 0 <= index < len(self.times):
             raise IndexError(f"{self.path}: frame {index} of {len(self.times)}")
-        if index not in self._kept:
-            self._decode_up_to(index)
-        return self._kept[index]
+        with self._lock:
+            if index not in self._kept:
+                self._decode_up_to(index)
+            return self._kept[index]
 
     def _decode_up_to(self, index: int) -> None:
         import av

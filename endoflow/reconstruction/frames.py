@@ -92,7 +92,9 @@ def _decoded(frame: InputFrame) -> InputFrame:
 
 
 class IndependentFrames(FrameSource):
-    """A source whose frames decode one by one, in any order: ``readers`` is its own, ``frames`` calls them."""
+    """A source whose frames decode one by one, in any order and from several threads at once (image files; a video's
+    frames through its :class:`~endoflow.data.video.VideoFile`, which takes one thread at a time): ``readers`` is
+    its own, ``frames`` calls them."""
 
     def frames(self, selection: FrameRange) -> Iterator[InputFrame]:
         for read in self.readers(selection):
