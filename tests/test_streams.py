@@ -65,11 +65,12 @@ def test_decoding_side_by_side_yields_every_result_in_the_order_of_the_reads(wor
 
 
 def test_reads_run_side_by_side_in_several_threads() -> None:
+    together = threading.Barrier(3, timeout=10)  # three reads at a time, or it breaks
     threads = set()
 
     def read() -> None:
         threads.add(threading.current_thread().name)
-        time.sleep(0.01)
+        together.wait()
 
     list(decoded_ahead([read] * 12, count=4, workers=3))
     assert len(threads) == 3 and all(name.startswith("decode") for name in threads)

@@ -63,7 +63,8 @@ SPLAT_SIZE = 320  # px of the surface views, about as large as they show on the 
 FOOTPRINT_BLOCK = 8  # px: splats grow up to this size to close the gaps between sparse points
 SPLAT_BUDGET = 2_000_000  # point squares per splat: 200k vertices at 3 x 3 px take about 0.2 s
 # Vertices splatted at most (every k-th beyond): a 320 px view has 100k pixels, and a long video's surface has
-# millions of vertices (15 million took the sheet 13 s), which add time and memory but nothing the view can show.
+# millions of vertices (15 million took the sheet 13 s on the H100 machine), which add time and memory but nothing
+# the view can show.
 SPLAT_POINTS = 1_000_000
 BACKGROUND = (24, 24, 24)  # dark, so the tissue's colours stand out
 DIRECTION_MARKS = 12  # viewing-direction segments drawn along the path

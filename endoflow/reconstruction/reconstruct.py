@@ -56,6 +56,10 @@ ADAPTED_MODEL = "model_adapted.pt"  # with `reconstruct --adapt`: the model fitt
 LOGGED_OUTPUTS = ("sheet.png", "video.mp4", RECORDING_FILE, "reconstruction.json", "trajectory.tum",
                   "trajectory.kitti", "trajectory.kitti.json", "mesh.ply")
 DEPTH_UNIT_CM = 0.001  # 16-bit counts of 10 micrometres: up to 65.5 cm
+# The paths PathPhotometry compares, and how many frames' errors it keeps on the device before reading them back:
+# one wait for a GPU every so many frames, not one a frame, and a long video's errors leave the device as they come
+PHOTOMETRY_PATHS = ("path", "network", "constant_velocity")
+PHOTOMETRY_READ_FRAMES = 256
 NETWORK_STRIDE = 32  # the encoders halve the image five times
 # Frames per network call (frames_per_call): a GPU takes many at any size; a CPU gains from batching only while a
 # batch's maps stay small (measured on 2 cores: 64 px gains 3.6x at 8, 480 px loses at 4).
@@ -268,36 +272,44 @@ class PathPhotometry:
         constant[:3, 3] *= scale
         self.constant_step = constant  # T_prev_cur between selected frames
         self.previous: Optional[tuple[torch.Tensor, torch.Tensor]] = None
-        self.errors: dict[str, list[torch.Tensor]] = {"path": [], "network": [], "constant_velocity": []}
+        self._pending: list[torch.Tensor] = []  # a frame's errors [3] each, on the device
+        self._read: list[np.ndarray] = []  # earlier frames' errors [frames, 3], read back
 
     def add(self, rgb: np.ndarray, depth: np.ndarray, path: "CameraPath") -> None:
         image = torch.from_numpy(rgb).to(self.device).permute(2, 0, 1).float()[None] / 255
         if self.previous is not None:
-            steps = {"path": relative_pose(path.poses[-1], path.poses[-2]),
-                     "network": relative_pose(path.network_poses[-1], path.network_poses[-2]),
-                     "constant_velocity": invert_pose(self.constant_step)}
-            if np.array_equal(steps["network"], steps["path"]):  # the path written is the network's
-                del steps["network"]
-            errors = self._errors(*self.previous, image, np.stack(list(steps.values())))
-            for name, error in zip(steps, errors):
-                self.errors[name].append(error)
-            if "network" not in steps:
-                self.errors["network"].append(self.errors["path"][-1])
+            steps = [relative_pose(path.poses[-1], path.poses[-2]), invert_pose(self.constant_step)]
+            network = relative_pose(path.network_poses[-1], path.network_poses[-2])
+            if np.array_equal(network, steps[0]):  # the path written is the network's: its error, once
+                errors = self._errors(*self.previous, image, np.stack(steps))[[0, 0, 1]]
+            else:
+                errors = self._errors(*self.previous, image, np.stack([steps[0], network, steps[1]]))
+            self._pending.append(errors)
+            if len(self._pending) == PHOTOMETRY_READ_FRAMES:
+                self._read_back()
         self.previous = (image, torch.from_numpy(depth).to(self.device).float()[None, None])
 
     def _errors(self, target: torch.Tensor, depth: torch.Tensor, source: torch.Tensor, T_source_target: np.ndarray
                 ) -> torch.Tensor:
-        """The error of each step of ``T_source_target [n, 4, 4]``, all warped in one call and left on the
-        device: a GPU is waited for once, by :meth:`means`, not three times a frame."""
+        """The error of each step of ``T_source_target [n, 4, 4]``, warped together in one call."""
         count = len(T_source_target)
         return view_synthesis_error(target.expand(count, -1, -1, -1), source.expand(count, -1, -1, -1),
                                     depth.expand(count, -1, -1, -1),
                                     torch.from_numpy(T_source_target).float().to(self.device), self.K,
                                     (depth > 0).expand(count, -1, -1, -1))
 
+    def _read_back(self) -> None:
+        if self._pending:
+            self._read.append(torch.stack(self._pending).cpu().numpy())
+            self._pending = []
+
     def means(self) -> dict[str, float]:
-        return {name: float(np.mean(torch.stack(values).cpu().numpy(), dtype=np.float64))
-                for name, values in self.errors.items() if values}
+        """Each path's error averaged over the frames (none before a second frame)."""
+        self._read_back()
+        if not self._read:
+            return {}
+        per_path = np.concatenate(self._read).T.astype(np.float64)  # a row of frames each
+        return {name: float(np.mean(errors)) for name, errors in zip(PHOTOMETRY_PATHS, per_path)}
 
 
 def input_intrinsics(K_native: Optional[np.ndarray], region: Crop, size: int, model: EndoflowModel,
