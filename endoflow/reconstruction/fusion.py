@@ -73,6 +73,7 @@ class TSDFVolume:
         self._colour = torch.zeros(0, BLOCK**3, 3, device=self.device)
         self._local = _LOCAL_VOXELS.to(self.device, torch.float32)
         self._compiled = compiled and self.device.type == "cpu"
+        self._update_blocks = UPDATE_BLOCKS.get(self.device.type, UPDATE_BLOCKS["cpu"])
 
     @property
     def block_count(self) -> int:
@@ -93,9 +94,8 @@ class TSDFVolume:
         rows = self._rows_of(keys)
         colour = torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device)
         T_cam_world = np.linalg.inv(np.asarray(T_world_cam, np.float64))
-        at_once = UPDATE_BLOCKS.get(self.device.type, UPDATE_BLOCKS["cpu"])
-        for start in range(0, len(keys), at_once):
-            chunk = slice(start, start + at_once)
+        for start in range(0, len(keys), self._update_blocks):
+            chunk = slice(start, start + self._update_blocks)
             self._update(keys[chunk], rows[chunk], depth, colour, np.asarray(K, np.float64), T_cam_world)
 
     def _touched_keys(self, depth: torch.Tensor, K: np.ndarray, T_world_cam: np.ndarray) -> torch.Tensor:

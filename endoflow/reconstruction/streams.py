@@ -78,14 +78,14 @@ def decoded_ahead(reads: Iterable[Callable[[], Item]], count: int = READ_AHEAD, 
     if workers < 2:
         yield from read_ahead((read() for read in reads), count)
         return
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="decode") as pool:
-        futures = read_ahead((pool.submit(read) for read in reads), count)
-        try:
-            for future in futures:
-                yield future.result()
-        finally:
-            futures.close()
-            pool.shutdown(wait=True, cancel_futures=True)
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="decode")
+    futures = read_ahead((pool.submit(read) for read in reads), count)
+    try:
+        for future in futures:
+            yield future.result()
+    finally:  # no more submitted, then those not started dropped and the running ones waited for
+        futures.close()
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def side_threads(cores: int | None = None) -> int:
