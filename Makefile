@@ -27,8 +27,11 @@ $(STAMP): pyproject.toml
 repro: $(STAMP) dvc-deps
 	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/dvc repro
 
+# Two processes (pytest-xdist), a test module each at a time: a module's fixtures (a whole `dvc repro`) run once.
+# A single process left a core idle for a third of the suite: waits for subprocesses, Ray and the disk.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(BIN)/python -m pytest -q --durations=15
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=15
 
 # dvc.yaml's code deps, written from what each stage imports (tools/dvc_deps.py).
 dvc-deps: $(STAMP)
