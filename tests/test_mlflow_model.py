@@ -6,6 +6,7 @@ nothing pickled; endoflow reads a `models:/` URI's model file back without runni
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,8 @@ from endoflow.config import Params
 from endoflow.geometry.pose import invert_pose
 from endoflow.io import file_sha256
 from endoflow.models.endoflow_model import build_model, load_trained_model
-from endoflow.models.mlflow_model import example_frames, local_model_file, log_mlflow_model, using_store
+from endoflow.models.mlflow_model import (PROGRESS_BAR_ENV, example_frames, local_model_file, log_mlflow_model,
+                                          using_store)
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from endoflow.reconstruction.measure import stage_model_file
 from tests.small_model import small_model_params
@@ -52,6 +54,22 @@ def logged(project: Path, params: Params) -> tuple[Path, str, str]:
                                                 mlflow_run_id=run.run_id, baselines=baselines))
         model_uri = log_mlflow_model(run.uri, run.run_id, model_path, NAME)
     return model_path, run.run_id, model_uri
+
+
+def test_logging_the_model_draws_no_progress_bars_unless_the_environment_asks(logged, params, tmp_path, monkeypatch,
+                                                                              capfd):
+    model_path, _, _ = logged
+    monkeypatch.delenv(PROGRESS_BAR_ENV, raising=False)  # `make test` sets it, as `make repro` does
+    capfd.readouterr()
+    with tracking.run(params, tmp_path, params.tracking.experiment, "quiet") as run:
+        log_mlflow_model(run.uri, run.run_id, model_path, None)
+    assert "Downloading artifacts" not in capfd.readouterr().err
+    assert PROGRESS_BAR_ENV not in os.environ  # left as it was
+
+    monkeypatch.setenv(PROGRESS_BAR_ENV, "true")
+    with tracking.run(params, tmp_path, params.tracking.experiment, "asked for bars") as run:
+        log_mlflow_model(run.uri, run.run_id, model_path, None)
+    assert "Downloading artifacts" in capfd.readouterr().err
 
 
 def downloaded_model(params: Params, project: Path, destination: Path) -> Path:

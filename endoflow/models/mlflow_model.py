@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.metadata
+import os
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator, Optional
@@ -32,6 +33,7 @@ PACKAGE_FOLDER = Path(__file__).resolve().parents[1]
 # what loading and running the pyfunc imports, pinned to the versions it was logged with
 REQUIREMENTS = ("torch", "numpy", "kornia", "pyyaml", "mlflow")
 EXAMPLE_FRAMES = 2
+PROGRESS_BAR_ENV = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
 
 
 def is_model_uri(location: str | Path) -> bool:
@@ -119,17 +121,33 @@ def log_mlflow_model(tracking_uri: str, run_id: str, model_path: Path, registere
 @contextlib.contextmanager
 def using_store(uri: str) -> Iterator[None]:
     """Within: MLflow's fluent API (``log_model``, ``models:/`` downloads) uses the store at ``uri`` for runs and
-    registered models; the process-wide URIs are restored after, so that nothing else is redirected."""
+    registered models, and draws no download progress bars unless the environment asks for them; the
+    process-wide URIs are restored after, so that nothing else is redirected."""
     import mlflow
 
     previous = mlflow.get_tracking_uri(), mlflow.get_registry_uri()
     mlflow.set_tracking_uri(uri)
     mlflow.set_registry_uri(uri)
     try:
-        yield
+        with without_progress_bars():
+            yield
     finally:
         mlflow.set_tracking_uri(previous[0])
         mlflow.set_registry_uri(previous[1])
+
+
+@contextlib.contextmanager
+def without_progress_bars() -> Iterator[None]:
+    """Within: MLflow draws no progress bar per download. ``log_model`` downloads the model it has just logged to
+    check the input example, and its bars ended up in every training stage's log: library noise."""
+    if PROGRESS_BAR_ENV in os.environ:
+        yield
+        return
+    os.environ[PROGRESS_BAR_ENV] = "false"
+    try:
+        yield
+    finally:
+        os.environ.pop(PROGRESS_BAR_ENV, None)
 
 
 @contextlib.contextmanager
