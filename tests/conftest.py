@@ -1,4 +1,4 @@
-"""The suite's order: the modules with slow end-to-end runs first.
+"""How the suite runs on two processes: the modules with slow end-to-end runs first, and idle threads that sleep.
 
 `make test` spreads the modules over two processes (pytest-xdist, a module to a process, in this order). A run of
 several minutes started last would leave one process working alone at the end; started first, the short modules
@@ -7,7 +7,15 @@ fill the other process meanwhile.
 
 from __future__ import annotations
 
+import os
+
 import pytest
+
+if "PYTEST_XDIST_WORKER" in os.environ:
+    # Two processes, each with torch's 2 OpenMP threads (and the stage processes they start), share 2 cores. An
+    # idle OpenMP thread spins by default, taking the core from the other process: two copies of a training test
+    # took 138 s side by side against 55 s with sleeping threads (33 s alone). Read when torch loads, after this.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
