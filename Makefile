@@ -29,7 +29,8 @@ repro: $(STAMP) dvc-deps
 
 # Two processes (pytest-xdist), a test module each at a time: a module's fixtures (a whole `dvc repro`) run once.
 # One process left 30 % of the two cores idle on average (vmstat): waits for subprocesses, Ray and the disk.
-# Measured: 24 min 06 s against 28 min 44 s; tests/conftest.py sets the order and how idle threads wait.
+# The suite took 24 min 06 s so (28 min 44 s in one process, before the paper dry run rendered smaller, a minute
+# of it); tests/conftest.py sets the order and how idle threads wait.
 TEST_WORKERS ?= 2
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=15
