@@ -5,8 +5,10 @@
 
 from __future__ import annotations
 
+import os
 import time
-from typing import Callable, Optional
+from contextlib import contextmanager
+from typing import Callable, Iterator, Optional
 
 
 def format_duration(seconds: float) -> str:
@@ -67,3 +69,17 @@ class Progress:
         rate = self.rate(done)
         speed = f"{rate:.1f} {self.unit}/s | " if rate is not None else ""
         return f"{count} | {speed}done in {format_duration(self.elapsed())}"
+
+
+@contextmanager
+def environment_default(name: str, value: str) -> Iterator[None]:
+    """Within: the environment variable ``name`` reads ``value`` unless the user set it: how a library that reads
+    its settings from the environment is told to print less. Removed again after."""
+    if name in os.environ:
+        yield
+        return
+    os.environ[name] = value
+    try:
+        yield
+    finally:
+        os.environ.pop(name, None)

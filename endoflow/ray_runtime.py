@@ -36,6 +36,7 @@ from typing import Any, Iterator, TextIO
 
 import endoflow
 from endoflow.config import ConfigError, RayConfig
+from endoflow.progress import environment_default
 
 # How long every node gets to start a worker (with the shipped package) and report its endoflow.
 NODE_CHECK_TIMEOUT_S = 120.0
@@ -188,14 +189,8 @@ def is_terminal(stream: TextIO) -> bool:
 def uncoloured_prefixes() -> Iterator[None]:
     """Within: Ray prints its ``(worker pid=...)`` prefixes without colour, unless the user chose otherwise in
     :data:`RAY_COLOR_PREFIX_ENV`. Ray's printer runs in the driver's one log thread, which alone reads it."""
-    if RAY_COLOR_PREFIX_ENV in os.environ:
+    with environment_default(RAY_COLOR_PREFIX_ENV, "0"):
         yield
-        return
-    os.environ[RAY_COLOR_PREFIX_ENV] = "0"
-    try:
-        yield
-    finally:
-        os.environ.pop(RAY_COLOR_PREFIX_ENV, None)
 
 
 def quiet_worker_logs() -> None:

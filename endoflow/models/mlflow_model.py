@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import contextlib
 import importlib.metadata
-import os
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator, Optional
@@ -24,6 +23,7 @@ import yaml
 
 from endoflow.errors import DataFormatError
 from endoflow.models.model_file import load_model_file
+from endoflow.progress import environment_default
 
 MODEL_URI_SCHEMES = ("models:/", "runs:/")
 ARTIFACT_NAME = "model"  # where the logged model sits among its run's artifacts
@@ -129,25 +129,13 @@ def using_store(uri: str) -> Iterator[None]:
     mlflow.set_tracking_uri(uri)
     mlflow.set_registry_uri(uri)
     try:
-        with without_progress_bars():
+        # log_model downloads the model it has just logged to check the input example, and MLflow drew a progress
+        # bar for it in every training stage's log: library noise
+        with environment_default(PROGRESS_BAR_ENV, "false"):
             yield
     finally:
         mlflow.set_tracking_uri(previous[0])
         mlflow.set_registry_uri(previous[1])
-
-
-@contextlib.contextmanager
-def without_progress_bars() -> Iterator[None]:
-    """Within: MLflow draws no progress bar per download. ``log_model`` downloads the model it has just logged to
-    check the input example, and its bars ended up in every training stage's log: library noise."""
-    if PROGRESS_BAR_ENV in os.environ:
-        yield
-        return
-    os.environ[PROGRESS_BAR_ENV] = "false"
-    try:
-        yield
-    finally:
-        os.environ.pop(PROGRESS_BAR_ENV, None)
 
 
 @contextlib.contextmanager
