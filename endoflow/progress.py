@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from contextlib import contextmanager
@@ -83,3 +84,16 @@ def environment_default(name: str, value: str) -> Iterator[None]:
         yield
     finally:
         os.environ.pop(name, None)
+
+
+@contextmanager
+def logger_quieted(name: str, level: int = logging.WARNING) -> Iterator[None]:
+    """Within: the logger ``name`` passes only records at ``level`` and above: how a library's notes that tell a
+    user nothing to act on are kept off the terminal. Its own level is restored after."""
+    logger = logging.getLogger(name)
+    previous = logger.level
+    logger.setLevel(max(level, logger.getEffectiveLevel()))
+    try:
+        yield
+    finally:
+        logger.setLevel(previous)

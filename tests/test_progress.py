@@ -1,8 +1,14 @@
-"""The one progress line: how far, the pace and the time left, timed by a clock the test moves."""
+"""The one progress line: how far, the pace and the time left, timed by a clock the test moves; and how a
+library is told to print less, for a block only."""
 
 from __future__ import annotations
 
-from endoflow.progress import Progress, format_duration
+import logging
+import os
+
+import pytest
+
+from endoflow.progress import Progress, environment_default, format_duration, logger_quieted
 
 
 class FakeClock:
@@ -63,3 +69,40 @@ def test_durations_read_in_minutes_and_seconds_or_hours_and_minutes() -> None:
     assert format_duration(250.9) == "4m10s"
     assert format_duration(3900) == "1h05m"
     assert format_duration(-3) == "0m00s"
+
+
+def test_a_quieted_logger_drops_notes_below_the_level_within_the_block_only(caplog) -> None:
+    logger = logging.getLogger("some.library")
+    logger.setLevel(logging.INFO)
+    with caplog.at_level(logging.INFO, logger="some.library"), logger_quieted("some.library"):
+        logger.info("a note")
+        logger.warning("a warning")
+    assert [r.getMessage() for r in caplog.records] == ["a warning"]
+    assert logger.level == logging.INFO
+
+
+def test_quieting_never_lets_more_through_than_the_logger_already_did() -> None:
+    logger = logging.getLogger("some.quiet.library")
+    logger.setLevel(logging.ERROR)
+    with logger_quieted("some.quiet.library", logging.WARNING):
+        assert logger.getEffectiveLevel() == logging.ERROR
+    assert logger.level == logging.ERROR
+
+
+def test_an_environment_default_yields_to_the_users_setting(monkeypatch) -> None:
+    monkeypatch.delenv("ENDOFLOW_TEST_SETTING", raising=False)
+    with environment_default("ENDOFLOW_TEST_SETTING", "false"):
+        assert os.environ["ENDOFLOW_TEST_SETTING"] == "false"
+    assert "ENDOFLOW_TEST_SETTING" not in os.environ
+    monkeypatch.setenv("ENDOFLOW_TEST_SETTING", "true")
+    with environment_default("ENDOFLOW_TEST_SETTING", "false"):
+        assert os.environ["ENDOFLOW_TEST_SETTING"] == "true"
+    assert os.environ["ENDOFLOW_TEST_SETTING"] == "true"
+
+
+def test_a_quieted_logger_is_restored_when_the_block_raises() -> None:
+    logger = logging.getLogger("some.raising.library")
+    logger.setLevel(logging.DEBUG)
+    with pytest.raises(RuntimeError), logger_quieted("some.raising.library"):
+        raise RuntimeError("inside")
+    assert logger.level == logging.DEBUG

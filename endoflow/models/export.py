@@ -36,6 +36,7 @@ from torch import nn
 from endoflow.io import atomic_path, file_sha256, write_json
 from endoflow.models.endoflow_model import load_trained_model
 from endoflow.models.model_file import ModelRecord
+from endoflow.progress import logger_quieted
 
 # torchlib (the dynamo exporter's op library) is written for opset 18: asking for it means no version
 # conversion pass, and onnxruntime supports it from 1.14 on.
@@ -168,16 +169,10 @@ def export_graph(graph: nn.Module, inputs: dict[str, torch.Tensor], output: str,
 def _quiet_exporter() -> Iterator[None]:
     """Silence the exporter's notes that say nothing about this model: torchvision ops it skips registering
     (logged), a deprecation inside torch, and that the pose inputs' shared batch symbol is named once."""
-    logger = logging.getLogger("torch.onnx._internal.exporter._registration")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
-    try:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*LeafSpec.*is deprecated", category=FutureWarning)
-            warnings.filterwarnings("ignore", message=".*axis name: batch will not be used", category=UserWarning)
-            yield
-    finally:
-        logger.setLevel(level)
+    with logger_quieted("torch.onnx._internal.exporter._registration", logging.ERROR), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*LeafSpec.*is deprecated", category=FutureWarning)
+        warnings.filterwarnings("ignore", message=".*axis name: batch will not be used", category=UserWarning)
+        yield
 
 
 def verify_graph(path: Path, inputs: dict[str, np.ndarray], expected: np.ndarray, rtol: float,

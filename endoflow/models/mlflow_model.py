@@ -23,7 +23,7 @@ import yaml
 
 from endoflow.errors import DataFormatError
 from endoflow.models.model_file import load_model_file
-from endoflow.progress import environment_default
+from endoflow.progress import environment_default, logger_quieted
 
 MODEL_URI_SCHEMES = ("models:/", "runs:/")
 ARTIFACT_NAME = "model"  # where the logged model sits among its run's artifacts
@@ -110,7 +110,8 @@ def log_mlflow_model(tracking_uri: str, run_id: str, model_path: Path, registere
     import mlflow
 
     size = load_model_file(model_path).params.data.size
-    with using_store(tracking_uri), mlflow.start_run(run_id=run_id):
+    # MLflow notes at INFO that it checks the input example against the signature: it raises if they disagree
+    with using_store(tracking_uri), logger_quieted("mlflow.pyfunc"), mlflow.start_run(run_id=run_id):
         info = mlflow.pyfunc.log_model(
             name=ARTIFACT_NAME, python_model=str(ENTRY_FILE), artifacts={MODEL_FILE_ARTIFACT: str(model_path)},
             code_paths=[str(PACKAGE_FOLDER)], signature=model_signature(size), input_example=example_frames(size),
