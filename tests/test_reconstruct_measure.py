@@ -142,8 +142,11 @@ def test_every_path_row_is_measured_and_the_summary_is_plain_json(measured, tmp_
 
 
 def test_the_measurement_reads_as_two_tables(measured) -> None:
-    text = format_measurement("S1", measured[0])
+    result = measured[0]
+    text = format_measurement("S1", result)
     assert text.count("\n| model |") == 2 and "| ground_truth |" in text and "| trivial |" in text
+    assert (f"fused at the ground truth's scale, voxel {result['voxel_cm']:.3g} cm ({result['depth_scale']:.3g} x "
+            f"the reconstruction's)") in text.splitlines()[0]
 
 
 # -------------------------------------------------------------------------------------------- the parts
@@ -204,7 +207,7 @@ def test_an_empty_mesh_has_no_accuracy_and_every_ground_truth_point_missed(tmp_p
     assert errors["accuracy_mean"] is None and errors["accuracy_median"] is None
     assert errors["completeness_median"] == DISTANCE_CAP_CM and errors["completeness_ratio"] == 0.0
     write_json(tmp_path / "m.json", errors)
-    table = format_measurement("empty", {"frames": 1, "voxel_cm": 0.1, "frames_per_second": 1.0, "path": {},
+    table = format_measurement("empty", {"frames": 1, "voxel_cm": 0.1, "depth_scale": 1.0, "frames_per_second": 1.0, "path": {},
                                          "surface": {"model": errors}})
     assert "none (empty mesh) / none (empty mesh)" in table
 

@@ -325,8 +325,11 @@ def measurement_rows(result: dict) -> list[dict]:
 
 def format_measurement(name: str, result: dict) -> str:
     """Two small Markdown tables a person reads at the end of the stage: path and surface errors per row."""
-    lines = [f"## {name}: {result['frames']} frames, voxel {result['voxel_cm']:.3g} cm, "
-             f"{result['frames_per_second']:.1f} frames/s", "",
+    # the rows fuse at the ground truth's scale (measure_reconstruction): the voxel said is that one, which a
+    # reader would otherwise take for the reconstruction's own
+    lines = [f"## {name}: {result['frames']} frames, {result['frames_per_second']:.1f} frames/s; every surface "
+             f"fused at the ground truth's scale, voxel {result['voxel_cm']:.3g} cm ({result['depth_scale']:.3g} "
+             f"x the reconstruction's)", "",
              "| path | ATE RMSE cm | ATE median cm | RPE cm | RPE deg | scale | scale / depth's |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
     for row, figures in result["path"].items():
