@@ -1,6 +1,8 @@
 """Training on Ray Train with DDP, on tiny shards (64 px, one or two steps per epoch).
 
-Ray costs about 20 s per run on two cores, so each test combines several checks:
+Starting Ray costs about 10 s on two cores and a training's workers as much again, so each test combines several
+checks, and the trainings in this process share one local Ray (a training joins a running Ray and leaves it
+running; the stage killed below starts its own, as `dvc repro` does):
 
 - two CPU workers, killed after the first epoch's checkpoint and run again: the rerun continues with the
   next epoch (the finished epoch is neither lost nor repeated) and ends with weights bit-identical to an
@@ -21,17 +23,19 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Callable, Iterator
 
 import pytest
 import torch
 import yaml
 
 from endoflow import tracking
-from endoflow.config import Params, params_to_dict
+from endoflow.config import Params, RayConfig, params_to_dict
 from endoflow.data.shards import write_dataset_shards
 from endoflow.io import file_sha256
 from endoflow.models.mlflow_model import using_store
 from endoflow.models.model_file import load_model_file
+from endoflow.ray_runtime import connect_ray
 from endoflow.training.checkpoint import latest_checkpoint, load_training_state, read_rank_audits, weights_digest
 from endoflow.training.ray_trainer import TrainingError, train, training_fingerprint
 from tests.test_evaluate import OracleSource, shard_params
@@ -47,6 +51,18 @@ def project(tmp_path: Path, **train_overrides) -> Params:
     # one CPU a worker, so that two fit this machine's two; an error ends the run at once
     params.ray = params.ray.replace(num_workers=1, num_cpus=2, cpus_per_worker=1.0, max_failures=0)
     return params
+
+
+@pytest.fixture(scope="module")
+def shared_ray() -> Iterator[Callable[[], None]]:
+    """Call it to have a local Ray of two CPUs running in this process; it is shut down after the module."""
+    import ray
+
+    def start() -> None:
+        connect_ray(RayConfig(num_cpus=2))
+
+    yield start
+    ray.shutdown()
 
 
 def checkpoint_folders(storage: Path) -> list[Path]:
@@ -79,7 +95,8 @@ def run_stage_until_first_checkpoint(root: Path, storage: Path, timeout: float =
 
 
 @pytest.mark.slow
-def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint_samples(tmp_path: Path):
+def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint_samples(tmp_path: Path,
+                                                                                        shared_ray):
     params = project(tmp_path, epochs=2)
     storage = tmp_path / "checkpoints"
     params.ray = params.ray.replace(num_workers=2, storage_path=storage.as_uri())  # an fsspec URL
@@ -89,6 +106,7 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
     assert [f.name for f in checkpoint_folders(storage)] == ["epoch-0000"]
     first_epoch = (checkpoint_folders(storage)[0] / "state.pt").read_bytes()
 
+    shared_ray()
     summary = train(params, tmp_path)
 
     folders = checkpoint_folders(storage)
@@ -143,7 +161,7 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
 
 
 @pytest.mark.slow
-def test_a_non_finite_loss_stops_training_naming_the_step_and_keeps_the_last_checkpoint(tmp_path: Path):
+def test_a_non_finite_loss_stops_training_naming_the_step_and_keeps_the_last_checkpoint(tmp_path: Path, shared_ray):
     # the learning rate becomes NaN after epoch 0, so the first update of epoch 1 breaks the weights (a copy
     # without validation: a params file with a NaN gamma is refused at load)
     params = project(tmp_path, epochs=3, steps_per_epoch=2, schedule="step", step_epochs=1)
@@ -151,6 +169,7 @@ def test_a_non_finite_loss_stops_training_naming_the_step_and_keeps_the_last_che
     params.ray = params.ray.replace(storage_path=str(tmp_path / "checkpoints"))
     params.train.shards = (tmp_path / "data" / "shards" / "simcol").as_uri()  # shards through fsspec
 
+    shared_ray()
     with pytest.raises(TrainingError, match=r"NonFiniteLossError: non-finite training loss .* at epoch 1, step 1"):
         train(params, tmp_path)
 
