@@ -27,11 +27,12 @@ $(STAMP): pyproject.toml
 repro: $(STAMP) dvc-deps
 	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/dvc repro
 
-# Two processes (pytest-xdist), a test module each at a time: a module's fixtures (a whole `dvc repro`) run once.
-# One process left 30 % of the two cores idle on average (vmstat): waits for subprocesses, Ray and the disk.
-# The suite took 24 min 06 s so (28 min 44 s in one process, before the paper dry run rendered smaller, a minute
-# of it); tests/conftest.py sets the order and how idle threads wait.
-TEST_WORKERS ?= 2
+# Three processes (pytest-xdist), a test module each at a time: a module's fixtures (a whole `dvc repro`) run once.
+# One process left 30 % of the two cores idle on average (vmstat): waits for subprocesses, Ray and the disk; two
+# still left room. On 2 cores the suite took 20 min 24 s in three, 24 min 06 s in two, 28 min 44 s in one (the
+# last before the paper dry run rendered smaller, a minute of it); tests/conftest.py sets the order and how idle
+# threads wait.
+TEST_WORKERS ?= 3
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=15
 
