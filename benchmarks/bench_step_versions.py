@@ -7,13 +7,13 @@
 ``DIR`` holds an earlier ``endoflow`` package (``git archive <commit> endoflow | tar -x -C DIR``). Each variant
 runs in its own process: ``before`` (DIR's code, eager), ``after`` (this tree, eager) and ``compiled`` (this tree,
 the step through :func:`endoflow.devices.compiled` as training runs it with ``train.compile``). A step is
-``training_step_losses`` forward, backward and an AdamW step, on one random batch (seed 0) and the preset's model
-initialised from seed 0 (its latent bank random: the same compute as a pretrained one). Printed per variant: the
-median step time over ``--steps`` timed steps after two warm-up steps (their time, compilation included, printed
-apart), samples/s, peak memory, and the first step's losses; then the speed-ups over ``before`` and the largest
-relative difference of any loss term from ``before``'s (the same function computed, to rounding). With
-``--rounds`` > 1 the variants alternate, round after round, so that load from other processes hits all alike,
-and the median of the rounds is taken. Defaults: batch 12 on a GPU, 2 on a CPU; bf16 on a GPU, float32 on a CPU.
+``training_step_losses`` forward, backward and an optimiser step (``make_optimizer``, as training's), on one
+random batch (seed 0) and the preset's model initialised from seed 0 (its latent bank random: the same compute
+as a pretrained one). Printed per variant: the median step time over ``--steps`` timed steps after two warm-up
+steps (their time, compilation included, printed apart), samples/s, peak memory, and the first step's losses;
+then the speed-ups over ``before`` and the largest relative difference of any loss term from ``before``'s (the
+same function computed, to rounding). With ``--rounds`` > 1 the variants alternate, round after round, so that
+load from other processes hits all alike, and the median of the rounds is taken. Defaults: batch 12 on a GPU, 2 on a CPU; bf16 on a GPU, float32 on a CPU.
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ def run_worker(args: argparse.Namespace) -> dict:
     from endoflow.devices import autocast, to_compute_layout
     from endoflow.models.endoflow_model import build_model
     from endoflow.training.objective import training_step_losses
+    from endoflow.training.optimization import make_optimizer
 
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -77,7 +78,7 @@ def run_worker(args: argparse.Namespace) -> dict:
 
         losses_of = compiled(training_step_losses, device, True)
     batch = random_batch(args.batch, args.size, device)
-    optimiser = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
+    optimiser = make_optimizer([p for p in model.parameters() if p.requires_grad], params.train)
 
     def step() -> dict[str, float]:
         optimiser.zero_grad(set_to_none=True)

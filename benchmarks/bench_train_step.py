@@ -3,7 +3,8 @@
     python benchmarks/bench_train_step.py [--params params.yaml] [--size S] [--batch B] [--threads T]
                                           [--repeats 5] [--device cpu|cuda] [--bf16]
 
-A step is ``training_step_losses`` forward, backward and an AdamW step over the trainable parameters.
+A step is ``training_step_losses`` forward, backward and training's optimiser step (``make_optimizer``) over the
+trainable parameters.
 "full" is ``params.model`` (latent bank and pose VAE as configured, default both on); "plain" is the same
 with ``model.latent_bank=false, model.pose_vae=false``. Defaults: ``data.size`` and ``train.batch_size``
 from the params. Runs alternate between the two models so that load from other processes hits both alike;
@@ -23,6 +24,7 @@ import torch
 from endoflow.config import Params, load_params
 from endoflow.models.endoflow_model import EndoflowModel, build_model
 from endoflow.training.objective import training_step_losses
+from endoflow.training.optimization import make_optimizer
 
 
 def make_batch(batch: int, size: int, device: torch.device) -> dict[str, torch.Tensor]:
@@ -33,9 +35,7 @@ def make_batch(batch: int, size: int, device: torch.device) -> dict[str, torch.T
 
 
 def make_step(model: EndoflowModel, params: Params, batch: dict, device: torch.device, bf16: bool):
-    optimiser = torch.optim.AdamW(
-        [p for p in model.parameters() if p.requires_grad], lr=params.train.lr, weight_decay=params.train.weight_decay
-    )
+    optimiser = make_optimizer([p for p in model.parameters() if p.requires_grad], params.train)
 
     def step() -> None:
         optimiser.zero_grad(set_to_none=True)

@@ -28,6 +28,7 @@ from endoflow.losses.gan import critic_loss, generator_loss, gradient_penalty
 from endoflow.losses.kl import kl_standard_normal
 from endoflow.losses.photometric import photometric_error, reprojection_loss, ssim_map
 from endoflow.losses.smoothness import edge_aware_smoothness
+from endoflow.models.gemm_weight_grad import GemmWeightGradConv2d
 
 HEIGHT, WIDTH = 6, 7
 
@@ -216,3 +217,19 @@ def test_learned_intrinsics_gradcheck():
 
     check(lambda K, c: correct_intrinsics(K, c, (HEIGHT, WIDTH)), intrinsics(2),
           uniform(2, 4, low=-0.3, high=0.3, seed=31))
+
+
+# ------------------------------------------------------------------------------------------- layers
+@pytest.mark.parametrize("kernel, stride", [(3, 1), (3, 2), (1, 1)])
+def test_gemm_weight_grad_convolution_gradcheck_and_gradgradcheck(kernel, stride):
+    """On a map of few positions, where the weight's gradient is the layer's own matrix product."""
+    conv = GemmWeightGradConv2d(3, 4, kernel, stride=stride, padding=kernel // 2).double()
+    x = uniform(2, 3, 2 * stride, 2 * stride, low=-1.0, high=1.0, seed=40)
+    assert conv._takes_gemm_weight_grad(x, conv.weight)
+
+    def convolve(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        return conv._conv_forward(x, weight, bias)
+
+    inputs = (x, variable(conv.weight), variable(conv.bias))
+    check(convolve, *inputs)
+    assert gradgradcheck(convolve, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)

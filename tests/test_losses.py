@@ -50,6 +50,19 @@ def test_ssim_border_uses_reflection_padding() -> None:
     assert ssim_map(x, y)[0, 0, 0, 0].item() == pytest.approx(corner.item(), abs=1e-6)
 
 
+def test_ssim_is_monodepth2s_average_pooled_ssim_to_rounding() -> None:
+    x, y = images(4, 3, 64, 64, seed=6), images(4, 3, 64, 64, seed=7)
+
+    def pooled(t: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.avg_pool2d(torch.nn.functional.pad(t, (1, 1, 1, 1), mode="reflect"), 3, 1)
+
+    mu_x, mu_y = pooled(x), pooled(y)
+    numerator = (2 * mu_x * mu_y + 0.01**2) * (2 * (pooled(x * y) - mu_x * mu_y) + 0.03**2)
+    denominator = (mu_x**2 + mu_y**2 + 0.01**2) * (pooled(x * x) - mu_x**2 + pooled(y * y) - mu_y**2 + 0.03**2)
+    reference = ((1 - numerator / denominator) / 2).clamp(0, 1)
+    assert torch.allclose(ssim_map(x, y), reference, rtol=0, atol=1e-5)
+
+
 # -------------------------------------------------------------------------------------- photometric
 def test_photometric_error_kinds() -> None:
     x, y = images(2, 3, 6, 6), images(2, 3, 6, 6, seed=1)

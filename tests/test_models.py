@@ -18,6 +18,7 @@ from endoflow.geometry.pose import invert_pose, pose_vec_to_matrix
 from endoflow.models.critic import Critic
 from endoflow.models.edge_padding import EdgePaddedConv2d, edge_pad, sliced_edge_pad
 from endoflow.models.endoflow_model import build_model
+from endoflow.models.gemm_weight_grad import FEW_POSITIONS, GemmWeightGradConv2d, conv_weight_grad_by_gemm
 from endoflow.models.latent_bank import (
     GeneratorSpec,
     InitScaledConv2d,
@@ -423,3 +424,43 @@ def test_an_edge_padded_convolution_is_a_replicate_padded_one_with_the_same_weig
     assert torch.allclose(ours(x), theirs(x), atol=1e-6)
     with pytest.raises(ValueError, match="odd"):
         EdgePaddedConv2d(5, 4, 2)
+
+
+@pytest.mark.parametrize("kernel, stride, size", [(3, 1, 2), (3, 2, 4), (1, 1, 2), (7, 2, 9), (3, 1, 5)])
+def test_the_weight_gradient_as_one_matrix_product_is_torchs(kernel: int, stride: int, size: int) -> None:
+    x = torch.randn(3, 5, size, size, dtype=torch.float64)
+    weight = torch.randn(4, 5, kernel, kernel, dtype=torch.float64)
+    grad_out = torch.randn_like(F.conv2d(x, weight, stride=stride, padding=kernel // 2))
+    ours = conv_weight_grad_by_gemm(x, grad_out, weight.shape, (stride, stride), (kernel // 2, kernel // 2))
+    torchs = torch.nn.grad.conv2d_weight(x, weight.shape, grad_out, stride, kernel // 2)
+    assert torch.allclose(ours, torchs, rtol=0, atol=1e-12)
+
+
+def test_a_gemm_weight_grad_convolution_is_nn_conv2d_in_output_names_and_gradients() -> None:
+    ours = GemmWeightGradConv2d(64, 32, 3, padding=1)
+    theirs = nn.Conv2d(64, 32, 3, padding=1)
+    theirs.load_state_dict(ours.state_dict())
+    x = torch.randn(6, 64, 2, 2, requires_grad=True)
+    assert ours._takes_gemm_weight_grad(x, ours.weight)
+    y_ours, y_theirs = ours(x), theirs(x)
+    assert torch.equal(y_ours, y_theirs)  # the forward pass is torch's own
+    upstream = torch.randn_like(y_ours)
+    grads_ours = torch.autograd.grad(y_ours, [x, ours.weight, ours.bias], upstream)
+    grads_theirs = torch.autograd.grad(y_theirs, [x, theirs.weight, theirs.bias], upstream)
+    for a, b in zip(grads_ours, grads_theirs):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_a_gemm_weight_grad_convolution_leaves_other_cases_to_torch() -> None:
+    conv = GemmWeightGradConv2d(8, 8, 3, padding=1)
+    few, many = torch.randn(2, 8, 2, 2), torch.randn(2, 8, 3, 3)
+    assert conv._takes_gemm_weight_grad(few, conv.weight) and 3 * 3 > FEW_POSITIONS
+    assert not conv._takes_gemm_weight_grad(many, conv.weight)
+    with torch.no_grad():
+        assert not conv._takes_gemm_weight_grad(few, conv.weight)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert not conv._takes_gemm_weight_grad(few, conv.weight)
+    frozen = GemmWeightGradConv2d(8, 8, 3, padding=1).requires_grad_(False)
+    assert not frozen._takes_gemm_weight_grad(few, frozen.weight)
+    grouped = GemmWeightGradConv2d(8, 8, 3, padding=1, groups=2)
+    assert not grouped._takes_gemm_weight_grad(few, grouped.weight)

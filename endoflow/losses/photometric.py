@@ -52,8 +52,14 @@ def view_synthesis_error(target: torch.Tensor, source: torch.Tensor, depth: torc
 
 
 def _local_mean(x: torch.Tensor) -> torch.Tensor:
-    """3x3 box filter; reflection padding keeps the border statistics from seeing artificial zeros."""
-    return F.avg_pool2d(F.pad(x, (1, 1, 1, 1), mode="reflect"), kernel_size=3, stride=1)
+    """3x3 box filter; reflection padding keeps the border statistics from seeing artificial zeros.
+
+    Summed along rows, then columns, from shifted views: ``F.avg_pool2d(kernel_size=3, stride=1)`` to rounding,
+    and on 2 CPU cores 10x faster forward and 2x with its backward at 64 px (torch 2.13's CPU pooling does not
+    vectorise a window that slides by one)."""
+    padded = F.pad(x, (1, 1, 1, 1), mode="reflect")
+    rows = padded[..., :, :-2] + padded[..., :, 1:-1] + padded[..., :, 2:]
+    return (rows[..., :-2, :] + rows[..., 1:-1, :] + rows[..., 2:, :]) / 9
 
 
 def ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from torch import nn
+
+from endoflow.models.gemm_weight_grad import GemmWeightGradConv2d
 
 
 def edge_pad(x: torch.Tensor, width: int = 1) -> torch.Tensor:
@@ -29,10 +30,10 @@ def sliced_edge_pad(x: torch.Tensor, width: int) -> torch.Tensor:
     return torch.cat([rows[..., :1]] * width + [rows] + [rows[..., -1:]] * width, dim=-1)
 
 
-class EdgePaddedConv2d(nn.Conv2d):
+class EdgePaddedConv2d(GemmWeightGradConv2d):
     """A ``kernel_size`` x ``kernel_size`` (odd, at least 3) convolution keeping the map's size, padded by
     :func:`edge_pad`: ``nn.Conv2d(..., padding=kernel_size // 2, padding_mode="replicate")`` with the same
-    parameters and names."""
+    parameters and names, its weight gradient on few positions as :class:`GemmWeightGradConv2d` takes it."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int = 3) -> None:
         if kernel_size < 3 or kernel_size % 2 != 1:
@@ -40,4 +41,4 @@ class EdgePaddedConv2d(nn.Conv2d):
         super().__init__(in_channels, out_channels, kernel_size)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(edge_pad(x, self.kernel_size[0] // 2), self.weight, self.bias)
+        return self._conv_forward(edge_pad(x, self.kernel_size[0] // 2), self.weight, self.bias)

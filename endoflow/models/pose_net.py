@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from endoflow.models.gemm_weight_grad import GemmWeightGradConv2d
 from endoflow.models.resnet_encoder import ResNetEncoder
 from endoflow.shapes import check_shape
 
@@ -21,12 +22,13 @@ class PoseNet(nn.Module):
     def __init__(self, pose_vae: bool, encoder_weights: str | None = None, logvar_init: float = -9.0) -> None:
         super().__init__()
         self.encoder = ResNetEncoder(num_images=2, weights=encoder_weights)
-        self.squeeze = nn.Conv2d(ResNetEncoder.channels[-1], 256, 1)
+        self.squeeze = GemmWeightGradConv2d(ResNetEncoder.channels[-1], 256, 1)
         self.trunk = nn.Sequential(
-            nn.Conv2d(256, 256, 3, padding=1), nn.ReLU(), nn.Conv2d(256, 256, 3, padding=1), nn.ReLU()
+            GemmWeightGradConv2d(256, 256, 3, padding=1), nn.ReLU(),
+            GemmWeightGradConv2d(256, 256, 3, padding=1), nn.ReLU(),
         )
-        self.mean_head = nn.Conv2d(256, 6, 1)
-        self.logvar_head = nn.Conv2d(256, 6, 1) if pose_vae else None
+        self.mean_head = GemmWeightGradConv2d(256, 6, 1)
+        self.logvar_head = GemmWeightGradConv2d(256, 6, 1) if pose_vae else None
         if self.logvar_head is not None:
             nn.init.normal_(self.logvar_head.weight, std=1e-3)
             nn.init.constant_(self.logvar_head.bias, logvar_init)

@@ -15,6 +15,7 @@ from torch import nn
 from endoflow.config import ENCODER_STRIDE
 from endoflow.errors import DataFormatError
 from endoflow.io import load_plain_torch_file
+from endoflow.models.gemm_weight_grad import GemmWeightGradConv2d
 from endoflow.shapes import check_shape
 
 # Feature channels at strides 2, 4, 8, 16, 32.
@@ -26,14 +27,15 @@ MEAN, STD = 0.45, 0.225
 class BasicBlock(nn.Module):
     def __init__(self, in_channels: int, out_channels: int, stride: int) -> None:
         super().__init__()
-        self.conv1 = nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1, bias=False)
+        self.conv1 = GemmWeightGradConv2d(in_channels, out_channels, 3, stride=stride, padding=1, bias=False)
         self.bn1 = nn.BatchNorm2d(out_channels)
-        self.conv2 = nn.Conv2d(out_channels, out_channels, 3, padding=1, bias=False)
+        self.conv2 = GemmWeightGradConv2d(out_channels, out_channels, 3, padding=1, bias=False)
         self.bn2 = nn.BatchNorm2d(out_channels)
         self.downsample = None
         if stride != 1 or in_channels != out_channels:
             self.downsample = nn.Sequential(
-                nn.Conv2d(in_channels, out_channels, 1, stride=stride, bias=False), nn.BatchNorm2d(out_channels)
+                GemmWeightGradConv2d(in_channels, out_channels, 1, stride=stride, bias=False),
+                nn.BatchNorm2d(out_channels),
             )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -54,7 +56,7 @@ class ResNetEncoder(nn.Module):
     def __init__(self, num_images: int = 1, weights: str | None = None) -> None:
         super().__init__()
         self.num_images = num_images
-        self.conv1 = nn.Conv2d(3 * num_images, 64, 7, stride=2, padding=3, bias=False)
+        self.conv1 = GemmWeightGradConv2d(3 * num_images, 64, 7, stride=2, padding=3, bias=False)
         self.bn1 = nn.BatchNorm2d(64)
         self.layer1 = nn.Sequential(BasicBlock(64, 64, 1), BasicBlock(64, 64, 1))
         self.layer2 = nn.Sequential(BasicBlock(64, 128, 2), BasicBlock(128, 128, 1))

