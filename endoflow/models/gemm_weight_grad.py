@@ -4,7 +4,7 @@ oneDNN, which computes torch's CPU convolutions, is slow at one case the default
 weight gradient of a wide convolution over a map of a few positions (ResNet-18's last stage sees 2x2 maps at
 64 px). On 2 AVX2 cores (torch 2.13) that gradient of the 512 -> 512 3x3 convolution at batch 12 took 32 ms, the
 same gradient as a product of the output's gradient and the unfolded input 4 ms; oneDNN took 23 ms even at batch 2.
-On maps of more positions oneDNN is as fast or faster (measured up to 0.3x of the product's time at 30x30), so
+On maps of more positions oneDNN is as fast or faster (at 4x4 the same time, at 30x30 0.31x the product's), so
 only outputs of at most :data:`FEW_POSITIONS` positions take the product. The forward pass and the input's
 gradient stay oneDNN's: the output is the same to the bit, the weight's gradient equal to rounding. See
 ``benchmarks/bench_step_versions.py`` for the training step's time with and without it.
