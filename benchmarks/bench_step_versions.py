@@ -13,7 +13,8 @@ as a pretrained one). Printed per variant: the median step time over ``--steps``
 steps (their time, compilation included, printed apart), samples/s, peak memory, and the first step's losses;
 then the speed-ups over ``before`` and the largest relative difference of any loss term from ``before``'s (the
 same function computed, to rounding). With ``--rounds`` > 1 the variants alternate, round after round, so that
-load from other processes hits all alike, and the median of the rounds is taken. Defaults: batch 12 on a GPU, 2 on a CPU; bf16 on a GPU, float32 on a CPU.
+load from other processes hits all alike, and the median of the rounds is taken. Defaults: batch 12 on a GPU, 2 on
+a CPU; bf16 on a GPU, float32 on a CPU.
 """
 
 from __future__ import annotations
