@@ -10,8 +10,7 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, Optional, Sequence
 
-from endoflow.config import PRECISIONS, SYNTH_LAYOUTS, ConfigError, load_params
-from endoflow.data.base import DATASETS
+from endoflow.config import DATASETS, PRECISIONS, SYNTH_LAYOUTS, ConfigError, load_params
 from endoflow.errors import DataFormatError
 from endoflow.io import OutputFolderError
 from endoflow.sweep import STUDIES
