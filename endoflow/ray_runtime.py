@@ -42,7 +42,8 @@ from endoflow.progress import environment_default
 NODE_CHECK_TIMEOUT_S = 120.0
 # Lines Ray prints about itself that nobody can act on; they still reach the run's Ray log (worker_logs_to).
 # Ray Train's controller logs an internal actor's restart policy at ERROR level on every start
-# (https://github.com/ray-project/ray/issues/53727).
+# (https://github.com/ray-project/ray/issues/53727); on a cluster, as a local Ray runs no such actor
+# (ray_train_settings).
 UNACTIONABLE_RAY_LINES = (re.compile(r"core_worker\.cc:\d+: Actor with class name: 'PreemptionWatcher'"),)
 # Ray's notice, at every local start, that it turned on token authentication (what we want: nothing to do);
 # the notice that authentication is *off*, when joining a cluster without it, still shows.
@@ -54,6 +55,8 @@ RAY_PRINT_HANDLER = "ray_print_logs"
 ANSI_ESCAPE = re.compile(r"\x1b\[[0-?]*[ -/]*[@-~]")
 # Ray prints the prefixes uncoloured with this set to "0" (read at every line)
 RAY_COLOR_PREFIX_ENV = "RAY_COLOR_PREFIX"
+# Ray Train's switch for its preemption watcher, read from the driver's environment when a training starts
+PREEMPTION_WATCHER_ENV = "RAY_TRAIN_ENABLE_PREEMPTION_WATCHER"
 
 
 class ClusterMismatchError(ConfigError):
@@ -110,6 +113,19 @@ def connect_ray(cfg: RayConfig) -> bool:
         print(f"[ray] joined the cluster at {cfg.address}: {len(nodes)} nodes, "
               f"{ray.cluster_resources().get('CPU', 0):g} CPUs", file=sys.stderr, flush=True)
     return True
+
+
+@contextmanager
+def ray_train_settings(cfg: RayConfig) -> Iterator[None]:
+    """Within (around Ray Train's ``fit``): on a local Ray, no preemption watcher. It polls for nodes being drained
+    (a cloud's spot instance about to go), which one machine never is; it costs an actor per training (2.6 s of CPU
+    to start on 2 cores) and logs an unactionable error at every start (:data:`UNACTIONABLE_RAY_LINES`). A cluster
+    (``ray.address``) keeps it; a user's own setting stays."""
+    if cfg.address:
+        yield
+        return
+    with environment_default(PREEMPTION_WATCHER_ENV, "0"):
+        yield
 
 
 @contextmanager
@@ -193,22 +209,11 @@ def uncoloured_prefixes() -> Iterator[None]:
         yield
 
 
-def quiet_worker_logs() -> None:
-    """Ray worker setup: without the dashboard, Ray Train's placement-group cleaner cannot reach the state
-    API and warns about it every second; its job (cleaning up after a crashed controller) is unaffected. Each
-    report's ``Reporting training result N: TrainingReport(...)`` comes from a logger named after its file,
-    outside ``ray.train`` (whose level ``RunConfig.logging_config`` sets), so it is quieted here."""
-    from ray.train.v2._internal.execution import context as train_context
-
-    logging.getLogger("ray.train.v2._internal.execution.controller.placement_group_cleaner").setLevel(logging.ERROR)
-    train_context.logger.setLevel(logging.WARNING)
-
-
 def shipped_runtime_env() -> dict[str, Any]:
     """The job's ``runtime_env``: this tree's endoflow package on every node (Ray uploads it once per content,
-    without bytecode caches), and the worker log setup."""
+    without bytecode caches), and the setup every worker process runs first (``endoflow/ray_worker_setup.py``)."""
     return {"py_modules": [str(package_folder())], "excludes": ["__pycache__"],
-            "worker_process_setup_hook": "endoflow.ray_runtime.quiet_worker_logs"}
+            "worker_process_setup_hook": "endoflow.ray_worker_setup.set_up_worker"}
 
 
 @contextmanager

@@ -147,6 +147,11 @@ def test_two_workers_killed_and_rerun_resume_with_identical_weights_and_disjoint
     assert {"val_depth/epoch_0001.png", "val_depth/epoch_0002.png", "val_depth/latest.png",
             "model/MLmodel"} <= artifacts  # the model, as an MLflow model (tests/test_mlflow_model.py)
     assert "logs/ray-from-epoch-0002.log" in artifacts  # what Ray printed in the rerun (the killed run had no time)
+    (tmp_path / "downloaded").mkdir()
+    ray_log = Path(tracking.client(uri).download_artifacts(run.info.run_id, "logs/ray-from-epoch-0002.log",
+                                                          str(tmp_path / "downloaded")))
+    assert "RayTrainWorker" in ray_log.read_text()  # the workers' lines...
+    assert "PreemptionWatcher" not in ray_log.read_text()  # ...and none from a watcher, which a local Ray does not run
 
     # the same training, never interrupted, keeping one checkpoint: the same weights, bit for bit
     reference = tmp_path / "uninterrupted"

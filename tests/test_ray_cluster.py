@@ -131,6 +131,31 @@ def test_a_driver_with_another_endoflow_is_refused_naming_every_node(cluster, mo
     assert not ray.is_initialized()  # the refused connection was closed
 
 
+def test_every_worker_addresses_its_own_cluster_and_only_trainings_import_ray_train(cluster):
+    """The worker setup gives each worker its cluster's address: without one, Ray Train's placement-group cleaner
+    looked for the machine's only Ray and died with "Found multiple active Ray instances" wherever two ran (two
+    runs side by side), printing its traceback into the run's output. The setup leaves Ray Train unimported."""
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    connect_ray(RayConfig(address=cluster.address))
+    try:
+        nodes = [node["NodeID"] for node in ray.nodes() if node["Alive"]]
+        seen = ray.get([ray.remote(num_cpus=0)(what_a_worker_sees).options(
+            scheduling_strategy=NodeAffinitySchedulingStrategy(node, soft=False)).remote() for node in nodes])
+        address = ray.get_runtime_context().gcs_address
+    finally:
+        ray.shutdown()
+    assert len(nodes) == 3
+    assert seen == [(address, False)] * 3
+
+
+def what_a_worker_sees() -> tuple[str | None, bool]:
+    """``RAY_ADDRESS`` in this worker, and whether it imported Ray Train."""
+    import sys
+
+    return os.environ.get("RAY_ADDRESS"), "ray.train" in sys.modules
+
+
 def test_a_worker_killed_during_an_epoch_is_replaced_and_training_finishes_by_itself(cluster, uninterrupted,
                                                                                       tmp_path):
     params = cluster_params(tmp_path, cluster)

@@ -2,14 +2,25 @@
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 from ray._private.worker import global_worker_stdstream_dispatcher as dispatcher
 
-from endoflow.ray_runtime import RAY_PRINT_HANDLER, without_token_auth_notice, worker_logs_to
+from endoflow.config import RayConfig
+from endoflow.ray_runtime import (
+    PREEMPTION_WATCHER_ENV,
+    RAY_PRINT_HANDLER,
+    ray_train_settings,
+    without_token_auth_notice,
+    worker_logs_to,
+)
+from endoflow.ray_worker_setup import QUIETED_RAY_TRAIN_LOGGERS, ray_train_context_logger_name
 
 PREEMPTION_LINE = ("[2026-11-23 10:16:45,165 E 15215 15243] core_worker.cc:2465: Actor with class name: "
                    "'PreemptionWatcher' and ID: '82f8' has constructor arguments in the object store and "
@@ -77,3 +88,41 @@ def test_colour_codes_reach_only_a_terminal(monkeypatch, tmp_path: Path) -> None
     assert "RAY_COLOR_PREFIX" not in os.environ
     assert (tmp_path / "ray.log").read_text().splitlines() == [
         "(RayTrainWorker pid=7, stderr) (raylet) WARNING: 1 worker restarted"] * 2
+
+
+def test_the_quieted_loggers_are_the_ones_ray_train_logs_with():
+    """The worker setup names Ray Train's loggers without importing Ray Train: each name must be the logger its
+    module logs with, or the lines come back after a Ray upgrade."""
+    context = importlib.import_module("ray.train.v2._internal.execution.context")
+    assert logging.getLogger(ray_train_context_logger_name()) is context.logger
+    for name in QUIETED_RAY_TRAIN_LOGGERS:
+        assert logging.getLogger(name) is importlib.import_module(name).logger, name
+
+
+def test_quieting_ray_trains_loggers_imports_neither_ray_train_nor_endoflows_config():
+    """Every worker process of a job runs the setup: Ray Train (with Ray Data, pandas and pyarrow) would cost each
+    about 1.7 s of CPU on 2 cores, endoflow's config (pydantic) 0.3 s, and most workers never train."""
+    script = ("import sys, logging\n"
+              "from endoflow.ray_worker_setup import quiet_ray_train_loggers, ray_train_context_logger_name\n"
+              "quiet_ray_train_loggers()\n"
+              "assert logging.getLogger(ray_train_context_logger_name()).level == logging.WARNING\n"
+              "heavy = ('ray.train', 'ray.data', 'pandas', 'pydantic', 'endoflow.config')\n"
+              "print(sorted(m for m in sys.modules if m.startswith(heavy)))\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.strip() == "[]"
+
+
+def test_a_local_ray_trains_without_a_preemption_watcher_a_cluster_and_a_users_setting_keep_theirs(monkeypatch):
+    """Ray Train's controller reads the switch from the driver's environment when ``fit`` starts: one machine is
+    never drained like a cloud's spot instance, so a local Ray has nothing to watch (tests/test_ray.py finds the
+    watcher's line absent from a local training's Ray log)."""
+    monkeypatch.delenv(PREEMPTION_WATCHER_ENV, raising=False)
+    with ray_train_settings(RayConfig()):
+        assert os.environ[PREEMPTION_WATCHER_ENV] == "0"
+    assert PREEMPTION_WATCHER_ENV not in os.environ
+    with ray_train_settings(RayConfig(address="10.0.0.1:6379")):
+        assert PREEMPTION_WATCHER_ENV not in os.environ
+    monkeypatch.setenv(PREEMPTION_WATCHER_ENV, "1")
+    with ray_train_settings(RayConfig()):
+        assert os.environ[PREEMPTION_WATCHER_ENV] == "1"

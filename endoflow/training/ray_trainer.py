@@ -58,7 +58,7 @@ from endoflow.locations import absolute_location, home_project, local_file
 from endoflow.models.mlflow_model import log_mlflow_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from endoflow.models.latent_bank import check_latent_bank_file
-from endoflow.ray_runtime import connect_ray, worker_logs_to
+from endoflow.ray_runtime import connect_ray, ray_train_settings, worker_logs_to
 from endoflow.training.checkpoint import TrainingCheckpoint, TrainState, latest_checkpoint, load_training_state
 from endoflow.training.worker_config import WorkerConfig
 
@@ -273,7 +273,7 @@ def fit_on_ray(params: Params, config: WorkerConfig, storage: str, run_name: str
                                  # its log files in the Ray session folder only; our progress lines stay
                                  logging_config=LoggingConfig(log_level="WARNING")),
         )
-        with worker_logs_to(ray_log):
+        with worker_logs_to(ray_log), ray_train_settings(params.ray):
             result = trainer.fit()
     finally:
         if started_ray:
