@@ -61,7 +61,6 @@ if TYPE_CHECKING:
     from endoflow import tracking
 
 
-
 class NonFiniteLossError(RuntimeError):
     """The training loss became NaN or infinite; the message names the epoch and step and what to change."""
 
