@@ -121,6 +121,14 @@ def test_no_face_reaches_a_voxel_never_observed() -> None:
     assert (mesh.vertices / VOXEL_CM - 0.5 >= 1).all()
 
 
+def test_a_volume_without_surface_meshes_to_nothing() -> None:
+    for values in (np.ones((8, 8, 16)), -np.ones((8, 8, 16))):  # all in front of the surface, all behind it
+        mesh = volume_of(values).extract_mesh_on_device()
+        assert mesh.vertices.shape == (0, 3) and mesh.triangles.shape == (0, 3) and mesh.colours.shape == (0, 3)
+    empty = TSDFVolume(VOXEL_CM, 4 * VOXEL_CM).extract_mesh_on_device()
+    assert len(empty.vertices) == len(empty.triangles) == 0
+
+
 def test_the_mesh_does_not_depend_on_how_the_blocks_are_batched(monkeypatch: pytest.MonkeyPatch) -> None:
     values = np.random.default_rng(1).uniform(-1, 1, (24, 16, 16))
     values[[0, -1]], values[:, [0, -1]], values[:, :, [0, -1]] = 1.0, 1.0, 1.0

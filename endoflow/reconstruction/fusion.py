@@ -204,7 +204,7 @@ class TSDFVolume:
         """The zero level set of the observed voxels as a triangle mesh, with colours of the nearest voxel: on a CPU
         by :meth:`extract_mesh_on_host`, elsewhere (a GPU) by :meth:`extract_mesh_on_device`. The two differ only
         inside a few ambiguous cubes, where scikit-image's variant adds a vertex (see :mod:`marching_cubes`); on a
-        CPU scikit-image's is about three times faster."""
+        CPU scikit-image's is 2.3-2.8 times faster (docs/benchmarks.md)."""
         return self.extract_mesh_on_host() if self.device.type == "cpu" else self.extract_mesh_on_device()
 
     def extract_mesh_on_host(self) -> SurfaceMesh:
@@ -235,7 +235,8 @@ class TSDFVolume:
         allocated."""
         steps = torch.tensor([(c >> 2 & 1) << (2 * _KEY_BITS) | (c >> 1 & 1) << _KEY_BITS | (c & 1) for c in range(8)],
                              device=self.device)
-        # a field at its largest carries into the next one, leaving 0 (coordinate -2^20), which no key holds
+        # a field at its largest carries into the next one (x's into the sign), leaving a field of 0 (coordinate
+        # -2^20, beyond the keys' range) or a negative key: no block's
         keys = self._keys[:, None] + steps
         position = torch.searchsorted(self._keys, keys).clamp(max=max(len(self._keys) - 1, 0))
         return torch.where(self._keys[position] == keys, self._rows[position], -1)

@@ -9,8 +9,9 @@ table. The surface crosses a cube face between the face's inside and outside cor
 whose two inside corners are diagonal (four crossings), each inside corner is cut off on its own. The rule depends
 only on the face's four values, so the two cubes sharing a face cut it alike and the surface has no cracks. The
 crossings on a cube's faces join into closed loops, each a fan of triangles wound as scikit-image winds them: the
-normal ``(b - a) x (c - a)`` points to increasing TSDF, out of the tissue. Where no face is ambiguous the vertices
-are scikit-image's; its Lewiner variant splits some ambiguous cubes differently.
+normal ``(b - a) x (c - a)`` points to increasing TSDF, out of the tissue. The vertices are scikit-image's on every
+crossed cube edge; its Lewiner variant also adds a point inside some ambiguous cubes and triangulates those
+differently.
 """
 
 from __future__ import annotations
