@@ -6,8 +6,6 @@ a CPU too, which is where these tests run it."""
 from __future__ import annotations
 
 import itertools
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,34 +13,30 @@ import torch
 from scipy.spatial import cKDTree
 
 from endoflow.reconstruction import marching_cubes as mc
-from endoflow.reconstruction.fusion import BLOCK, SurfaceMesh, TSDFVolume, pack_block_keys
-
-sys.path.insert(0, str(Path(__file__).parent))
-from test_fusion import wavy_frames  # noqa: E402
+from endoflow.reconstruction.fusion import BLOCK, SurfaceMesh, TSDFVolume, pack_block_keys, unpack_block_keys
+from tests.test_fusion import wavy_frames
 
 VOXEL_CM = 0.1
 
 
-def volume_of(values: np.ndarray, observed: np.ndarray | None = None) -> TSDFVolume:
+def volume_of(values: np.ndarray, observed: np.ndarray | None = None, seed: int = 0) -> TSDFVolume:
     """A volume holding a dense grid (``values``, a multiple of BLOCK on each axis, voxel (0, 0, 0) at block
-    (0, 0, 0)), every block allocated, voxels observed where ``observed`` (default: all)."""
+    (0, 0, 0)), every block allocated, voxels observed where ``observed`` (default: all), random colours. Blocks are
+    allocated in a shuffled order, so that a block's row is not its place in the key table."""
     observed = np.ones(values.shape, bool) if observed is None else observed
     volume = TSDFVolume(VOXEL_CM, 4 * VOXEL_CM)
     blocks = [np.arange(size // BLOCK) for size in values.shape]
     coords = torch.tensor(list(itertools.product(*blocks)))
-    rows = volume._rows_of(torch.sort(pack_block_keys(coords)).values)
-    for coord, row in zip(torch.sort(pack_block_keys(coords)).values.tolist(), rows.tolist()):
-        i, j, k = (c * BLOCK for c in _unpack(coord))
+    generator = torch.Generator().manual_seed(seed)
+    for coord in coords[torch.randperm(len(coords), generator=generator)]:
+        row = int(volume._rows_of(pack_block_keys(coord[None])))
+        i, j, k = (int(c) * BLOCK for c in coord)
         region = (slice(i, i + BLOCK), slice(j, j + BLOCK), slice(k, k + BLOCK))
         volume._tsdf[row] = torch.from_numpy(values[region].reshape(-1).astype(np.float32))
         volume._weight[row] = torch.from_numpy(observed[region].reshape(-1).astype(np.float32))
+    volume._colour[:volume.block_count] = torch.randint(0, 256, volume._colour[:volume.block_count].shape,
+                                                        generator=generator).float()
     return volume
-
-
-def _unpack(key: int) -> tuple[int, int, int]:
-    from endoflow.reconstruction.fusion import unpack_block_keys
-
-    return tuple(unpack_block_keys(torch.tensor([key]))[0].tolist())
 
 
 def closed_and_consistently_wound(mesh: SurfaceMesh) -> None:
@@ -90,8 +84,9 @@ def test_a_sphere_is_closed_wound_outwards_and_its_vertices_are_scikit_images() 
     chi = len(mesh.vertices) - len(mesh.triangles) * 3 // 2 + len(mesh.triangles)
     assert chi == 2  # V - E + F of a sphere
     centre = (11.3 + 0.5) * VOXEL_CM
-    outward = mesh.vertices[mesh.triangles].mean(1) - centre
-    assert (np.einsum("ij,ij->i", face_normals(mesh), outward) > 0).all()  # towards increasing TSDF
+    for wound in (mesh, volume_of(values).extract_mesh_on_host()):  # ours as scikit-image's: a CPU's and a GPU's
+        outward = wound.vertices[wound.triangles].mean(1) - centre
+        assert (np.einsum("ij,ij->i", face_normals(wound), outward) > 0).all()  # towards increasing TSDF
     expected = scikit_edge_vertices(values)
     assert len(mesh.vertices) == len(expected) > 500
     assert cKDTree(expected).query(mesh.vertices)[0].max() < 1e-5 * VOXEL_CM
@@ -101,9 +96,10 @@ def test_noise_meets_every_ambiguous_case_and_the_surface_stays_closed() -> None
     values = np.random.default_rng(0).uniform(-1, 1, (16, 16, 24))
     values[[0, -1]], values[:, [0, -1]], values[:, :, [0, -1]] = 1.0, 1.0, 1.0  # outside at the border: closed
     volume = volume_of(values)
+    assert not torch.equal(volume._rows, torch.arange(volume.block_count))  # rows are not key places
     mesh = volume.extract_mesh_on_device()
     closed_and_consistently_wound(mesh)
-    corners = np.stack([values[i:i + 15, j:j + 15, k:k + 23] < 0 for i, j, k in mc._CORNERS], -1)
+    corners = np.stack([values[i:i + 15, j:j + 15, k:k + 23] < 0 for i, j, k in mc.CORNERS], -1)
     cases = set((corners * (1 << np.arange(8))).sum(-1).ravel().tolist())
     assert len(cases) == 256  # every case met
     expected = scikit_edge_vertices(values)
@@ -154,6 +150,32 @@ def test_a_fused_volume_meshes_as_scikit_image_meshes_it_and_takes_the_same_colo
     np.testing.assert_array_equal(on_device.colours, chunked.colours[nearest])
     area = [np.linalg.norm(face_normals(mesh), axis=1).sum() / 2 for mesh in (on_device, chunked)]
     assert area[0] == pytest.approx(area[1], rel=0.005)
+
+
+def test_a_vertex_halfway_between_two_voxels_takes_the_colour_scikit_images_takes() -> None:
+    """A TSDF clamped to -1 and +1 on either side of a step puts vertices exactly halfway: both extractions then take
+    the voxel numpy's rounding takes (the even one)."""
+    values = np.where(np.random.default_rng(2).random((16, 16, 16)) < 0.3, -1.0, 1.0)
+    values[[0, -1]], values[:, [0, -1]], values[:, :, [0, -1]] = 1.0, 1.0, 1.0
+    volume = volume_of(values, seed=2)
+    on_device, on_host = volume.extract_mesh_on_device(), volume.extract_mesh_on_host()
+    distance, nearest = cKDTree(on_host.vertices).query(on_device.vertices)
+    voxels = on_device.vertices / VOXEL_CM - 0.5
+    assert distance.max() < 1e-9 and np.all(np.abs(np.abs(voxels - np.round(voxels)).max(1) - 0.5) < 1e-6)
+    np.testing.assert_array_equal(on_device.colours, on_host.colours[nearest])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+def test_a_gpu_meshes_a_fused_volume_as_a_cpu_does_with_the_same_code() -> None:
+    volumes = [TSDFVolume(0.02, 0.08, device) for device in ("cpu", "cuda")]
+    for frame in wavy_frames():
+        for volume in volumes:
+            volume.integrate(*frame)
+    on_cpu, on_gpu = (volume.extract_mesh_on_device() for volume in volumes)
+    assert len(on_cpu.vertices) > 100_000
+    np.testing.assert_allclose(on_gpu.vertices, on_cpu.vertices, rtol=0, atol=1e-6 * 0.02)
+    np.testing.assert_array_equal(on_gpu.triangles, on_cpu.triangles)
+    np.testing.assert_array_equal(on_gpu.colours, on_cpu.colours)
 
 
 def test_blocks_at_the_end_of_the_key_range_have_no_neighbour_beyond_it() -> None:

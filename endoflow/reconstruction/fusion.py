@@ -29,8 +29,9 @@ import torch
 from endoflow.config import ConfigError
 from endoflow.io import atomic_path
 from endoflow.reconstruction import tsdf_loops
-from endoflow.reconstruction.marching_cubes import BLOCK, sparse_marching_cubes
+from endoflow.reconstruction.marching_cubes import CORNERS, sparse_marching_cubes
 
+BLOCK = 8  # voxels per block edge
 CHUNK_BLOCKS = 8  # blocks per chunk edge when extracting the mesh: 64^3 voxels at a time
 # Blocks updated at once: bounded temporaries (about 50 bytes a voxel, 512 voxels a block). On a GPU each pass waits
 # for it once, and a 480 px frame touches about 10,000 blocks: one pass there, within half a gigabyte.
@@ -202,9 +203,10 @@ class TSDFVolume:
 
     def extract_mesh(self) -> SurfaceMesh:
         """The zero level set of the observed voxels as a triangle mesh, with colours of the nearest voxel: on a CPU
-        by :meth:`extract_mesh_on_host`, elsewhere (a GPU) by :meth:`extract_mesh_on_device`. The two differ only
-        inside a few ambiguous cubes, where scikit-image's variant adds a vertex (see :mod:`marching_cubes`); on a
-        CPU scikit-image's is 2.3-2.8 times faster (docs/benchmarks.md)."""
+        by :meth:`extract_mesh_on_host`, elsewhere (a GPU) by :meth:`extract_mesh_on_device`. Both have a vertex on
+        every crossed cube edge, at the same place and of the same colour; they connect some ambiguous cubes
+        differently (:mod:`marching_cubes`). On a CPU scikit-image's took 0.43 of the time of ours
+        (docs/benchmarks.md)."""
         return self.extract_mesh_on_host() if self.device.type == "cpu" else self.extract_mesh_on_device()
 
     def extract_mesh_on_host(self) -> SurfaceMesh:
@@ -233,13 +235,14 @@ class TSDFVolume:
         """``[N, 8]``: for each block of the sorted key table, its row and those of the 7 blocks after it (one
         block further on the axes of the neighbour's corner bits, 4 for x, 2 for y, 1 for z), -1 where none is
         allocated."""
-        steps = torch.tensor([(c >> 2 & 1) << (2 * _KEY_BITS) | (c >> 1 & 1) << _KEY_BITS | (c & 1) for c in range(8)],
-                             device=self.device)
-        # a field at its largest carries into the next one (x's into the sign), leaving a field of 0 (coordinate
-        # -2^20, beyond the keys' range) or a negative key: no block's
-        keys = self._keys[:, None] + steps
+        steps = torch.from_numpy(CORNERS).to(self.device)  # [8, 3]: 0 or 1 block on each axis
+        key_steps = CORNERS @ np.array([1 << (2 * _KEY_BITS), 1 << _KEY_BITS, 1])  # on the host: CUDA has no int64 @
+        keys = self._keys[:, None] + torch.from_numpy(key_steps).to(self.device)
+        # a step from a field at its largest would carry into the next field: no block is there
+        beyond = ((unpack_block_keys(self._keys)[:, None, :] == _KEY_HALF - 1) & (steps == 1)).any(-1)
         position = torch.searchsorted(self._keys, keys).clamp(max=max(len(self._keys) - 1, 0))
-        return torch.where(self._keys[position] == keys, self._rows[position], -1)
+        found = (self._keys[position] == keys) & ~beyond
+        return torch.where(found, self._rows[position], -1)
 
     def _colours_of(self, voxels: np.ndarray | torch.Tensor) -> np.ndarray:
         """The uint8 colours ``[V, 3]`` of the voxels at flat indices ``voxels [V]`` (``row * BLOCK^3`` plus the
