@@ -41,12 +41,29 @@ QUIETED_RAY_TRAIN_LOGGERS = {
 }
 
 
+class BelowLevelDropped(logging.Filter):
+    """Drops a logger's own records below ``level``."""
+
+    def __init__(self, level: int) -> None:
+        super().__init__()
+        self.level = level
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.levelno >= self.level
+
+
 def quiet_ray_train_loggers() -> None:
-    """Set :data:`QUIETED_RAY_TRAIN_LOGGERS`, and quiet every report's ``Reporting training result N:
+    """Quiet :data:`QUIETED_RAY_TRAIN_LOGGERS`, and every report's ``Reporting training result N:
     TrainingReport(...)``: it comes from a logger named after its file, outside ``ray.train`` (whose level
-    ``RunConfig.logging_config`` sets)."""
+    ``RunConfig.logging_config`` sets).
+
+    Ray Train's loggers get a filter, not a level: Ray Train configures ``ray.train`` with ``logging.config`` in its
+    controller and workers after this setup, and that resets the levels of every existing logger below
+    ``ray.train`` (but keeps their filters)."""
     for name, level in QUIETED_RAY_TRAIN_LOGGERS.items():
-        logging.getLogger(name).setLevel(level)
+        logger = logging.getLogger(name)
+        if not any(isinstance(kept, BelowLevelDropped) for kept in logger.filters):
+            logger.addFilter(BelowLevelDropped(level))
     logging.getLogger(ray_train_context_logger_name()).setLevel(logging.WARNING)
 
 

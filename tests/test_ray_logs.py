@@ -113,6 +113,28 @@ def test_quieting_ray_trains_loggers_imports_neither_ray_train_nor_endoflows_con
     assert run.stdout.strip() == "[]"
 
 
+def test_the_quieted_loggers_stay_quiet_after_ray_train_configures_its_logging():
+    """Ray Train runs ``logging.config.dictConfig`` on ``ray.train`` in its controller after the worker setup, which
+    resets the levels of the loggers below it: the autoscaling coordinator's timeout traceback reached the paper
+    dry run's output under load. Here the same configuration, in a fresh interpreter."""
+    script = ("import logging, logging.config\n"
+              "from endoflow.ray_worker_setup import QUIETED_RAY_TRAIN_LOGGERS, quiet_ray_train_loggers\n"
+              "quiet_ray_train_loggers()\n"
+              "quiet_ray_train_loggers()  # a second setup adds nothing\n"
+              "logging.config.dictConfig({'version': 1, 'disable_existing_loggers': False,\n"
+              "    'handlers': {'out': {'class': 'logging.StreamHandler', 'stream': 'ext://sys.stdout'}},\n"
+              "    'loggers': {'ray.train': {'level': 'INFO', 'handlers': ['out'], 'propagate': False}}})\n"
+              "for name in QUIETED_RAY_TRAIN_LOGGERS:\n"
+              "    logger = logging.getLogger(name)\n"
+              "    assert logger.level == logging.NOTSET and len(logger.filters) == 1  # the level gone, not the filter\n"
+              "    logger.warning('quieted %s', name)\n"
+              "    logger.error('kept %s', name)\n"
+              "logging.getLogger('ray.train.v2.other').warning('kept other')\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.splitlines() == [f"kept {name}" for name in QUIETED_RAY_TRAIN_LOGGERS] + ["kept other"]
+
+
 def test_a_local_ray_trains_without_a_preemption_watcher_a_cluster_and_a_users_setting_keep_theirs(monkeypatch):
     """Ray Train's controller reads the switch from the driver's environment when ``fit`` starts: one machine is
     never drained like a cloud's spot instance, so a local Ray has nothing to watch (tests/test_ray.py finds the
