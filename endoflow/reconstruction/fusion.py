@@ -205,7 +205,7 @@ class TSDFVolume:
         """The zero level set of the observed voxels as a triangle mesh, with colours of the nearest voxel: on a CPU
         by :meth:`extract_mesh_on_host`, elsewhere (a GPU) by :meth:`extract_mesh_on_device`. Both have a vertex on
         every crossed cube edge, at the same place and of the same colour; they connect some ambiguous cubes
-        differently (:mod:`marching_cubes`). On a CPU scikit-image's took 0.43 of the time of ours
+        differently (:mod:`marching_cubes`). On a CPU scikit-image's took 0.39 of the time of ours
         (docs/benchmarks.md)."""
         return self.extract_mesh_on_host() if self.device.type == "cpu" else self.extract_mesh_on_device()
 
