@@ -108,9 +108,15 @@ def test_quieting_ray_trains_loggers_imports_neither_ray_train_nor_endoflows_con
               "assert logging.getLogger(ray_train_context_logger_name()).level == logging.WARNING\n"
               "heavy = ('ray.train', 'ray.data', 'pandas', 'pydantic', 'endoflow.config')\n"
               "print(sorted(m for m in sys.modules if m.startswith(heavy)))\n")
+    assert printed_by_a_fresh_interpreter(script) == ["[]"]
+
+
+def printed_by_a_fresh_interpreter(script: str) -> list[str]:
+    """The lines ``script`` prints, run by a new Python process (which must succeed): nothing it imports or
+    configures stays in the test process."""
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-3000:]
-    assert run.stdout.strip() == "[]"
+    return run.stdout.splitlines()
 
 
 def test_the_quieted_loggers_stay_quiet_after_ray_train_configures_its_logging():
@@ -130,9 +136,8 @@ def test_the_quieted_loggers_stay_quiet_after_ray_train_configures_its_logging()
               "    logger.warning('quieted %s', name)\n"
               "    logger.error('kept %s', name)\n"
               "logging.getLogger('ray.train.v2.other').warning('kept other')\n")
-    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stderr[-3000:]
-    assert run.stdout.splitlines() == [f"kept {name}" for name in QUIETED_RAY_TRAIN_LOGGERS] + ["kept other"]
+    kept = [f"kept {name}" for name in QUIETED_RAY_TRAIN_LOGGERS] + ["kept other"]
+    assert printed_by_a_fresh_interpreter(script) == kept
 
 
 def test_a_local_ray_trains_without_a_preemption_watcher_a_cluster_and_a_users_setting_keep_theirs(monkeypatch):
