@@ -217,14 +217,14 @@ def _batch_crossings(coords: torch.Tensor, neighbour_rows: torch.Tensor, tsdf: t
     surface_cube = torch.arange(len(in_batch), device=tsdf.device)[:, None, None].expand(table.shape)[kept].view(-1)
     edge = table[kept].view(-1)
     ends = tables.cube_corners[cube[surface_cube][:, None], tables.edge_corners[edge]]  # [3F, 2] patch voxels
-    rows = in_batch[surface_cube]
-    low_flat, high_flat = flat[rows, ends[:, 0]], flat[rows, ends[:, 1]]
-    low_value, high_value = values[rows, ends[:, 0]].double(), values[rows, ends[:, 1]].double()
+    block_of = in_batch[surface_cube]  # the corner's block, in the batch
+    low_flat, high_flat = flat[block_of, ends[:, 0]], flat[block_of, ends[:, 1]]
+    low_value, high_value = values[block_of, ends[:, 0]].double(), values[block_of, ends[:, 1]].double()
     t = low_value / (low_value - high_value)  # where the TSDF crosses 0 between the ends
     axis = tables.edge_axes[edge]
     patch = block + 1
-    low_voxel = coords[rows] * block + torch.stack([ends[:, 0] // patch**2, ends[:, 0] // patch % patch,
-                                                   ends[:, 0] % patch], dim=1)
+    low_voxel = coords[block_of] * block + torch.stack([ends[:, 0] // patch**2, ends[:, 0] // patch % patch,
+                                                       ends[:, 0] % patch], dim=1)
     position = low_voxel.double()
     along = torch.arange(len(axis), device=tsdf.device), axis
     position[along] += t
