@@ -70,7 +70,8 @@ def scikit_edge_vertices(values: np.ndarray, observed: np.ndarray | None = None)
 def test_each_case_crosses_exactly_its_edges_between_inside_and_outside() -> None:
     for case in range(256):
         inside = [bool(case >> c & 1) for c in range(8)]
-        crossing = {e for e, (corner, axis) in enumerate(mc._EDGES) if inside[corner] != inside[corner + (4, 2, 1)[axis]]}
+        crossing = {e for e, (corner, axis) in enumerate(mc._EDGES)
+                    if inside[corner] != inside[corner + mc.CORNER_WEIGHTS[axis]]}
         used = set(mc.TRIANGLES[case][mc.TRIANGLES[case, :, 0] >= 0].view(-1).tolist())
         assert used == crossing, case
     assert (mc.TRIANGLES[0] < 0).all() and (mc.TRIANGLES[255] < 0).all()

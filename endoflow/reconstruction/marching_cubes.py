@@ -146,9 +146,9 @@ def _tables(block: int, device: torch.device) -> _Tables:
     weights = torch.from_numpy(CORNER_WEIGHTS)
     low = torch.from_numpy(np.indices((block,) * 3).reshape(3, -1).T.copy())
     corners = low[:, None, :] + torch.from_numpy(CORNERS)[None]
+    edge_ends = [[corner, corner + int(CORNER_WEIGHTS[axis])] for corner, axis in _EDGES]
     tables = _Tables(neighbour=(place // block) @ weights, local=(place % block) @ torch.tensor([block**2, block, 1]),
-                     cube_corners=corners @ torch.tensor([patch**2, patch, 1]),
-                     edge_corners=torch.tensor([[corner, corner + int(CORNER_WEIGHTS[axis])] for corner, axis in _EDGES]),
+                     cube_corners=corners @ torch.tensor([patch**2, patch, 1]), edge_corners=torch.tensor(edge_ends),
                      edge_axes=torch.tensor([axis for _, axis in _EDGES]), corner_bits=1 << torch.arange(8),
                      triangles=TRIANGLES)
     return _Tables(*(table.to(device) for table in tables))
