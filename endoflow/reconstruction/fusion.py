@@ -5,8 +5,8 @@ frame's surface lies (within the truncation distance), so memory follows the sur
 box of the path. Each frame updates the voxels of the blocks it touches: signed distance ``depth(u, v) - z`` of
 the voxel centre along the optical axis (z-depth, OpenCV camera), truncated to ``[-1, 1] x trunc`` and averaged
 with weight 1 per observation, as in Curless and Levoy (1996); colours are averaged the same way. Voxels far
-behind the observed surface (distance < -trunc) are left alone. The mesh is the zero level set, extracted with
-scikit-image's marching cubes over the allocated blocks.
+behind the observed surface (distance < -trunc) are left alone. The mesh is the zero level set, extracted over the
+allocated blocks by scikit-image's marching cubes on a CPU and by our own (``marching_cubes.py``) on a GPU.
 
 Integration is torch arithmetic over whole blocks at a time, on the volume's device (the GPU where reconstruct
 runs on one): the blocks a frame touches are found by sorting packed integer keys, looked up in a sorted key
