@@ -187,7 +187,7 @@ def test_blocks_at_the_end_of_the_key_range_have_no_neighbour_beyond_it() -> Non
     coords = torch.tensor([[0, half - 1, 0], [1, -half + 1, 0], [0, half - 1, 1], [half - 1, half - 1, half - 1]])
     volume._rows_of(torch.sort(pack_block_keys(coords)).values)
     rows = dict(zip(map(tuple, coords.tolist()), volume._rows_of(pack_block_keys(coords)).tolist()))
-    neighbours = volume._neighbour_rows()
+    neighbours = volume._neighbour_rows(unpack_block_keys(volume._keys))
     first = int(torch.nonzero(volume._rows == rows[(0, half - 1, 0)]))
     assert neighbours[first].tolist() == [rows[(0, half - 1, 0)], rows[(0, half - 1, 1)], -1, -1, -1, -1, -1, -1]
     last = int(torch.nonzero(volume._rows == rows[(half - 1,) * 3]))

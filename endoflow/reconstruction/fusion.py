@@ -226,20 +226,20 @@ class TSDFVolume:
     def extract_mesh_on_device(self) -> SurfaceMesh:
         """:meth:`extract_mesh` by the volume's own marching cubes, on the volume's device: only the mesh leaves
         it."""
-        mesh = sparse_marching_cubes(unpack_block_keys(self._keys), self._tsdf, self._weight > 0,
-                                     self._neighbour_rows())
+        coords = unpack_block_keys(self._keys)
+        mesh = sparse_marching_cubes(coords, self._tsdf, self._weight > 0, self._neighbour_rows(coords))
         return SurfaceMesh(((mesh.vertices + 0.5) * self.voxel_cm).cpu().numpy(), mesh.triangles.cpu().numpy(),
                            self._colours_of(mesh.nearest_voxels))
 
-    def _neighbour_rows(self) -> torch.Tensor:
-        """``[N, 8]``: for each block of the sorted key table, its row and those of the 7 blocks after it (one
+    def _neighbour_rows(self, coords: torch.Tensor) -> torch.Tensor:
+        """``[N, 8]``: for each block of the sorted key table (at ``coords``, its keys unpacked), its row and those of the 7 blocks after it (one
         block further on the axes of the neighbour's corner bits, 4 for x, 2 for y, 1 for z), -1 where none is
         allocated."""
         steps = torch.from_numpy(CORNERS).to(self.device)  # [8, 3]: 0 or 1 block on each axis
         key_steps = CORNERS @ np.array([1 << (2 * _KEY_BITS), 1 << _KEY_BITS, 1])  # on the host: CUDA has no int64 @
         keys = self._keys[:, None] + torch.from_numpy(key_steps).to(self.device)
         # a step from a field at its largest would carry into the next field: no block is there
-        beyond = ((unpack_block_keys(self._keys)[:, None, :] == _KEY_HALF - 1) & (steps == 1)).any(-1)
+        beyond = ((coords[:, None, :] == _KEY_HALF - 1) & (steps == 1)).any(-1)
         position = torch.searchsorted(self._keys, keys).clamp(max=max(len(self._keys) - 1, 0))
         found = (self._keys[position] == keys) & ~beyond
         return torch.where(found, self._rows[position], -1)

@@ -51,8 +51,8 @@ def _edge_index(a: int, b: int) -> int:
     return _EDGES.index((low, int(np.argmax(CORNERS[high] - CORNERS[low]))))
 
 
-def _faces() -> list[tuple[np.ndarray, list[int]]]:
-    """Each cube face as its outward normal and its four corners in order around it."""
+def _faces() -> list[list[int]]:
+    """Each cube face as its four corners in order around it."""
     faces = []
     for axis, side in itertools.product(range(3), (0, 1)):
         others = [a for a in range(3) if a != axis]
@@ -61,9 +61,7 @@ def _faces() -> list[tuple[np.ndarray, list[int]]]:
             position = np.zeros(3, int)
             position[axis], position[others[0]], position[others[1]] = side, u, v
             ring.append(int(position @ CORNER_WEIGHTS))
-        normal = np.zeros(3)
-        normal[axis] = 1.0 if side else -1.0
-        faces.append((normal, ring))
+        faces.append(ring)
     return faces
 
 
@@ -84,12 +82,12 @@ def _face_segments(inside: list[bool], ring: list[int]) -> list[tuple[list[int],
     return []
 
 
-def _case_triangles(case: int, faces: list[tuple[np.ndarray, list[int]]]) -> list[tuple[int, int, int]]:
+def _case_triangles(case: int, faces: list[list[int]]) -> list[tuple[int, int, int]]:
     """The triangles (edge indices) of the cube whose inside corners are the bits of ``case``."""
     inside = [bool(case >> c & 1) for c in range(8)]
     centre = np.full(3, 0.5)
     following: dict[int, int] = {}
-    for normal, ring in faces:
+    for ring in faces:
         for first, second, inner in _face_segments(inside, ring):
             a, b = _edge_index(*first), _edge_index(*second)
             start, end = CORNERS[first].mean(0), CORNERS[second].mean(0)
