@@ -15,6 +15,9 @@ from endoflow.errors import DataFormatError
 from endoflow.io import OutputFolderError
 from endoflow.sweep import STUDIES
 
+# the exit status of a command ended by Ctrl-C, as a shell reports one killed by SIGINT (128 + 2)
+INTERRUPTED = 130
+
 if TYPE_CHECKING:  # the commands import what they run when they run: `endoflow --help` stays quick
     from endoflow.reconstruction.reconstruct import ReconstructOptions
 
@@ -31,6 +34,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (ConfigError, DataFormatError, FileNotFoundError, OutputFolderError) as exc:
         print(f"endoflow: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        # Ctrl-C is the user's own act: a line, not a traceback. What a command writes is staged and moved into
+        # place whole, so the interruption leaves the earlier outputs as they were.
+        print("endoflow: interrupted", file=sys.stderr)
+        return INTERRUPTED
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -10,7 +10,7 @@ import argparse
 from pathlib import Path
 
 from endoflow.config import load_params
-from endoflow.synth.writers import synthesize_layout
+from endoflow.synth.writers import synthesize_layouts
 
 FOLDERS = {"simcol": "SimCol3D", "endoslam": "EndoSLAM", "scenenet": "SceneNet", "video": "Video"}
 
@@ -20,8 +20,8 @@ def main() -> None:
     parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
     args = parser.parse_args()
     params = load_params(args.params)
-    for layout, folder in FOLDERS.items():
-        print(synthesize_layout(layout, Path(params.synth.out) / folder, params=params), flush=True)
+    outs = {layout: Path(params.synth.out) / folder for layout, folder in FOLDERS.items()}
+    print("\n".join(synthesize_layouts(outs, params)), flush=True)
 
 
 if __name__ == "__main__":

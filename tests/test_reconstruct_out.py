@@ -8,8 +8,10 @@ from pathlib import Path
 
 import pytest
 
+from endoflow.cli import INTERRUPTED
 from endoflow.cli import main as cli
-from endoflow.reconstruction.reconstruct import RECONSTRUCTION_FORMAT
+from endoflow.reconstruction import reconstruct as reconstruct_module
+from endoflow.reconstruction.reconstruct import RECONSTRUCTION_FORMAT, write_frame_outputs
 from tests.test_reconstruct import image_folder, k_numbers, model_file, params, scene  # noqa: F401 (fixtures)
 
 QUICK = ["--stop", "2", "--no-fusion"]
@@ -81,3 +83,24 @@ def test_a_reconstruction_json_without_endoflows_format_marker_is_not_taken_for_
     (out / "reconstruction.json").write_text(json.dumps({"frames": 3, "format": "someone else's"}))
     assert reconstruct(scene, model_file, out, "--sequence", "S1") == 2
     assert [p.name for p in out.iterdir()] == ["reconstruction.json"]
+
+
+def test_ctrl_c_ends_with_one_line_and_leaves_the_earlier_reconstruction_as_it_was(
+        scene: Path, model_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    out = tmp_path / "earlier"
+    assert reconstruct(scene, model_file, out, "--sequence", "S1") == 0
+    before = contents(out)
+    capsys.readouterr()
+    written = []
+
+    def write_then_interrupt(*args, **kwargs) -> None:
+        if written:
+            raise KeyboardInterrupt  # as Ctrl-C raises it, between the second frame's outputs and the third's
+        written.append(write_frame_outputs(*args, **kwargs))
+
+    monkeypatch.setattr(reconstruct_module, "write_frame_outputs", write_then_interrupt)
+    assert reconstruct(scene, model_file, out, "--sequence", "S1", "--stop", "3") == INTERRUPTED == 130
+    assert capsys.readouterr().err.splitlines()[-1] == "endoflow: interrupted"
+    assert written and contents(out) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["earlier"]  # no staging left behind

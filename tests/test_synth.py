@@ -32,6 +32,7 @@ from endoflow.synth.writers import (
     scenenet_shape,
     simcol_intrinsics,
     synthesize_layout,
+    synthesize_layouts,
     tube_sequence,
     unitycam_intrinsics,
 )
@@ -194,6 +195,26 @@ def test_same_seed_same_bytes(tmp_path):
     assert len(files) == 5
     match, mismatch, errors = filecmp.cmpfiles(tmp_path / "a", tmp_path / "b", [str(f) for f in files], shallow=False)
     assert not mismatch and not errors and comparison.left_only == comparison.right_only == []
+
+
+def test_the_stages_one_pool_writes_every_layout_as_rendering_it_alone_does(tmp_path):
+    """The synthesize stage renders every layout's sequences in one pool of two processes (each imports torch once);
+    the files are those one process writes for each layout on its own."""
+    synth = Params().synth
+    small = {"simcol": 1, "endoslam": 1, "scenenet": 2, "video": 2}
+    params = Params().replace(synth=synth.replace(size=24, workers=2, **{
+        layout: getattr(synth, layout).replace(sequences=count, frames=3,
+                                               **({"test_frames": 3} if layout in ("simcol", "endoslam") else {}))
+        for layout, count in small.items()}))
+    lines = synthesize_layouts({layout: tmp_path / "pooled" / layout for layout in small}, params)
+    assert [line.split(":")[0] for line in lines[:-1]] == list(small)
+    assert "frames rendered in" in lines[-1] and "2 workers" in lines[-1]
+    for layout in small:
+        synthesize_layout(layout, tmp_path / "alone" / layout, params=params, workers=1)
+    pooled, alone = (sorted(p.relative_to(tmp_path / run) for p in (tmp_path / run).rglob("*") if p.is_file())
+                     for run in ("pooled", "alone"))
+    assert pooled == alone and len(pooled) > 20
+    assert all((tmp_path / "pooled" / f).read_bytes() == (tmp_path / "alone" / f).read_bytes() for f in pooled)
 
 
 def test_simcol_layout_names(simcol_root):

@@ -80,6 +80,27 @@ class Job:
     phase_frames: Optional[tuple[int, int]] = None  # synth.phase_frames (None: the style's); scripts ignore it
 
 
+@dataclass(frozen=True)
+class LayoutPlan:
+    """What one layout's rendering writes: its sequences as jobs, under dataset root ``out``."""
+
+    layout: str
+    out: Path
+    jobs: tuple[Job, ...]
+    size: int
+    workers: int
+    device: str
+    cam_txt: Optional[str] = None  # the cam.txt every SimCol scene folder holds (simcol only)
+
+    @property
+    def frames(self) -> int:
+        return sum(job.frames for job in self.jobs)
+
+    def summary(self) -> str:
+        return (f"{self.layout}: {len(self.jobs)} sequences, {self.frames} frames at "
+                f"{_frame_size(self.layout, self.size)} written to {self.out}")
+
+
 def synthesize_layout(
     layout: str,
     out: Path,
@@ -104,6 +125,41 @@ def synthesize_layout(
     pose unit and frame rate come from ``params.data.endoslam``, so that the reader decodes what was written.
     Same arguments, same bytes.
     """
+    plan = plan_layout(layout, out, sequences, frames, size, seed, test_frames=test_frames, params=params,
+                       workers=workers, device=device)
+    seconds = render_plans([plan])
+    return f"{plan.summary()} in {render_pace(plan.frames, seconds, plan)}"
+
+
+def synthesize_layouts(outs: dict[str, Path], params: Params) -> list[str]:
+    """Render every layout of ``outs`` (layout -> dataset root) with ``params.synth``'s settings, all sequences in
+    one pool of worker processes; returns a line per layout and one for the whole rendering. The bytes are those
+    of :func:`synthesize_layout` for each layout alone."""
+    plans = [plan_layout(layout, out, params=params) for layout, out in outs.items()]
+    seconds = render_plans(plans)
+    frames = sum(plan.frames for plan in plans)
+    return [plan.summary() for plan in plans] + [f"{frames} frames rendered in {render_pace(frames, seconds, plans[0])}"]
+
+
+def render_pace(frames: int, seconds: float, plan: LayoutPlan) -> str:
+    """How long ``frames`` took, and with what (the summary lines' ending)."""
+    return f"{seconds:.1f} s ({frames / seconds:.1f} frames/s, {plan.workers} workers, device {plan.device})"
+
+
+def plan_layout(
+    layout: str,
+    out: Path,
+    sequences: Optional[int] = None,
+    frames: Optional[int] = None,
+    size: Optional[int] = None,
+    seed: Optional[int] = None,
+    *,
+    test_frames: Optional[int] = None,
+    params: Optional[Params] = None,
+    workers: Optional[int] = None,
+    device: Optional[str] = None,
+) -> LayoutPlan:
+    """The rendering :func:`synthesize_layout` does, planned (its arguments and defaults); nothing is written."""
     if layout not in SYNTH_LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}; expected one of {', '.join(SYNTH_LAYOUTS)}")
     params = params or Params()
@@ -121,11 +177,21 @@ def synthesize_layout(
                          f"{test_frames}, {size}")
     out = Path(out)
     jobs = plan_jobs(layout, out, sequences, frames, size, seed, device, params, test_frames)
-    out.mkdir(parents=True, exist_ok=True)
-    if layout == "simcol":
-        for scene in sorted({job.group for job in jobs}):
-            write_text(out / scene / "cam.txt", simcol_cam_txt(params.synth.look))
+    cam_txt = simcol_cam_txt(params.synth.look) if layout == "simcol" else None
+    return LayoutPlan(layout, out, tuple(jobs), size, workers, device, cam_txt)
 
+
+def render_plans(plans: list[LayoutPlan]) -> float:
+    """Write what ``plans`` plan, every sequence of them in one pool of worker processes (spawned, each importing
+    torch once: one pool per stage, not per layout) where the first plan asks for several on a CPU; returns the
+    seconds the rendering took."""
+    for plan in plans:
+        plan.out.mkdir(parents=True, exist_ok=True)
+        if plan.cam_txt is not None:
+            for scene in sorted({job.group for job in plan.jobs}):
+                write_text(plan.out / scene / "cam.txt", plan.cam_txt)
+    jobs = [job for plan in plans for job in plan.jobs]
+    workers, device = plans[0].workers, plans[0].device
     started = time.perf_counter()
     if workers > 1 and len(jobs) > 1 and torch.device(device).type == "cpu":
         context = multiprocessing.get_context("spawn")
@@ -134,12 +200,7 @@ def synthesize_layout(
     else:
         for job in jobs:
             render_job(job)
-    seconds = time.perf_counter() - started
-    total = sum(job.frames for job in jobs)
-    return (
-        f"{layout}: {len(jobs)} sequences, {total} frames at {_frame_size(layout, size)} written to {out} "
-        f"in {seconds:.1f} s ({total / seconds:.1f} frames/s, {workers} workers, device {device})"
-    )
+    return time.perf_counter() - started
 
 
 def _frame_size(layout: str, size: int) -> str:
