@@ -14,7 +14,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Any, Iterator, Optional
 
 import cv2
 import numpy as np
@@ -101,32 +101,10 @@ class LayoutPlan:
                 f"{_frame_size(self.layout, self.size)} written to {self.out}")
 
 
-def synthesize_layout(
-    layout: str,
-    out: Path,
-    sequences: Optional[int] = None,
-    frames: Optional[int] = None,
-    size: Optional[int] = None,
-    seed: Optional[int] = None,
-    *,
-    test_frames: Optional[int] = None,
-    params: Optional[Params] = None,
-    workers: Optional[int] = None,
-    device: Optional[str] = None,
-) -> str:
-    """Render ``layout`` (``simcol``, ``endoslam``, ``scenenet``, ``video``) into dataset root ``out``; returns a
-    summary.
-
-    ``None`` arguments take ``params.synth`` defaults (``Params()`` when ``params`` is None): sequences per
-    scene / organ count / trajectories, frames per sequence, frames per test sequence (``frames`` given alone
-    sets both), square image size, seed, worker processes, device name (as ``synth.device``: ``auto``, ``cpu``,
-    ``cuda`` or ``cuda:N``). Test sequences (``data.simcol.test``; every EndoSLAM sequence when
-    ``data.endoslam.split`` is test) follow the test script of :mod:`endoflow.synth.camera_path`. The EndoSLAM depth scale,
-    pose unit and frame rate come from ``params.data.endoslam``, so that the reader decodes what was written.
-    Same arguments, same bytes.
-    """
-    plan = plan_layout(layout, out, sequences, frames, size, seed, test_frames=test_frames, params=params,
-                       workers=workers, device=device)
+def synthesize_layout(layout: str, out: Path, *args: Any, **settings: Any) -> str:
+    """Render ``layout`` into dataset root ``out`` as :func:`plan_layout` plans it (same arguments); returns a
+    summary."""
+    plan = plan_layout(layout, out, *args, **settings)
     seconds = render_plans([plan])
     return f"{plan.summary()} in {render_pace(plan.frames, seconds, plan)}"
 
@@ -138,7 +116,8 @@ def synthesize_layouts(outs: dict[str, Path], params: Params) -> list[str]:
     plans = [plan_layout(layout, out, params=params) for layout, out in outs.items()]
     seconds = render_plans(plans)
     frames = sum(plan.frames for plan in plans)
-    return [plan.summary() for plan in plans] + [f"{frames} frames rendered in {render_pace(frames, seconds, plans[0])}"]
+    total = f"{frames} frames rendered in {render_pace(frames, seconds, plans[0])}"
+    return [plan.summary() for plan in plans] + [total]
 
 
 def render_pace(frames: int, seconds: float, plan: LayoutPlan) -> str:
@@ -159,7 +138,17 @@ def plan_layout(
     workers: Optional[int] = None,
     device: Optional[str] = None,
 ) -> LayoutPlan:
-    """The rendering :func:`synthesize_layout` does, planned (its arguments and defaults); nothing is written."""
+    """What rendering ``layout`` (``simcol``, ``endoslam``, ``scenenet``, ``video``) into dataset root ``out``
+    writes, planned; nothing is written yet.
+
+    ``None`` arguments take ``params.synth`` defaults (``Params()`` when ``params`` is None): sequences per
+    scene / organ count / trajectories, frames per sequence, frames per test sequence (``frames`` given alone
+    sets both), square image size, seed, worker processes, device name (as ``synth.device``: ``auto``, ``cpu``,
+    ``cuda`` or ``cuda:N``). Test sequences (``data.simcol.test``; every EndoSLAM sequence when
+    ``data.endoslam.split`` is test) follow the test script of :mod:`endoflow.synth.camera_path`. The EndoSLAM depth scale,
+    pose unit and frame rate come from ``params.data.endoslam``, so that the reader decodes what was written.
+    Same arguments, same bytes.
+    """
     if layout not in SYNTH_LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}; expected one of {', '.join(SYNTH_LAYOUTS)}")
     params = params or Params()
