@@ -140,10 +140,12 @@ def test_stopping_after_an_error_returns_only_when_every_running_task_has_ended(
         task = ray.remote(num_cpus=1)(write_after_a_while)
         markers = [tmp_path / f"task-{index}" for index in range(2)]
         pending = [task.remote(str(marker)) for marker in markers]
-        # both running, one per node (a loaded machine takes a while to start a worker)
-        deadline = time.monotonic() + 60
+        # both running, one per node: a loaded machine takes a while to start a worker (in a CI run of the whole
+        # suite one had not started after 60 s, and a task cancelled before it starts rightly writes nothing)
+        deadline = time.monotonic() + 300
         while not all(Path(f"{marker}.started").exists() for marker in markers) and time.monotonic() < deadline:
             time.sleep(0.05)
+        assert all(Path(f"{marker}.started").exists() for marker in markers), "a task did not start within 300 s"
         stop_tasks(pending)
         assert all(marker.exists() for marker in markers)
     finally:
