@@ -232,9 +232,9 @@ class TSDFVolume:
                            self._colours_of(mesh.nearest_voxels))
 
     def _neighbour_rows(self, coords: torch.Tensor) -> torch.Tensor:
-        """``[N, 8]``: for each block of the sorted key table (at ``coords``, its keys unpacked), its row and those of the 7 blocks after it (one
-        block further on the axes of the neighbour's corner bits, 4 for x, 2 for y, 1 for z), -1 where none is
-        allocated."""
+        """``[N, 8]``: for each block of the sorted key table (at ``coords``, its keys unpacked), its row and those of
+        the 7 blocks after it (one block further on the axes of the neighbour's corner bits, 4 for x, 2 for y, 1 for
+        z), -1 where none is allocated."""
         steps = torch.from_numpy(CORNERS).to(self.device)  # [8, 3]: 0 or 1 block on each axis
         key_steps = CORNERS @ np.array([1 << (2 * _KEY_BITS), 1 << _KEY_BITS, 1])  # on the host: CUDA has no int64 @
         keys = self._keys[:, None] + torch.from_numpy(key_steps).to(self.device)
