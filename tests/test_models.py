@@ -406,12 +406,15 @@ def test_the_paper_preset_bank_has_the_released_codes_scale_and_works_at_480():
 
 @pytest.mark.parametrize("width", [1, 2])
 def test_edge_padding_is_replicate_padding_to_the_bit_in_values_and_gradients(width: int) -> None:
-    x = torch.randn(2, 5, 7, 9, dtype=torch.float64, requires_grad=True)
+    g = torch.Generator().manual_seed(width)
+    x = torch.randn(2, 5, 7, 9, dtype=torch.float64, generator=g).requires_grad_()
     padded, reference = sliced_edge_pad(x, width), F.pad(x, (width,) * 4, mode="replicate")
     assert torch.equal(padded, reference)
-    upstream = torch.randn_like(reference)
+    upstream = torch.randn(reference.shape, dtype=torch.float64, generator=g)
+    # a corner's gradient sums (width + 1)^2 upstream values in another order than torch's: equal to rounding (over
+    # 600 unseeded draws they differed by up to 2.7e-15, and the former 1e-15 failed with some seeds' draws)
     assert torch.allclose(torch.autograd.grad(padded, x, upstream)[0], torch.autograd.grad(reference, x, upstream)[0],
-                          rtol=0, atol=1e-15)
+                          rtol=0, atol=1e-13)
     assert torch.equal(sliced_edge_pad(x.to(memory_format=torch.channels_last), width), reference)
     assert torch.equal(edge_pad(x, width), reference)
 
