@@ -291,6 +291,23 @@ def test_without_pose_sampling_training_warps_with_the_mean_and_keeps_the_kl():
     assert model.pose_net.logvar_head.weight.grad.abs().sum() > 0  # the KL alone trains the variance head
 
 
+@pytest.mark.parametrize("source_is_next", [True, False])
+def test_a_samples_spread_and_mean_parts_are_its_pose_each_passing_one_gradient(source_is_next):
+    model = build_model(small_params(latent_bank=False), None).train()
+    with torch.no_grad():
+        model.pose_net.logvar_head.bias.fill_(-2.0)  # a spread large enough to see
+    batch = random_batch(2, 32, 32)
+    pose = model.source_pose(batch["cur"], batch["next"], source_is_next=source_is_next)
+    spread, mean = pose.spread_and_mean_parts()
+    for part in (spread, mean):
+        torch.testing.assert_close(part, pose.T_source_target, atol=1e-6, rtol=0)
+    heads = (model.pose_net.mean_head.weight, model.pose_net.logvar_head.weight)
+    through_spread = torch.autograd.grad(spread.sum(), heads, allow_unused=True, retain_graph=True)
+    through_mean = torch.autograd.grad(mean.sum(), heads, allow_unused=True)
+    reached = [[g is not None and bool(g.abs().sum() > 0) for g in grads] for grads in (through_spread, through_mean)]
+    assert reached == [[False, True], [True, False]]  # (mean head, variance head) through each part
+
+
 def test_previous_frame_pose_is_the_inverse_of_the_forward_motion():
     model = build_model(small_params(latent_bank=False), None).eval()
     batch = random_batch(2, 32, 32)

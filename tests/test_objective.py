@@ -395,3 +395,34 @@ def test_training_without_the_mask_on_the_pose_changes_the_pose_networks_gradien
     assert depth and pose and set(split) == set(masked)
     assert all(torch.allclose(split[name], masked[name], rtol=1e-4, atol=1e-10) for name in depth)
     assert not all(torch.allclose(split[name], masked[name], rtol=1e-2) for name in pose)
+
+
+def test_with_the_spread_kept_under_the_mask_the_pose_mean_learns_from_every_pixel_and_its_spread_from_the_mask():
+    """``automask_pose_spread``: the variance head's gradient is the masked loss's (as with the mask on the pose),
+    the mean head's is that of every pixel (as without it), and the depth network's stays the mask's."""
+    batch = {key: value[:2] for key, value in simcol_triplets(size=32).items()}
+    params = Params()
+    torch.manual_seed(0)
+    model = build_model(params, None)
+    with torch.no_grad():
+        model.pose_net.logvar_head.bias.fill_(-8.0)  # a spread whose samples move pixels
+
+    def gradients(cfg: LossConfig) -> dict[str, torch.Tensor]:
+        model.zero_grad(set_to_none=True)
+        torch.manual_seed(1)  # the pose VAE's samples and auto-masking's tie-break noise
+        training_step_losses(model, batch, cfg)["total"].backward()
+        return {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
+
+    masked = gradients(params.loss)
+    split = gradients(params.loss.replace(automask_pose=False))
+    spread = gradients(params.loss.replace(automask_pose=False, automask_pose_spread=True))
+
+    def same(a: dict, b: dict, prefix: str) -> bool:
+        names = [name for name in a if name.startswith(prefix)]
+        return bool(names) and all(torch.allclose(a[n], b[n], rtol=1e-4, atol=1e-10) for n in names)
+
+    assert same(spread, masked, "pose_net.logvar_head.") and not same(split, masked, "pose_net.logvar_head.")
+    assert same(spread, split, "pose_net.mean_head.") and not same(masked, split, "pose_net.mean_head.")
+    assert same(spread, masked, "depth_net.")
+    # without the mask on the pose switched off, the key changes nothing
+    assert all(torch.equal(v, masked[n]) for n, v in gradients(params.loss.replace(automask_pose_spread=True)).items())

@@ -49,6 +49,22 @@ class PoseEstimate:
     vec: torch.Tensor
     mean: torch.Tensor
     logvar: torch.Tensor | None
+    source_is_next: bool
+
+    def spread_and_mean_parts(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``T_source_target`` twice, equal in value: the first back-propagates into the sample's spread alone (the
+        mean detached), the second into the mean alone (the sample's noise detached). Without sampling the first
+        is constant."""
+        noise = self.vec - self.mean
+        return (source_transform(self.mean.detach() + noise, self.source_is_next),
+                source_transform(self.mean + noise.detach(), self.source_is_next))
+
+
+def source_transform(vec: torch.Tensor, source_is_next: bool) -> torch.Tensor:
+    """``T_source_target [B, 4, 4]`` of the forward motion ``vec [B, 6]`` (``T_later_earlier``): itself for the next
+    frame, its inverse for the previous one."""
+    T_later_earlier = pose_vec_to_matrix(vec)
+    return T_later_earlier if source_is_next else invert_pose(T_later_earlier)
 
 
 class EndoflowModel(nn.Module):
@@ -111,9 +127,8 @@ class EndoflowModel(nn.Module):
         order, and its forward motion is ``T_source_target`` for the next frame, the inverse for the previous."""
         earlier, later = (target, source) if source_is_next else (source, target)
         vec, mean, logvar = self.forward_motion(earlier, later, sample)
-        T_later_earlier = pose_vec_to_matrix(vec)
-        T = T_later_earlier if source_is_next else invert_pose(T_later_earlier)
-        return PoseEstimate(T_source_target=T, vec=vec, mean=mean, logvar=logvar)
+        return PoseEstimate(T_source_target=source_transform(vec, source_is_next), vec=vec, mean=mean, logvar=logvar,
+                            source_is_next=source_is_next)
 
 
 def generator_spec(params: Params) -> GeneratorSpec:

@@ -11,7 +11,8 @@ For a target frame ``cur`` and its neighbours ``prev`` and ``next``:
   auto-masking as ``loss.*`` says), averaged over scales.
   With ``loss.automask`` on and ``loss.automask_pose`` off, the depth (and a learned ``K``) take the gradient of the
   masked loss and the pose that of the unmasked one (every warp made twice: once with the pose detached, once with
-  the depth detached); the value is the masked loss's (:func:`reprojection`).
+  the depth detached); the value is the masked loss's (:func:`reprojection`). With ``loss.automask_pose_spread``
+  the pose's sampling spread keeps the masked loss's gradient and only its mean takes the unmasked one.
 - ``smoothness``: edge-aware smoothness of each scale's disparity, divided by ``2^scale``, averaged.
 - ``kl``: the closed-form KL of both predicted pose distributions to N(0, I), summed over the two poses,
   averaged over the batch (zero without the pose VAE).
@@ -75,6 +76,7 @@ def reprojection(
     loss_cfg: LossConfig,
     identity: torch.Tensor | None = None,
     valid: torch.Tensor | None = None,
+    T_masked: list[torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Photometric loss of ``target [B, 3, H, W]`` rebuilt from each source with target ``depth [B, 1, H, W]``
     and ``T_source_target[i] [B, 4, 4]`` (one per source), as ``loss_cfg`` says; ``identity`` as
@@ -84,10 +86,12 @@ def reprojection(
     With ``automask`` on and ``automask_pose`` off, the mask keeps its effect on the depth (and ``K``) while the
     pose learns from every pixel: auto-masking hands a pixel to the unwarped neighbour exactly where a wrong motion
     warps worse than none, which would leave the pose no gradient there. The value is the masked loss's, so that
-    runs compare."""
+    runs compare. ``T_masked``, equal in value to ``T_source_target``, is what the masked loss warps with there
+    (None: the poses detached), so that a part of the pose can keep the mask's gradient."""
     if loss_cfg.automask and not loss_cfg.automask_pose:
-        masked = reprojection(target, sources, depth, [T.detach() for T in T_source_target], K,
-                              loss_cfg.replace(automask_pose=True), identity, valid)
+        T_masked = [T.detach() for T in T_source_target] if T_masked is None else T_masked
+        masked = reprojection(target, sources, depth, T_masked, K, loss_cfg.replace(automask_pose=True), identity,
+                              valid)
         unmasked = reprojection(target, sources, depth.detach(), T_source_target, K.detach(),
                                 loss_cfg.replace(automask=False), None, valid)
         return masked + (unmasked - unmasked.detach())
@@ -124,14 +128,15 @@ def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig
     valid = batch.get("valid")
     if valid is not None and bool(valid.all()):
         valid = None  # every pixel in view (the built-in data): the plain means, the same loss to the bit
+    transforms, masked_transforms = warp_transforms(poses, loss_cfg)
     out: dict[str, torch.Tensor] = {}
     photometric, smoothness = [], []
     for s in scales:
         disp = disps[s]
         if disp.shape[-2:] != cur.shape[-2:]:
             disp = F.interpolate(disp, size=cur.shape[-2:], mode="bilinear", align_corners=False)
-        transforms = [pose.T_source_target for pose in poses]
-        loss = reprojection(cur, sources, model.disp_to_depth(disp), transforms, K, loss_cfg, identity, valid)
+        loss = reprojection(cur, sources, model.disp_to_depth(disp), transforms, K, loss_cfg, identity, valid,
+                            masked_transforms)
         smooth = edge_aware_smoothness(disps[s], cur, valid) / 2**s
         out[f"photometric/{s}"], out[f"smoothness/{s}"] = loss, smooth
         photometric.append(loss)
@@ -147,6 +152,17 @@ def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig
         total = total + weights[term] * out[term]
     out["total"] = total
     return out
+
+
+def warp_transforms(poses: list[PoseEstimate], loss_cfg: LossConfig
+                    ) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
+    """The transforms :func:`reprojection` warps with, and those its masked loss warps with where the mask spares the
+    pose (None: the first, detached). With ``automask_pose_spread`` the pose's spread stays with the masked loss
+    and its mean goes to the unmasked one."""
+    if loss_cfg.automask and not loss_cfg.automask_pose and loss_cfg.automask_pose_spread:
+        spread, mean = zip(*(pose.spread_and_mean_parts() for pose in poses))
+        return list(mean), list(spread)
+    return [pose.T_source_target for pose in poses], None
 
 
 def neighbour_consistency(model: EndoflowModel, disp_cur: torch.Tensor, sources: list[torch.Tensor],
