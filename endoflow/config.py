@@ -382,8 +382,8 @@ class LossConfig(Section):
     # Without the mask, the pose VAE's spread learns from every pixel too; the sampling noise is what holds the depth
     # at the metric scale (docs/method.md, "What the VAE contributes").
     automask_pose_spread: bool = setting(False, "with automask_pose false, the pose's sampling spread (the VAE's "
-                                                "log-variance) still learns from the masked loss; only its mean "
-                                                "learns from every pixel")
+                                                "variance head) still learns from the masked loss and only its mean "
+                                                "head from every pixel (their shared encoder from both)")
     smoothness_weight: Number = setting(1e-3, "edge-aware disparity smoothness weight", ge=0)
     multiscale: bool = setting(True, "the loss at every decoder scale, upsampled to full resolution")
     # The paper gives no value; 1e-3 pushed the pose log-variance up until sampling noise (~0.03 rad) swamped the

@@ -407,15 +407,20 @@ def test_with_the_spread_kept_under_the_mask_the_pose_mean_learns_from_every_pix
     with torch.no_grad():
         model.pose_net.logvar_head.bias.fill_(-8.0)  # a spread whose samples move pixels
 
+    totals = []
+
     def gradients(cfg: LossConfig) -> dict[str, torch.Tensor]:
         model.zero_grad(set_to_none=True)
         torch.manual_seed(1)  # the pose VAE's samples and auto-masking's tie-break noise
-        training_step_losses(model, batch, cfg)["total"].backward()
+        total = training_step_losses(model, batch, cfg)["total"]
+        total.backward()
+        totals.append(total.item())
         return {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
 
     masked = gradients(params.loss)
     split = gradients(params.loss.replace(automask_pose=False))
     spread = gradients(params.loss.replace(automask_pose=False, automask_pose_spread=True))
+    assert totals[0] == totals[1] == totals[2]  # the masked loss's value, whichever part learns from it
 
     def same(a: dict, b: dict, prefix: str) -> bool:
         names = [name for name in a if name.startswith(prefix)]

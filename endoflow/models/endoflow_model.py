@@ -43,6 +43,8 @@ class PoseEstimate:
         T_source_target: ``[B, 4, 4]`` what the warp uses (maps target-frame points into the source frame).
         vec: ``[B, 6]`` the forward-in-time motion vector behind it (sample in training, else the mean).
         mean, logvar: ``[B, 6]`` the predicted Gaussian over ``vec`` (``logvar`` ``None`` without pose_vae).
+        source_is_next: whether the source is the next frame (``T_source_target`` is ``vec``'s motion) or the
+            previous one (its inverse).
     """
 
     T_source_target: torch.Tensor
@@ -52,12 +54,12 @@ class PoseEstimate:
     source_is_next: bool
 
     def spread_and_mean_parts(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """``T_source_target`` twice, equal in value: the first back-propagates into the sample's spread alone (the
-        mean detached), the second into the mean alone (the sample's noise detached). Without sampling the first
-        is constant."""
-        noise = self.vec - self.mean
-        return (source_transform(self.mean.detach() + noise, self.source_is_next),
-                source_transform(self.mean + noise.detach(), self.source_is_next))
+        """``T_source_target`` twice, equal to it to the bit: the first back-propagates into the sample's spread
+        alone (the mean's two paths cancel), the second into the mean alone (the sample's noise detached). Without
+        sampling the first is constant."""
+        no_mean = self.vec + (self.mean.detach() - self.mean)
+        mean_only = self.vec.detach() + (self.mean - self.mean.detach())
+        return source_transform(no_mean, self.source_is_next), source_transform(mean_only, self.source_is_next)
 
 
 def source_transform(vec: torch.Tensor, source_is_next: bool) -> torch.Tensor:
