@@ -431,3 +431,39 @@ def test_with_the_spread_kept_under_the_mask_the_pose_mean_learns_from_every_pix
     assert same(spread, masked, "depth_net.")
     # without the mask on the pose switched off, the key changes nothing
     assert all(torch.equal(v, masked[n]) for n, v in gradients(params.loss.replace(automask_pose_spread=True)).items())
+
+
+def test_the_poses_own_ssim_share_changes_the_pose_networks_gradient_alone():
+    """``pose_ssim_weight`` with ``automask_pose`` false: the pose network's gradient is that of the unmasked loss
+    at that SSIM share, the depth network's stays the masked loss's at ``ssim_weight``, the logged loss is the
+    masked one; null means ``ssim_weight``, and with the mask on the pose the key changes nothing."""
+    batch = {key: value[:2] for key, value in simcol_triplets(size=32).items()}
+    params = Params()
+    torch.manual_seed(0)
+    model = build_model(params, None)
+    totals = []
+
+    def gradients(cfg: LossConfig) -> dict[str, torch.Tensor]:
+        model.zero_grad(set_to_none=True)
+        torch.manual_seed(1)  # the pose VAE's samples and auto-masking's tie-break noise
+        total = training_step_losses(model, batch, cfg)["total"]
+        total.backward()
+        totals.append(total.item())
+        return {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
+
+    split = params.loss.replace(automask_pose=False)
+    default = gradients(split)
+    l1_pose = gradients(split.replace(pose_ssim_weight=0.0))
+    l1_all = gradients(split.replace(ssim_weight=0.0))
+    assert totals[0] == totals[1] != totals[2]  # the masked loss's value, at ssim_weight
+
+    def same(a: dict, b: dict, prefix: str) -> bool:
+        names = [name for name in a if name.startswith(prefix)]
+        return bool(names) and all(torch.allclose(a[n], b[n], rtol=1e-4, atol=1e-10) for n in names)
+
+    assert same(l1_pose, default, "depth_net.") and not same(l1_all, default, "depth_net.")
+    assert same(l1_pose, l1_all, "pose_net.") and not same(default, l1_all, "pose_net.")
+    explicit = gradients(split.replace(pose_ssim_weight=split.ssim_weight))
+    assert all(torch.equal(v, default[n]) for n, v in explicit.items())
+    masked = gradients(params.loss)
+    assert all(torch.equal(v, masked[n]) for n, v in gradients(params.loss.replace(pose_ssim_weight=0.0)).items())

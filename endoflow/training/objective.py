@@ -12,7 +12,8 @@ For a target frame ``cur`` and its neighbours ``prev`` and ``next``:
   With ``loss.automask`` on and ``loss.automask_pose`` off, the depth (and a learned ``K``) take the gradient of the
   masked loss and the pose that of the unmasked one (every warp made twice: once with the pose detached, once with
   the depth detached); the value is the masked loss's (:func:`reprojection`). With ``loss.automask_pose_spread``
-  the pose's sampling spread keeps the masked loss's gradient and only its mean takes the unmasked one.
+  the pose's sampling spread keeps the masked loss's gradient and only its mean takes the unmasked one;
+  ``loss.pose_ssim_weight`` sets SSIM's share in the unmasked one.
 - ``smoothness``: edge-aware smoothness of each scale's disparity, divided by ``2^scale``, averaged.
 - ``kl``: the closed-form KL of both predicted pose distributions to N(0, I), summed over the two poses,
   averaged over the batch (zero without the pose VAE).
@@ -86,14 +87,16 @@ def reprojection(
     With ``automask`` on and ``automask_pose`` off, the mask keeps its effect on the depth (and ``K``) while the
     pose learns from every pixel: auto-masking hands a pixel to the unwarped neighbour exactly where a wrong motion
     warps worse than none, which would leave the pose no gradient there. The value is the masked loss's, so that
-    runs compare. ``T_masked``, equal in value to ``T_source_target``, is what the masked loss warps with there
-    (None: the poses detached), so that a part of the pose can keep the mask's gradient."""
+    runs compare; the pose's unmasked loss gives SSIM the share ``pose_ssim_weight`` (None: ``ssim_weight``).
+    ``T_masked``, equal in value to ``T_source_target``, is what the masked loss warps with there (None: the poses
+    detached), so that a part of the pose can keep the mask's gradient."""
     if loss_cfg.automask and not loss_cfg.automask_pose:
         T_masked = [T.detach() for T in T_source_target] if T_masked is None else T_masked
         masked = reprojection(target, sources, depth, T_masked, K, loss_cfg.replace(automask_pose=True), identity,
                               valid)
+        pose_ssim = loss_cfg.ssim_weight if loss_cfg.pose_ssim_weight is None else loss_cfg.pose_ssim_weight
         unmasked = reprojection(target, sources, depth.detach(), T_source_target, K.detach(),
-                                loss_cfg.replace(automask=False), None, valid)
+                                loss_cfg.replace(automask=False, ssim_weight=pose_ssim), None, valid)
         return masked + (unmasked - unmasked.detach())
     warped = [warp_frame(src, depth, T, K)[0] for src, T in zip(sources, T_source_target)]
     seen = None
