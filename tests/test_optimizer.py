@@ -1,13 +1,15 @@
-"""``train.optimizer``: weight decay decoupled from the gradient (adamw) or added to it (adam)."""
+"""``train.optimizer``: weight decay decoupled from the gradient (adamw) or added to it (adam); the schedule of a run
+resumed with more epochs."""
 
 from __future__ import annotations
 
+import math
 
 import pytest
 import torch
 
 from endoflow.config import TrainConfig
-from endoflow.training.optimization import make_optimizer
+from endoflow.training.optimization import make_optimizer, make_scheduler, restore_scheduler
 
 
 def weight_after_small_pulls(optimizer_name: str, steps: int = 10) -> float:
@@ -59,3 +61,45 @@ def test_the_fused_optimizer_steps_as_the_per_parameter_loop_does(name: str) -> 
         loop.step()
     for w, lw in zip(weights + intrinsics, loop_weights):
         assert torch.allclose(w, lw, rtol=0, atol=1e-6)
+
+
+def rates_by_epoch(epochs: int, resumed_after: int | None = None, saved_epochs: int | None = None) -> list[float]:
+    """The rate of each epoch of a run of ``epochs`` epochs at the cosine schedule (two groups: the network's and the
+    learned intrinsics'); with ``resumed_after``, the first epochs ran in a run of ``saved_epochs`` epochs, whose
+    optimiser and schedule the rest resumes from."""
+    def fresh(cfg: TrainConfig) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler]:
+        optimizer = make_optimizer([torch.nn.Parameter(torch.ones(1))], cfg, [torch.nn.Parameter(torch.ones(1))])
+        return optimizer, make_scheduler(optimizer, cfg)
+
+    def run(optimizer, scheduler, count: int) -> list[float]:
+        rates = []
+        for _ in range(count):
+            rates.append(optimizer.param_groups[0]["lr"])
+            optimizer.step()
+            scheduler.step()
+        return rates
+
+    cfg = TrainConfig(epochs=epochs, schedule="cosine")
+    if resumed_after is None:
+        return run(*fresh(cfg), epochs)
+    first_optimizer, first_scheduler = fresh(TrainConfig(epochs=saved_epochs, schedule="cosine"))
+    first = run(first_optimizer, first_scheduler, resumed_after)
+    optimizer, scheduler = fresh(cfg)
+    optimizer.load_state_dict(first_optimizer.state_dict())
+    restore_scheduler(scheduler, first_scheduler.state_dict(), optimizer, cfg)
+    assert optimizer.param_groups[1]["lr"] == pytest.approx(
+        cfg.intrinsics_lr * (1 + math.cos(math.pi * resumed_after / epochs)) / 2)
+    return first + run(optimizer, scheduler, epochs - resumed_after)
+
+
+def test_a_cosine_run_resumed_with_more_epochs_follows_the_longer_schedule():
+    # a 3-epoch run ends at rate 0; given 10 epochs, its epochs 4-10 take the 10-epoch schedule's rates
+    three, ten = rates_by_epoch(3), rates_by_epoch(10)
+    resumed = rates_by_epoch(10, resumed_after=3, saved_epochs=3)
+    assert resumed[:3] == three
+    assert resumed[3:] == pytest.approx(ten[3:], rel=1e-9)
+    assert min(resumed[3:]) > 0
+
+
+def test_a_run_resumed_at_its_own_length_keeps_its_schedule_exactly():
+    assert rates_by_epoch(10, resumed_after=4, saved_epochs=10) == rates_by_epoch(10)

@@ -54,7 +54,7 @@ from endoflow.training.checkpoint import (
 )
 from endoflow.losses.photometric import held_out_photometric_error
 from endoflow.training.objective import loss_weights, training_step_losses
-from endoflow.training.optimization import make_optimizer, make_scheduler
+from endoflow.training.optimization import make_optimizer, make_scheduler, restore_scheduler
 from endoflow.training.worker_config import WorkerConfig
 
 if TYPE_CHECKING:
@@ -125,7 +125,7 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
         saved, random_state = restored
         model.load_state_dict(saved.model)
         optimizer.load_state_dict(saved.optimizer)
-        scheduler.load_state_dict(saved.scheduler)
+        restore_scheduler(scheduler, saved.scheduler, optimizer, params.train)
         state = saved.state
         restore_random_state(random_state)
         if rank == 0:

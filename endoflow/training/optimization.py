@@ -3,7 +3,8 @@ process)."""
 
 from __future__ import annotations
 
-from typing import Optional
+import math
+from typing import Any, Optional
 
 import torch
 from torch import nn
@@ -31,3 +32,25 @@ def make_scheduler(optimizer: torch.optim.Optimizer, cfg: TrainConfig) -> torch.
     if cfg.schedule == "cosine":
         return torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(cfg.epochs, 1))
     return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
+
+
+def restore_scheduler(scheduler: torch.optim.lr_scheduler.LRScheduler, saved: dict[str, Any],
+                      optimizer: torch.optim.Optimizer, cfg: TrainConfig) -> None:
+    """Load a checkpoint's schedule into ``scheduler`` (built from ``cfg``) after its ``optimizer`` was loaded.
+
+    ``train.epochs`` is not in the run's fingerprint: a run given more epochs resumes where it stopped. The cosine
+    schedule then follows the new length: its progress comes from the checkpoint and its length from ``cfg``, and
+    each group's rate is put on the new curve (the saved one, from a shorter run, may have reached 0, and torch's
+    cosine steps each rate from the last). Resumed at the length it was saved with, nothing changes."""
+    scheduler.load_state_dict(saved)
+    if not isinstance(scheduler, torch.optim.lr_scheduler.CosineAnnealingLR):
+        return
+    length = max(cfg.epochs, 1)
+    if scheduler.T_max == length:
+        return
+    scheduler.T_max = length
+    done = min(scheduler.last_epoch, length)
+    rates = [scheduler.eta_min + (base - scheduler.eta_min) * (1 + math.cos(math.pi * done / length)) / 2
+             for base in scheduler.base_lrs]
+    for group, rate in zip(optimizer.param_groups, rates):
+        group["lr"] = rate
