@@ -6,12 +6,13 @@
 
 For the built-in SimCol3D test sequences named (the default data: ``Params().synth`` and its seed), each
 pair of frames is rendered at every size and its relative pose is found by photometric alignment with the
-*ground-truth* depth: the 6-DoF pose that minimises the training loss (SSIM + L1, the same warp; Adam with
-a cosine-decayed step, converged at the defaults: 2000 steps give the same figures as 1000), started from
+*ground-truth* depth: the 6-DoF pose that minimises a photometric loss through the training warp (SSIM + L1
+unless ``--losses`` says otherwise; Adam with a cosine-decayed step, converged at the defaults: 2000 steps give
+the same figures as 1000 for SSIM + L1, L1 and MSE), started from
 constant velocity (the mean relative pose of the built-in SimCol3D I/II training sequences, as the
 evaluation's baseline). It is the pose the training loss itself prefers when depth is perfect, what a
 PoseNet trained on that loss aims at. ``--stride k`` pairs frame t with frame t + k (constant velocity: k
-mean steps). Prints, per size, the median rotation error (degrees) and translation error (cm, metric: the
+mean steps). Prints, per size and loss, the median rotation error (degrees) and translation error (cm, metric: the
 depth is the true one) of constant velocity and of the alignment, and how many pixels the median pair's
 rotation moves the image centre. It also prints the scale the loss prefers for the translation: the median over
 pairs of the aligned translation projected on the true one, over the true one's length (1: the loss is unbiased;

@@ -384,8 +384,8 @@ class LossConfig(Section):
     automask_pose_spread: bool = setting(False, "with automask_pose false, the pose's sampling spread (the VAE's "
                                                 "variance head) still learns from the masked loss and only its mean "
                                                 "head from every pixel (their shared encoder from both)")
-    # At 64 px SSIM pulls the translation towards none: with exact depth, SSIM + L1's optimum is 0.73 of the true
-    # translation, L1's 0.94 (benchmarks/bench_pose_alignment.py; docs/results.md).
+    # Between consecutive 64-px frames SSIM pulls the translation towards none: with exact depth, SSIM + L1's optimum
+    # is 0.73 of the true translation, L1's 0.94 (benchmarks/bench_pose_alignment.py; docs/results.md).
     pose_ssim_weight: Optional[Number] = setting(None, "with automask_pose false, SSIM's share of ssim_l1 in the "
                                                        "pose's own (unmasked) loss; null: ssim_weight", ge=0, le=1)
     smoothness_weight: Number = setting(1e-3, "edge-aware disparity smoothness weight", ge=0)

@@ -92,13 +92,28 @@ def rates_by_epoch(epochs: int, resumed_after: int | None = None, saved_epochs: 
     return first + run(optimizer, scheduler, epochs - resumed_after)
 
 
-def test_a_cosine_run_resumed_with_more_epochs_follows_the_longer_schedule():
-    # a 3-epoch run ends at rate 0; given 10 epochs, its epochs 4-10 take the 10-epoch schedule's rates
-    three, ten = rates_by_epoch(3), rates_by_epoch(10)
-    resumed = rates_by_epoch(10, resumed_after=3, saved_epochs=3)
-    assert resumed[:3] == three
-    assert resumed[3:] == pytest.approx(ten[3:], rel=1e-9)
-    assert min(resumed[3:]) > 0
+@pytest.mark.parametrize("saved_epochs, resumed_after", [(3, 3), (4, 2)])
+def test_a_cosine_run_resumed_with_more_epochs_follows_the_longer_schedule(saved_epochs: int, resumed_after: int):
+    # a 3-epoch run ends at rate 0 and a 4-epoch one stopped after 2 at half the rate; given 10 epochs, the epochs
+    # left take the 10-epoch schedule's rates
+    ten = rates_by_epoch(10)
+    resumed = rates_by_epoch(10, resumed_after=resumed_after, saved_epochs=saved_epochs)
+    assert resumed[resumed_after:] == pytest.approx(ten[resumed_after:], rel=1e-9)
+    assert min(resumed[resumed_after:]) > 0
+
+
+def test_a_cosine_run_cut_below_its_progress_resumes_at_the_end_of_the_shorter_schedule():
+    # 6 of 10 epochs done, then 5 asked for: nothing is left to train, and the rate is the schedule's end
+    first_cfg, cfg = TrainConfig(epochs=10, schedule="cosine"), TrainConfig(epochs=5, schedule="cosine")
+    optimizer = make_optimizer([torch.nn.Parameter(torch.ones(1))], first_cfg)
+    scheduler = make_scheduler(optimizer, first_cfg)
+    for _ in range(6):
+        optimizer.step()
+        scheduler.step()
+    resumed_optimizer = make_optimizer([torch.nn.Parameter(torch.ones(1))], cfg)
+    resumed_optimizer.load_state_dict(optimizer.state_dict())
+    restore_scheduler(make_scheduler(resumed_optimizer, cfg), scheduler.state_dict(), resumed_optimizer, cfg)
+    assert resumed_optimizer.param_groups[0]["lr"] == pytest.approx(0.0, abs=1e-15)
 
 
 def test_a_run_resumed_at_its_own_length_keeps_its_schedule_exactly():

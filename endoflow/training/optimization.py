@@ -52,5 +52,5 @@ def restore_scheduler(scheduler: torch.optim.lr_scheduler.LRScheduler, saved: di
     done = min(scheduler.last_epoch, length)
     rates = [scheduler.eta_min + (base - scheduler.eta_min) * (1 + math.cos(math.pi * done / length)) / 2
              for base in scheduler.base_lrs]
-    for group, rate in zip(optimizer.param_groups, rates):
+    for group, rate in zip(optimizer.param_groups, rates, strict=True):
         group["lr"] = rate
