@@ -397,6 +397,24 @@ def test_training_without_the_mask_on_the_pose_changes_the_pose_networks_gradien
     assert not all(torch.allclose(split[name], masked[name], rtol=1e-2) for name in pose)
 
 
+def step_gradients(model: torch.nn.Module, batch: dict, cfg: LossConfig, totals: list[float]
+                   ) -> dict[str, torch.Tensor]:
+    """Each parameter's gradient of one training step's total (appended to ``totals``), from seed 1: the pose
+    VAE's samples and auto-masking's tie-break noise."""
+    model.zero_grad(set_to_none=True)
+    torch.manual_seed(1)
+    total = training_step_losses(model, batch, cfg)["total"]
+    total.backward()
+    totals.append(total.item())
+    return {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
+
+
+def same_gradients(a: dict, b: dict, prefix: str) -> bool:
+    """The gradients of the parameters named ``prefix...`` agree (there are some)."""
+    names = [name for name in a if name.startswith(prefix)]
+    return bool(names) and all(torch.allclose(a[n], b[n], rtol=1e-4, atol=1e-10) for n in names)
+
+
 def test_with_the_spread_kept_under_the_mask_the_pose_mean_learns_from_every_pixel_and_its_spread_from_the_mask():
     """``automask_pose_spread``: the variance head's gradient is the masked loss's (as with the mask on the pose),
     the mean head's is that of every pixel (as without it), and the depth network's stays the mask's."""
@@ -407,28 +425,20 @@ def test_with_the_spread_kept_under_the_mask_the_pose_mean_learns_from_every_pix
     with torch.no_grad():
         model.pose_net.logvar_head.bias.fill_(-8.0)  # a spread whose samples move pixels
 
-    totals = []
+    totals: list[float] = []
 
     def gradients(cfg: LossConfig) -> dict[str, torch.Tensor]:
-        model.zero_grad(set_to_none=True)
-        torch.manual_seed(1)  # the pose VAE's samples and auto-masking's tie-break noise
-        total = training_step_losses(model, batch, cfg)["total"]
-        total.backward()
-        totals.append(total.item())
-        return {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
+        return step_gradients(model, batch, cfg, totals)
 
     masked = gradients(params.loss)
     split = gradients(params.loss.replace(automask_pose=False))
     spread = gradients(params.loss.replace(automask_pose=False, automask_pose_spread=True))
     assert totals[0] == totals[1] == totals[2]  # the masked loss's value, whichever part learns from it
 
-    def same(a: dict, b: dict, prefix: str) -> bool:
-        names = [name for name in a if name.startswith(prefix)]
-        return bool(names) and all(torch.allclose(a[n], b[n], rtol=1e-4, atol=1e-10) for n in names)
-
-    assert same(spread, masked, "pose_net.logvar_head.") and not same(split, masked, "pose_net.logvar_head.")
-    assert same(spread, split, "pose_net.mean_head.") and not same(masked, split, "pose_net.mean_head.")
-    assert same(spread, masked, "depth_net.")
+    spread_head, mean_head = "pose_net.logvar_head.", "pose_net.mean_head."
+    assert same_gradients(spread, masked, spread_head) and not same_gradients(split, masked, spread_head)
+    assert same_gradients(spread, split, mean_head) and not same_gradients(masked, split, mean_head)
+    assert same_gradients(spread, masked, "depth_net.")
     # without the mask on the pose switched off, the key changes nothing
     assert all(torch.equal(v, masked[n]) for n, v in gradients(params.loss.replace(automask_pose_spread=True)).items())
 
@@ -441,15 +451,10 @@ def test_the_poses_own_ssim_share_changes_the_pose_networks_gradient_alone():
     params = Params()
     torch.manual_seed(0)
     model = build_model(params, None)
-    totals = []
+    totals: list[float] = []
 
     def gradients(cfg: LossConfig) -> dict[str, torch.Tensor]:
-        model.zero_grad(set_to_none=True)
-        torch.manual_seed(1)  # the pose VAE's samples and auto-masking's tie-break noise
-        total = training_step_losses(model, batch, cfg)["total"]
-        total.backward()
-        totals.append(total.item())
-        return {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
+        return step_gradients(model, batch, cfg, totals)
 
     split = params.loss.replace(automask_pose=False)
     default = gradients(split)
@@ -457,12 +462,8 @@ def test_the_poses_own_ssim_share_changes_the_pose_networks_gradient_alone():
     l1_all = gradients(split.replace(ssim_weight=0.0))
     assert totals[0] == totals[1] != totals[2]  # the masked loss's value, at ssim_weight
 
-    def same(a: dict, b: dict, prefix: str) -> bool:
-        names = [name for name in a if name.startswith(prefix)]
-        return bool(names) and all(torch.allclose(a[n], b[n], rtol=1e-4, atol=1e-10) for n in names)
-
-    assert same(l1_pose, default, "depth_net.") and not same(l1_all, default, "depth_net.")
-    assert same(l1_pose, l1_all, "pose_net.") and not same(default, l1_all, "pose_net.")
+    assert same_gradients(l1_pose, default, "depth_net.") and not same_gradients(l1_all, default, "depth_net.")
+    assert same_gradients(l1_pose, l1_all, "pose_net.") and not same_gradients(default, l1_all, "pose_net.")
     explicit = gradients(split.replace(pose_ssim_weight=split.ssim_weight))
     assert all(torch.equal(v, default[n]) for n, v in explicit.items())
     masked = gradients(params.loss)
