@@ -20,6 +20,7 @@ from endoflow.reconstruction.frames import FrameRange, open_frames
 from endoflow.reconstruction.reconstruct import Adaptation, ReconstructOptions, reconstruct
 from endoflow.synth.writers import synthesize_layout
 from endoflow.training.adapt import AdaptOptions, adapt, fits_better, input_sequence
+from tests.module_temp import ModuleTemp
 from tests.small_model import small_model_params
 from tests.test_reconstruct import default_baselines
 
@@ -27,10 +28,10 @@ SIZE = 64
 
 
 @pytest.fixture(scope="module")
-def clips(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def clips(module_tmp: ModuleTemp) -> Path:
     """The built-in video, 40 frames a clip: the colon seen through an endoscope's circle, as ``clip_000.mp4``
     (intrinsics unknown) and as the frames of ``clip_001/`` (with its intrinsics beside it)."""
-    root = tmp_path_factory.mktemp("clips")
+    root = module_tmp("clips")
     synthesize_layout("video", root, sequences=2, frames=40, size=SIZE, seed=0, params=small_model_params(SIZE),
                       workers=1, device="cpu")
     return root
@@ -42,11 +43,11 @@ def clip(clips: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def model_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def model_file(module_tmp: ModuleTemp) -> Path:
     params = small_model_params(SIZE)
     params.train = params.train.replace(batch_size=4, lr=3e-3)  # adapted at a tenth of it
     torch.manual_seed(0)
-    path = tmp_path_factory.mktemp("model") / "endoflow.pt"
+    path = module_tmp("model") / "endoflow.pt"
     save_model_file(path, ModelRecord(params, build_model(params, None).state_dict(), 3, {}, "0" * 32,
                                       default_baselines()))
     return path

@@ -18,6 +18,7 @@ from endoflow.data.check import check_dataset, check_sequence, format_check
 from endoflow.data.registry import open_reader
 from endoflow.geometry.pose import TM
 from endoflow.synth.writers import synthesize_layout
+from tests.module_temp import ModuleTemp
 from tests.samples import SIMCOL_SAMPLE
 
 needs_sample = pytest.mark.skipif(not SIMCOL_SAMPLE.is_dir(), reason=f"real SimCol3D sample not found at {SIMCOL_SAMPLE}")
@@ -154,8 +155,8 @@ def test_real_depth_in_wrong_units_is_flagged() -> None:
 
 # ------------------------------------------------------------------------------- procedural data
 @pytest.fixture(scope="module")
-def synthetic_roots(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("synthetic")
+def synthetic_roots(module_tmp: ModuleTemp) -> dict[str, Path]:
+    root = module_tmp("synthetic")
     for layout in ("simcol", "endoslam"):
         synthesize_layout(layout, root / layout, sequences=1, frames=4, size=48, seed=0, workers=1)
     return {layout: root / layout for layout in ("simcol", "endoslam")}

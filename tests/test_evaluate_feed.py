@@ -26,6 +26,7 @@ from endoflow.evaluation.evaluate import (EvaluationFeed, SequenceEvaluator, bat
                                           eval_set_shards, evaluate_test_set, predict_then_record, score_sequences)
 from endoflow.geometry.direct_alignment import tracker_settings
 from endoflow.models.endoflow_model import load_trained_model
+from tests.module_temp import ModuleTemp
 from tests.test_evaluate import oracle_shards, shard_params, write_untrained_model  # noqa: F401 (a fixture)
 
 TEST_SET = "simcol_12"  # two sequences of 7 frames in three shards: batches of 3 alternate between processes
@@ -44,11 +45,11 @@ def written_files(folder: Path) -> dict[str, bytes]:
 
 
 @pytest.fixture(scope="module")
-def untrained(oracle_shards: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Params, Path]:  # noqa: F811
+def untrained(oracle_shards: Path, module_tmp: ModuleTemp) -> tuple[Params, Path]:  # noqa: F811
     params = shard_params(oracle_shards)
     params.eval.batch_size = 3
     params.model = params.model.replace(latent_bank=False)
-    model = tmp_path_factory.mktemp("model") / "endoflow.pt"
+    model = module_tmp("model") / "endoflow.pt"
     write_untrained_model(model, params, None)
     return params, model
 

@@ -24,6 +24,7 @@ from endoflow.models import export
 from endoflow.models.endoflow_model import build_model, load_trained_model
 from endoflow.models.export import ExportVerificationError, export_onnx, verify_graph
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
+from tests.module_temp import ModuleTemp
 
 SIZE = 64  # the smallest size the depth network accepts (its deepest features are 2x2)
 # The untrained pose head predicts almost the identity; this bias (x 0.01 in the network) makes the mean
@@ -45,14 +46,14 @@ def small_params() -> Params:
 
 
 @pytest.fixture(scope="module")
-def model_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def model_file(module_tmp: ModuleTemp) -> Path:
     torch.manual_seed(0)
     params = small_params()
     model = build_model(params, latent_bank_path=None)
     with torch.no_grad():
         model.pose_net.mean_head.bias.copy_(POSE_BIAS)
         model.depth_net.decoder.dispconvs[0].bias.fill_(DISP_BIAS)
-    path = tmp_path_factory.mktemp("model") / "endoflow.pt"
+    path = module_tmp("model") / "endoflow.pt"
     save_model_file(path, ModelRecord(params=params, state=model.state_dict(), epoch=3, val={"val_abs_rel": 0.5},
                                       mlflow_run_id="run-1",
                                       baselines=TrainingBaselines(5.0, np.ones((SIZE, SIZE), np.float32), np.eye(4))))
@@ -60,9 +61,9 @@ def model_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def exported(model_file: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+def exported(model_file: Path, module_tmp: ModuleTemp) -> tuple[Path, str]:
     """The folder the CLI exported to, and what it printed."""
-    out = tmp_path_factory.mktemp("export") / "onnx"
+    out = module_tmp("export") / "onnx"
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
         code = cli_main(["model", "export", "--model", str(model_file), "--format", "onnx", "--out", str(out)])

@@ -49,13 +49,14 @@ from endoflow.data.shards import write_dataset_shards
 from endoflow.devices import batch_to_device
 from endoflow.errors import DataFormatError
 from endoflow.training.ray_trainer import training_fingerprint
+from tests.module_temp import ModuleTemp
 from tests.test_config import defaults_with
 from tests.test_shards import SyntheticSource, native_pose, small_params
 
 
 @pytest.fixture(scope="module")
-def shard_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out_dir = tmp_path_factory.mktemp("loader") / "simcol"
+def shard_dir(module_tmp: ModuleTemp) -> Path:
+    out_dir = module_tmp("loader") / "simcol"
     params = small_params()
     params.preprocess = params.preprocess.replace(samples_per_shard=3, shard_multiple=5)
     write_dataset_shards(SyntheticSource(frames=8), "simcol", params, out_dir)

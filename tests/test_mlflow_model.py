@@ -24,6 +24,7 @@ from endoflow.models.mlflow_model import (PROGRESS_BAR_ENV, example_frames, loca
                                           using_store)
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from endoflow.reconstruction.measure import stage_model_file
+from tests.module_temp import ModuleTemp
 from tests.small_model import small_model_params
 
 SIZE = 64
@@ -31,8 +32,8 @@ NAME = "endoflow-test"
 
 
 @pytest.fixture(scope="module")
-def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return tmp_path_factory.mktemp("mlflow_model_project")
+def project(module_tmp: ModuleTemp) -> Path:
+    return module_tmp("mlflow_model_project")
 
 
 @pytest.fixture(scope="module")

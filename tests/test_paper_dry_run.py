@@ -29,6 +29,7 @@ from endoflow.evaluation.results import evaluation_path
 from endoflow.io import load_plain_torch_file
 from endoflow.models.endoflow_model import generator_spec
 from endoflow.models.model_file import load_model_file
+from tests.module_temp import ModuleTemp
 from tests.project_clone import PROJECT, clone_project, pipeline_env
 
 PAPER = PROJECT / "presets" / "paper.yaml"
@@ -223,8 +224,8 @@ DRY_RUN_TIMEOUT_S = 1800
 
 
 @pytest.fixture(scope="module")
-def paper_repro(tmp_path_factory) -> Iterator[tuple[Path, dict]]:
-    folder = tmp_path_factory.mktemp("paper")
+def paper_repro(module_tmp: ModuleTemp) -> Iterator[tuple[Path, dict]]:
+    folder = module_tmp("paper")
     clone = folder / "endoflow"
     resources = run_paper_dry_run(clone)
     yield clone, resources

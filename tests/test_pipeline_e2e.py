@@ -17,6 +17,7 @@ from endoflow.config import load_params
 from endoflow.evaluation.results import evaluation_path
 from endoflow.io import file_sha256
 from endoflow.params_file import params_yaml
+from tests.module_temp import ModuleTemp
 from tests.project_clone import PROJECT, clone_project, pipeline_env, run
 
 
@@ -24,8 +25,8 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def smoke_repro(tmp_path_factory) -> Path:
-    clone = tmp_path_factory.mktemp("e2e") / "endoflow"
+def smoke_repro(module_tmp: ModuleTemp) -> Path:
+    clone = module_tmp("e2e") / "endoflow"
     env = pipeline_env("e2e")
     clone_project(clone, params_yaml(load_params(PROJECT / "presets" / "smoke.yaml")), env)
     run(["dvc", "repro"], clone, env)

@@ -25,6 +25,7 @@ from endoflow.data.shards import preprocess_dataset
 from endoflow.errors import DataFormatError
 from endoflow.io import TEMPORARY_MARK
 from tests.fixtures_native import write_simcol
+from tests.module_temp import ModuleTemp
 
 pytestmark = pytest.mark.slow
 
@@ -48,11 +49,11 @@ def cluster() -> Iterator[Cluster]:
 
 
 @pytest.fixture(scope="module")
-def simcol(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+def simcol(module_tmp: ModuleTemp) -> tuple[Path, Path]:
     """A SimCol root (S1 train, S4 val, O1 test; 8 frames) and its shards written by the local engine."""
-    root = tmp_path_factory.mktemp("raw") / "simcol"
+    root = module_tmp("raw") / "simcol"
     write_simcol(root, frames=8, size=40)
-    local = tmp_path_factory.mktemp("local") / "simcol"
+    local = module_tmp("local") / "simcol"
     preprocess_dataset("simcol", small_params(root, "local", address=None, out=str(local.parent)), local)
     return root, local
 

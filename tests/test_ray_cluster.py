@@ -33,6 +33,7 @@ from endoflow.config import Params, RayConfig
 from endoflow.ray_runtime import ClusterMismatchError, connect_ray
 from endoflow.training.checkpoint import load_training_state, read_rank_audits
 from endoflow.training.ray_trainer import train
+from tests.module_temp import ModuleTemp
 from tests.test_ray import checkpoint_folders, project
 
 pytestmark = pytest.mark.slow
@@ -99,9 +100,9 @@ def cluster_params(root: Path, cluster: Cluster) -> Params:
 
 
 @pytest.fixture(scope="module")
-def uninterrupted(cluster, tmp_path_factory) -> tuple[Path, dict[str, Any]]:
+def uninterrupted(cluster, module_tmp: ModuleTemp) -> tuple[Path, dict[str, Any]]:
     """The project folder and summary of a training on the cluster that nothing interrupts."""
-    root = tmp_path_factory.mktemp("uninterrupted")
+    root = module_tmp("uninterrupted")
     return root, train(cluster_params(root, cluster), root)
 
 

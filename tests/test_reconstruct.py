@@ -40,6 +40,7 @@ from endoflow.reconstruction.reconstruct import (
 )
 from endoflow.synth.writers import synthesize_layout
 from endoflow.training.adapt import adapt_to_reconstruct_sequence
+from tests.module_temp import ModuleTemp
 from tests.small_model import small_model_params
 
 SIZE = 64
@@ -52,16 +53,16 @@ def params() -> Params:
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory: pytest.TempPathFactory, params: Params) -> Path:
-    root = tmp_path_factory.mktemp("scene") / "SimCol3D"
+def scene(module_tmp: ModuleTemp, params: Params) -> Path:
+    root = module_tmp("scene") / "SimCol3D"
     synthesize_layout("simcol", root, sequences=1, frames=FRAMES, size=SIZE, seed=0, params=params, workers=1,
                       device="cpu")
     return root
 
 
 @pytest.fixture(scope="module")
-def model_file(tmp_path_factory: pytest.TempPathFactory, params: Params) -> Path:
-    path = tmp_path_factory.mktemp("model") / "endoflow.pt"
+def model_file(module_tmp: ModuleTemp, params: Params) -> Path:
+    path = module_tmp("model") / "endoflow.pt"
     torch.manual_seed(0)
     model = build_model(params, latent_bank_path=None)
 

@@ -33,6 +33,7 @@ from endoflow.reconstruction.measure import (
     SurfacePoints,
 )
 from endoflow.synth.writers import synthesize_layout
+from tests.module_temp import ModuleTemp
 from tests.small_model import small_model_params
 
 SIZE = 64
@@ -46,8 +47,8 @@ def params() -> Params:
 
 
 @pytest.fixture(scope="module")
-def source(tmp_path_factory: pytest.TempPathFactory, params: Params) -> DatasetFrames:
-    root = tmp_path_factory.mktemp("scene") / "SimCol3D"
+def source(module_tmp: ModuleTemp, params: Params) -> DatasetFrames:
+    root = module_tmp("scene") / "SimCol3D"
     synthesize_layout("simcol", root, sequences=1, frames=FRAMES, size=SIZE, seed=1, params=params, workers=1,
                       device="cpu")
     return DatasetFrames(root, "S1", params)
@@ -97,8 +98,8 @@ def write_ground_truth_as_reconstruction(source: DatasetFrames, out: Path) -> tu
 
 
 @pytest.fixture(scope="module")
-def measured(source: DatasetFrames, tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, tuple]:
-    out = tmp_path_factory.mktemp("reconstruction")
+def measured(source: DatasetFrames, module_tmp: ModuleTemp) -> tuple[dict, tuple]:
+    out = module_tmp("reconstruction")
     truth = write_ground_truth_as_reconstruction(source, out)
     return measure_reconstruction(source, out, baselines()), truth
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.module_temp import ModuleTemp
 from tests.project_clone import VENV_BIN, pipeline_env, run
 
 # A stand-in for the evaluate stage: the Abs Rel it writes depends on the ablation switch, like a real model's.
@@ -51,8 +52,8 @@ def without_venv_on_path(env: dict[str, str]) -> dict[str, str]:
 
 
 @pytest.fixture(scope="module")
-def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("report_project")
+def project(module_tmp: ModuleTemp) -> Path:
+    root = module_tmp("report_project")
     env = pipeline_env("report")
     (root / "evaluate.py").write_text(EVALUATE)
     (root / "dvc.yaml").write_text(DVC_YAML)

@@ -31,6 +31,7 @@ from endoflow.data.shard_writer import ShardResult
 from endoflow.data.shards import preprocess_dataset, write_dataset_shards
 from endoflow.data.shard_format import MANIFEST, SHARD_TABLE_KEY, ShardEntry, shard_digests
 from endoflow.errors import DataFormatError
+from tests.module_temp import ModuleTemp
 from tests.samples import SIMCOL_SAMPLE
 
 NATIVE_K = np.array([[40.0, 0.0, 31.0], [0.0, 42.0, 22.5], [0.0, 0.0, 1.0]])
@@ -132,8 +133,8 @@ def all_samples(out_dir: Path) -> dict[str, dict[str, bytes]]:
 
 
 @pytest.fixture(scope="module")
-def shards(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
-    out_dir = tmp_path_factory.mktemp("shards") / "simcol"
+def shards(module_tmp: ModuleTemp) -> tuple[Path, dict]:
+    out_dir = module_tmp("shards") / "simcol"
     summary = write_dataset_shards(SyntheticSource(), "simcol", small_params(), out_dir)
     return out_dir, summary
 

@@ -36,6 +36,7 @@ from endoflow.synth.writers import (
     tube_sequence,
     unitycam_intrinsics,
 )
+from tests.module_temp import ModuleTemp
 from tests.samples import SIMCOL_SAMPLE
 
 SAMPLE = SIMCOL_SAMPLE / "SyntheticColon_I"
@@ -43,22 +44,22 @@ CPU = torch.device("cpu")
 
 
 @pytest.fixture(scope="module")
-def simcol_root(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("simcol")
+def simcol_root(module_tmp: ModuleTemp) -> Path:
+    root = module_tmp("simcol")
     synthesize_layout("simcol", root, sequences=1, frames=4, size=48, seed=3, workers=1)
     return root
 
 
 @pytest.fixture(scope="module")
-def endoslam_root(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("endoslam")
+def endoslam_root(module_tmp: ModuleTemp) -> Path:
+    root = module_tmp("endoslam")
     synthesize_layout("endoslam", root, sequences=2, frames=4, size=48, seed=3, workers=1)
     return root
 
 
 @pytest.fixture(scope="module")
-def scenenet_root(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("scenenet")
+def scenenet_root(module_tmp: ModuleTemp) -> Path:
+    root = module_tmp("scenenet")
     synthesize_layout("scenenet", root, sequences=10, frames=2, size=32, seed=3, workers=1)
     return root
 

@@ -15,6 +15,7 @@ import pytest
 
 from endoflow import tracking
 from endoflow.config import Params
+from tests.module_temp import ModuleTemp
 from tests.project_clone import VENV_BIN
 
 SERVER_START_TIMEOUT_S = 120
@@ -27,9 +28,9 @@ def free_port() -> int:
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path]]:
+def server(module_tmp: ModuleTemp) -> Iterator[tuple[str, Path]]:
     """``(uri, folder)`` of an `mlflow server` listening on 127.0.0.1, storing into ``folder``."""
-    folder = tmp_path_factory.mktemp("mlflow_server")
+    folder = module_tmp("mlflow_server")
     port = free_port()
     log = open(folder / "server.log", "w")
     process = subprocess.Popen(
