@@ -86,7 +86,7 @@ def rates_by_epoch(epochs: int, resumed_after: int | None = None, saved_epochs: 
     first = run(first_optimizer, first_scheduler, resumed_after)
     optimizer, scheduler = fresh(cfg)
     optimizer.load_state_dict(first_optimizer.state_dict())
-    restore_scheduler(scheduler, first_scheduler.state_dict(), optimizer, cfg)
+    restore_scheduler(scheduler, first_scheduler.state_dict(), optimizer)
     assert optimizer.param_groups[1]["lr"] == pytest.approx(
         cfg.intrinsics_lr * (1 + math.cos(math.pi * resumed_after / epochs)) / 2)
     return first + run(optimizer, scheduler, epochs - resumed_after)
@@ -112,7 +112,7 @@ def test_a_cosine_run_cut_below_its_progress_resumes_at_the_end_of_the_shorter_s
         scheduler.step()
     resumed_optimizer = make_optimizer([torch.nn.Parameter(torch.ones(1))], cfg)
     resumed_optimizer.load_state_dict(optimizer.state_dict())
-    restore_scheduler(make_scheduler(resumed_optimizer, cfg), scheduler.state_dict(), resumed_optimizer, cfg)
+    restore_scheduler(make_scheduler(resumed_optimizer, cfg), scheduler.state_dict(), resumed_optimizer)
     assert resumed_optimizer.param_groups[0]["lr"] == pytest.approx(0.0, abs=1e-15)
 
 

@@ -125,7 +125,7 @@ def train_loop_per_worker(config: WorkerConfig) -> None:
         saved, random_state = restored
         model.load_state_dict(saved.model)
         optimizer.load_state_dict(saved.optimizer)
-        restore_scheduler(scheduler, saved.scheduler, optimizer, params.train)
+        restore_scheduler(scheduler, saved.scheduler, optimizer)
         state = saved.state
         restore_random_state(random_state)
         if rank == 0:

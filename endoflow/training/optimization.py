@@ -35,18 +35,17 @@ def make_scheduler(optimizer: torch.optim.Optimizer, cfg: TrainConfig) -> torch.
 
 
 def restore_scheduler(scheduler: torch.optim.lr_scheduler.LRScheduler, saved: dict[str, Any],
-                      optimizer: torch.optim.Optimizer, cfg: TrainConfig) -> None:
-    """Load a checkpoint's schedule into ``scheduler`` (built from ``cfg``) after its ``optimizer`` was loaded.
+                      optimizer: torch.optim.Optimizer) -> None:
+    """Load a checkpoint's schedule into ``scheduler`` (built from this run's config) after its ``optimizer`` was
+    loaded.
 
     ``train.epochs`` is not in the run's fingerprint: a run given more epochs resumes where it stopped. The cosine
-    schedule then follows the new length: its progress comes from the checkpoint and its length from ``cfg``, and
-    each group's rate is put on the new curve (the saved one, from a shorter run, may have reached 0, and torch's
+    schedule then follows the new length: its progress comes from the checkpoint and its length from ``scheduler``,
+    and each group's rate is put on the new curve (the saved one, from a shorter run, may have reached 0, and torch's
     cosine steps each rate from the last). Resumed at the length it was saved with, nothing changes."""
+    length = scheduler.T_max if isinstance(scheduler, torch.optim.lr_scheduler.CosineAnnealingLR) else None
     scheduler.load_state_dict(saved)
-    if not isinstance(scheduler, torch.optim.lr_scheduler.CosineAnnealingLR):
-        return
-    length = max(cfg.epochs, 1)
-    if scheduler.T_max == length:
+    if length is None or scheduler.T_max == length:
         return
     scheduler.T_max = length
     done = min(scheduler.last_epoch, length)
