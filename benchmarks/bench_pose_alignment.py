@@ -44,6 +44,7 @@ import torch
 
 from endoflow.config import Params
 from endoflow.data.frame_encoding import resize_depth, resize_rgb
+from endoflow.errors import DataFormatError
 from endoflow.evaluation.metrics import fit_translation_scale
 from endoflow.geometry.pose import matrix_to_pose_vec, mean_step, pose_vec_to_matrix, relative_pose, rotation_angle_deg
 from endoflow.geometry.warp import warp_frame
@@ -175,7 +176,7 @@ def print_alignment(label: str, estimate: np.ndarray, truth: np.ndarray, cv_erro
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
+    parser.add_argument("--sizes", type=int, nargs="+", help="default: 64 128 256, or the model's size")
     parser.add_argument("--layout", choices=sorted(DEFAULT_SEQUENCES), default="simcol")
     parser.add_argument("--sequences", nargs="+", help="default: S5 B5 (simcol), colon (endoslam)")
     parser.add_argument("--frames", type=int, default=20, help="frames per sequence (the paths' first ones)")
@@ -198,11 +199,16 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     model, params = None, Params()
     if args.model is not None:
-        model, record = load_trained_model(args.model, torch.device("cpu"))
+        try:
+            model, record = load_trained_model(args.model, torch.device("cpu"))
+        except (OSError, DataFormatError) as error:
+            parser.error(str(error))
         params = record.params
+        args.sizes = args.sizes or [params.data.size]
         if args.sizes != [params.data.size]:
             parser.error(f"with --model, --sizes must be the model's size, {params.data.size}; got {args.sizes}")
         print(f"model {args.model} (epoch {record.epoch}), its data's sequences")
+    args.sizes = args.sizes or [64, 128, 256]
     jobs = builtin_jobs(params, args.layout)
     names = args.sequences or DEFAULT_SEQUENCES[args.layout]
     unknown = [name for name in names if name not in jobs]
