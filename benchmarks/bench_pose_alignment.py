@@ -25,12 +25,13 @@ Monodepth2's and the default; 0: L1 alone). ``--layout endoslam`` takes the buil
 ``--model`` asks the same of a trained model's *own* depth, which is what its pose network's loss sees: the
 sequences are then those of the model's params (its synth settings and seed), the size its ``data.size``, and the
 depth the model's prediction for each frame; every frame is then made as the model's data made it (rendered at
-``synth.size``, written as 8-bit pixels, resized to ``data.size`` as the shards store it). A depth in the wrong
-scale moves the preferred translation with it, so the figure to read is the path's scale over the depth's, as the
-evaluation reports it: the least-squares scale that takes the estimated translations to the true ones, over the
-depth scale, the median over frames of ``median(true) / median(predicted)``. It is printed for the alignment with
-the true depth, for the alignment with the model's depth, and for the model's pose network on the same pairs (its
-mean, ``--stride 1`` only). Above 1: the path is short for its depth.
+``synth.size``, written as 8-bit pixels, resized to ``data.size`` as the shards store it; the true depth is not
+quantised as stored). A depth in the wrong scale moves the preferred translation with it, so the figure to read is
+the path's scale over the depth's, defined as the evaluation defines it but over all the pairs at once: the
+least-squares scale that takes the estimated translations to the true ones, over the depth scale, the median over
+frames of ``median(true) / median(predicted)``. It is printed for the alignment with the true depth, for the
+alignment with the model's depth (started, as the others, from the metric constant velocity), and for the model's
+pose network on the same pairs (its mean, ``--stride 1`` only). Above 1: the path is short for its depth.
 """
 
 from __future__ import annotations
@@ -157,8 +158,9 @@ def depth_scale(predicted: torch.Tensor, truth: torch.Tensor) -> float:
 
 
 def path_over_depth(estimate: np.ndarray, truth: np.ndarray, depth_ratio: float) -> float:
-    """The path's scale over the depth's as the evaluation computes it: the least-squares scale of the estimated
-    translations onto the true ones over the depth scale (truth over prediction)."""
+    """The path's scale over the depth's as the evaluation defines it (here over all the pairs at once): the
+    least-squares scale of the estimated translations onto the true ones over the depth scale (truth over
+    prediction)."""
     return fit_translation_scale(truth[:, :3, 3], estimate[:, :3, 3]) / depth_ratio
 
 

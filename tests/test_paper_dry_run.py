@@ -13,12 +13,11 @@ from __future__ import annotations
 import copy
 import json
 import os
-import shutil
 import subprocess
 import threading
 import time
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Iterable
 
 import psutil  # a requirement of dvc, which the pipeline runs on
 import pytest
@@ -224,16 +223,11 @@ DRY_RUN_TIMEOUT_S = 1800
 
 
 @pytest.fixture(scope="module")
-def paper_repro(module_tmp: ModuleTemp) -> Iterator[tuple[Path, dict]]:
-    folder = module_tmp("paper")
-    clone = folder / "endoflow"
-    resources = run_paper_dry_run(clone)
-    yield clone, resources
-    # The run leaves about 3.5 GB (renders, shards, DVC's cache, banks, checkpoints, MLflow's copies) and pytest
-    # keeps three sessions' folders: only the figures and the log stay. A failed run keeps everything.
-    for name in ("dry_run_resources.json", "dvc_repro.log"):
-        shutil.copy2(clone / name, folder / name)
-    shutil.rmtree(clone)
+def paper_repro(module_tmp: ModuleTemp) -> tuple[Path, dict]:
+    # The run leaves about 3.6 GB (renders, shards, DVC's cache, banks, checkpoints, MLflow's copies): module_tmp
+    # removes it when the module passes and keeps it when a test failed.
+    clone = module_tmp("paper") / "endoflow"
+    return clone, run_paper_dry_run(clone)
 
 
 def test_the_cut_paper_preset_validates_and_differs_from_the_paper_only_in_the_cuts():
