@@ -46,7 +46,7 @@ import torch
 from endoflow.config import Params
 from endoflow.data.frame_encoding import resize_depth, resize_rgb
 from endoflow.errors import DataFormatError
-from endoflow.evaluation.metrics import fit_translation_scale
+from endoflow.evaluation.metrics import fit_translation_scale, paper_depth_errors
 from endoflow.geometry.pose import matrix_to_pose_vec, mean_step, pose_vec_to_matrix, relative_pose, rotation_angle_deg
 from endoflow.geometry.warp import warp_frame
 from endoflow.losses.photometric import photometric_error
@@ -153,8 +153,8 @@ def model_depth(model: EndoflowModel, rgb: torch.Tensor) -> torch.Tensor:
 
 
 def depth_scale(predicted: torch.Tensor, truth: torch.Tensor) -> float:
-    """Median over frames of ``median(true) / median(predicted)``: the evaluation's per-frame depth ratio."""
-    return float(np.median([float(t.median() / d.median()) for d, t in zip(predicted, truth)]))
+    """Median over frames of the evaluation's per-frame depth ratio, ``median(true) / median(predicted)``."""
+    return float(np.median([paper_depth_errors(t[0].numpy(), d[0].numpy())["ratio"] for d, t in zip(predicted, truth)]))
 
 
 def path_over_depth(estimate: np.ndarray, truth: np.ndarray, depth_ratio: float) -> float:
@@ -165,7 +165,7 @@ def path_over_depth(estimate: np.ndarray, truth: np.ndarray, depth_ratio: float)
 
 
 def print_alignment(label: str, estimate: np.ndarray, truth: np.ndarray, cv_errors: tuple[float, float],
-                    seconds: float, depth_ratio: float | None = None) -> None:
+                    seconds: float | None, depth_ratio: float | None = None) -> None:
     rotation, translation = (float(np.median(e)) for e in pose_errors(estimate, truth))
     scale = translation_scale(estimate, truth)
     line = (f"  {label}: rotation error {rotation:.4f} deg ({rotation / cv_errors[0]:.2f} of constant velocity's), "
@@ -173,7 +173,7 @@ def print_alignment(label: str, estimate: np.ndarray, truth: np.ndarray, cv_erro
             f"{scale:.3f}")
     if depth_ratio is not None:
         line += f", path / depth scale {path_over_depth(estimate, truth, depth_ratio):.3f}"
-    print(line + (f"; {seconds:.0f} s" if seconds else ""))
+    print(line + (f"; {seconds:.0f} s" if seconds is not None else ""))
 
 
 def main() -> None:
@@ -246,7 +246,7 @@ def main() -> None:
             if k == 1:
                 with torch.no_grad():
                     network = model.predict_pose(rgb[pair], rgb[pair + k]).double().numpy()
-                print_alignment("the model's pose network", network, truth, cv_errors, 0.0, ratio)
+                print_alignment("the model's pose network", network, truth, cv_errors, None, ratio)
         for loss in args.losses:
             for label, (used, ratio) in depths.items():
                 began = time.perf_counter()
