@@ -139,12 +139,12 @@ def test_the_rotation_priors_gauss_newton_terms_are_the_derivatives_of_its_cost_
 
 def test_the_tracker_takes_every_refine_setting_from_the_params():
     cfg = RefineConfig(levels=2, iterations=5, huber=0.03, light_falloff=0.5, rotation_prior=0.3, keyframe_every=4,
-                       min_overlap=0.4)
+                       min_overlap=0.4, rotation_smoothing=1.5)
     settings = tracker_settings(cfg)
     alignment = settings.alignment
     assert (alignment.levels, alignment.iterations, alignment.huber, alignment.light_falloff,
             alignment.rotation_prior) == (2, 5, 0.03, 0.5, 0.3)
-    assert (settings.keyframe_every, settings.min_overlap) == (4, 0.4)
+    assert (settings.keyframe_every, settings.min_overlap, settings.rotation_smoothing) == (4, 0.4, 1.5)
 
 
 def test_a_change_of_brightness_is_taken_up_by_the_gain_and_offset(rendered: dict):

@@ -8,6 +8,7 @@ challenge files) must then give zero error.
 
 from __future__ import annotations
 
+import itertools
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,9 +28,11 @@ from endoflow.evaluation import metrics
 from endoflow.evaluation.results import PROTOCOLS
 from endoflow.evaluation.evaluate import (
     SequenceEvaluator,
+    SequenceResult,
     batches_within_sequences,
     evaluate_test_set,
     longest_posed_run,
+    pose_sequence_scores,
     score_sequences,
     eval_set_shards,
 )
@@ -181,6 +184,41 @@ def test_missing_poses_leave_the_longest_posed_run():
     pose = np.eye(4)
     assert longest_posed_run([pose, None, pose, pose, pose, None, pose, pose]) == (2, 5)
     assert longest_posed_run([pose, None, pose]) is None
+
+
+def test_the_refined_path_is_scored_with_its_rotation_smoothed_over_its_longest_posed_run():
+    from endoflow.geometry.path_smoothing import smooth_path_rotations
+
+    rng = np.random.default_rng(0)
+    steps = [metrics_pose((0.001, -0.002, 0.0005), (0.0, 0.01, 0.1 + 0.01 * np.sin(i))) for i in range(29)]
+    truth = np.stack(list(itertools.accumulate(steps, np.matmul, initial=np.eye(4))))  # a steady turn
+    aligned = np.stack([T @ metrics_pose(rng.normal(0, 0.001, 3), (0, 0, 0)) for T in truth])
+    seq = SequenceResult("S1", "SyntheticColon_I", frames=list(range(31)), poses=[None, *truth],
+                         predicted_relative=[np.eye(4)] + [metrics.relative_poses(truth)[0]] * 29,
+                         refined=[np.eye(4), *aligned])
+
+    def refined_figures(smoothing: float) -> dict[str, float]:
+        rows, _ = pose_sequence_scores(seq, oracle_baselines(), smoothing)
+        return {row["metric"]: row["value"] for row in rows
+                if row["method"] == "refined" and row["protocol"] == "pose_simcol" and row["frame"] is None}
+
+    # the first frame has no GT pose: the run, and the smoothing, start at the second
+    expected = metrics.simcol_pose_sequence(truth, metrics.relative_poses(smooth_path_rotations(aligned, 2.0)))
+    unsmoothed = metrics.simcol_pose_sequence(truth, metrics.relative_poses(aligned))
+    smoothed, as_aligned = refined_figures(2.0), refined_figures(0.0)
+    assert smoothed["rot"] == pytest.approx(expected["rot"]) and smoothed["rte"] == pytest.approx(expected["rte"])
+    assert as_aligned["rot"] == pytest.approx(unsmoothed["rot"])
+    assert smoothed["rot"] < 0.3 * as_aligned["rot"]
+    assert smoothed["rte"] == pytest.approx(as_aligned["rte"], rel=0.05)
+
+
+def metrics_pose(rotation_vector, translation) -> np.ndarray:
+    import cv2
+
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rotation_vector, np.float64))[0]
+    T[:3, 3] = translation
+    return T
 
 
 def test_unknown_test_set_groups_fail_naming_what_exists(oracle_shards: Path):

@@ -5,6 +5,7 @@ renderer's exact surface from ground-truth depth and poses to within about a vox
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -30,6 +31,7 @@ from endoflow.reconstruction.reconstruct import (
     ADAPTED_MODEL,
     Adaptation,
     CameraPath,
+    Chain,
     PathPhotometry,
     RECONSTRUCTION_FORMAT,
     ReconstructOptions,
@@ -509,11 +511,11 @@ def test_a_long_path_stays_rigid_however_many_float32_steps_it_chains() -> None:
     step = np.eye(4)
     step[:3, :3] = cv2.Rodrigues(np.array([angle, 2 * angle, -angle]))[0]
     step[:3, 3] = (0.01, 0.0, 0.1)
-    path = CameraPath()
+    path, chain = CameraPath(), Chain()
     depth = np.ones((4, 4), np.float32)
     for i in range(3000):
         noisy = (step + rng.normal(0, 1e-7, (4, 4)) * [[1, 1, 1, 0]] * 4).astype(np.float32)  # float32 network output
-        network = path.network_step(None if i == 0 else noisy, 1.0)
+        network = chain.step(None if i == 0 else noisy, 1.0)
         path.add(InputFrame(i, i / 30, np.zeros((4, 4, 3), np.uint8)), network, network, depth, 4)
     rotations = np.stack(path.poses)[:, :3, :3]
     np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rotations.shape),
@@ -529,6 +531,7 @@ def test_a_refined_path_is_written_with_the_networks_own_beside_it(scene: Path, 
     refined = run(scene, model_file, tmp_path / "refined", params, "S1", refine=tracker_settings(params.refine))
     plain = run(scene, model_file, tmp_path / "plain", params, "S1")
     assert refined["path"]["refined"] and refined["path"]["keyframes"] >= 1
+    assert refined["path"]["rotation_smoothing_frames"] == params.refine.rotation_smoothing > 0
     assert (refined["path"]["scale_from"], plain["path"]["scale_from"]) == ("depth", "pose network")
     assert not plain["path"]["refined"] and not (tmp_path / "plain" / NETWORK_PATH_FILE).exists()
     # the ground-truth-free figure: the plain path is the network's own
@@ -540,6 +543,25 @@ def test_a_refined_path_is_written_with_the_networks_own_beside_it(scene: Path, 
     np.testing.assert_array_equal(network, read_tum(tmp_path / "plain" / "trajectory.tum")[1])
     _, path = read_tum(tmp_path / "refined" / "trajectory.tum")
     assert len(path) == len(network) and np.array_equal(path[0], network[0])
+
+
+def test_the_refined_path_written_is_the_aligned_one_with_its_rotation_smoothed(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
+    """The tracker goes on from the poses as aligned, so smoothing changes only what is written and fused: the path
+    of a run with smoothing is the path of a run without it, smoothed afterwards."""
+    from endoflow.data.trajectory_files import read_tum
+    from endoflow.geometry.direct_alignment import tracker_settings
+    from endoflow.geometry.path_smoothing import smooth_path_rotations
+
+    settings = tracker_settings(params.refine)
+    smoothed = run(scene, model_file, tmp_path / "smoothed", params, "S1", refine=settings)
+    aligned = run(scene, model_file, tmp_path / "aligned", params, "S1", refine=replace(settings, rotation_smoothing=0))
+    assert (smoothed["frames"], smoothed["path"]["rotation_smoothing_frames"]) == (aligned["frames"], 3.0)
+    assert aligned["path"]["rotation_smoothing_frames"] == 0
+    _, path = read_tum(tmp_path / "smoothed" / "trajectory.tum")
+    _, as_aligned = read_tum(tmp_path / "aligned" / "trajectory.tum")
+    assert not np.allclose(path, as_aligned, atol=1e-6)
+    np.testing.assert_allclose(path, smooth_path_rotations(as_aligned, 3.0), atol=1e-6)
 
 
 def test_the_black_border_of_a_circular_field_of_view_gets_no_depth(scene: Path, model_file: Path, params: Params,

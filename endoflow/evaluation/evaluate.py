@@ -2,7 +2,8 @@
 
 Every frame of each test sequence, in order (:mod:`endoflow.data.sequences`), goes through the networks on
 ``eval.device`` under ``eval.precision``; with ``refine.enabled`` the pose network's path is also refined against
-keyframes (:mod:`endoflow.geometry.direct_alignment`) and scored as the method ``refined``. Depth is scored in the
+keyframes (:mod:`endoflow.geometry.direct_alignment`), its step rotations smoothed over ``refine.rotation_smoothing``
+frames (:mod:`endoflow.geometry.path_smoothing`), and scored as the method ``refined``. Depth is scored in the
 paper's and SimCol3D's protocols beside ``constant_depth`` and ``mean_depth_map``, pose in SimCol3D's, EndoSLAM's
 and the motion protocol beside ``constant_velocity``, and the model's scale consistency
 (:mod:`endoflow.evaluation.metrics`, :mod:`endoflow.evaluation.baselines`); every figure goes into one long table
@@ -54,6 +55,7 @@ from endoflow.data.shard_format import ShardEntry, has_ground_truth, manifest_lo
 from endoflow.devices import (autocast, images_to_device, resolve_device, to_compute_layout, unit_float_images,
                               use_cpu_threads)
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings, tracker_settings
+from endoflow.geometry.path_smoothing import smooth_path_rotations
 from endoflow.locations import absolute_location
 from endoflow.models.endoflow_model import load_trained_model
 from endoflow.models.mlflow_model import is_model_uri, local_model_file
@@ -79,7 +81,8 @@ class SequenceResult:
     depth_gt: list[np.ndarray] = field(default_factory=list)
     # per frame (as ``frames``), the paper protocol's median scaling of the model's depth; None without GT depth
     depth_ratios: list[Optional[float]] = field(default_factory=list)
-    # per frame, T_world_cam of the refined path (endoflow.geometry.direct_alignment), from an identity first pose
+    # per frame, T_world_cam of the refined path as the tracker aligned it (endoflow.geometry.direct_alignment),
+    # from an identity first pose; scored with its rotation smoothed
     refined: list[np.ndarray] = field(default_factory=list)
 
 
@@ -388,7 +391,8 @@ def score_sequences(evaluator: SequenceEvaluator) -> tuple[dict, pd.DataFrame, p
     trajectories: dict = {}
     for seq in evaluator.sequences:
         rows += depth_sequence_scores(seq, evaluator.baselines)
-        pose_rows, trajectory = pose_sequence_scores(seq, evaluator.baselines)
+        smoothing = evaluator.refine.rotation_smoothing if evaluator.refine is not None else 0.0
+        pose_rows, trajectory = pose_sequence_scores(seq, evaluator.baselines, smoothing)
         rows += pose_rows
         if trajectory is not None:
             trajectories[seq.name] = trajectory
@@ -420,17 +424,22 @@ def depth_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> l
     return rows
 
 
-def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> tuple[list[dict], Optional[dict]]:
+def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines, rotation_smoothing: float = 0.0
+                         ) -> tuple[list[dict], Optional[dict]]:
     """The challenge's, EndoSLAM's and the motion protocols over the longest run of one sequence's posed frames, for
-    the model (its network's and its refined path) and constant velocity, and the scale consistency of the model's
-    paths where the run has GT depth: the sequence's figures, each frame's RTE and ROT, and the trajectories."""
+    the model (its network's and its refined path, whose step rotations are smoothed over that run with
+    ``rotation_smoothing``, :mod:`endoflow.geometry.path_smoothing`) and constant velocity, and the scale
+    consistency of the model's paths where the run has GT depth: the sequence's figures, each frame's RTE and ROT,
+    and the trajectories."""
     run = longest_posed_run(seq.poses, seq.gaps)
     if run is None:
         return [], None
     start, stop = run
     gt_poses = np.stack(seq.poses[start:stop])
     predicted = {"model": np.stack(seq.predicted_relative[start:stop - 1]),
-                 **({"refined": metrics.relative_poses(np.stack(seq.refined[start:stop]))} if seq.refined else {}),
+                 **({"refined": metrics.relative_poses(smooth_path_rotations(np.stack(seq.refined[start:stop]),
+                                                                              rotation_smoothing))}
+                    if seq.refined else {}),
                  **baseline_relative_poses(training, stop - start - 1)}
     trajectory = {"gt": gt_poses[:, :3, 3], "frames": seq.frames[start:stop]}
     rows: list[dict] = []

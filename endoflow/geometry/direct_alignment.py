@@ -370,18 +370,22 @@ def _linearise(level: _Level, sample: _Sample, gradients: torch.Tensor, brightne
 @dataclass(frozen=True)
 class TrackerSettings:
     """The alignment of each frame, and when a frame becomes the keyframe (``refine.keyframe_every``,
-    ``refine.min_overlap``)."""
+    ``refine.min_overlap``); the smoothing of the refined path's rotation (``refine.rotation_smoothing``), which the
+    path's users apply to what the tracker returns (:mod:`endoflow.geometry.path_smoothing`): the tracker itself
+    goes on from the poses as aligned."""
 
     alignment: AlignmentSettings = AlignmentSettings()
     keyframe_every: int = REFINE.keyframe_every
     min_overlap: float = REFINE.min_overlap
+    rotation_smoothing: float = REFINE.rotation_smoothing
 
 
 def tracker_settings(cfg: RefineConfig) -> TrackerSettings:
     """The tracker's settings from the ``refine`` params."""
     alignment = AlignmentSettings(levels=cfg.levels, iterations=cfg.iterations, huber=cfg.huber,
                                   light_falloff=cfg.light_falloff, rotation_prior=cfg.rotation_prior)
-    return TrackerSettings(alignment, keyframe_every=cfg.keyframe_every, min_overlap=cfg.min_overlap)
+    return TrackerSettings(alignment, keyframe_every=cfg.keyframe_every, min_overlap=cfg.min_overlap,
+                           rotation_smoothing=cfg.rotation_smoothing)
 
 
 class KeyframeTracker:

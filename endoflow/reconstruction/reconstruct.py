@@ -4,10 +4,10 @@ Frames stream through the model in small batches (:func:`frames_per_call`; centr
 preprocessing does, K following, a batch ahead in a thread, :mod:`endoflow.reconstruction.streams`): each frame's
 depth and the pose network's step from the previous frame, chained into camera-to-world poses from
 the identity at the first frame (``T_world_cur = T_world_prev @ inv(T_cur_prev)``), then refined against
-keyframes with the depth (:mod:`endoflow.geometry.direct_alignment`, unless ``refine`` is None); the depth is
-fused along the path. The outputs go into a staged folder that replaces ``out_dir`` whole, only where it is new,
-empty or an earlier reconstruction (:func:`endoflow.io.check_replaceable`). What is written and what it means:
-docs/reconstruction.md.
+keyframes with the depth (:mod:`endoflow.geometry.direct_alignment`, unless ``refine`` is None) and their rotation
+smoothed over a window of frames (:mod:`endoflow.geometry.path_smoothing`); the depth is fused along the path. The
+outputs go into a staged folder that replaces ``out_dir`` whole, only where it is new, empty or an earlier
+reconstruction (:func:`endoflow.io.check_replaceable`). What is written and what it means: docs/reconstruction.md.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from endoflow.devices import (autocast, compute_dtype, images_to_device, resolve
                               unit_float_images)
 from endoflow.errors import DataFormatError
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings
+from endoflow.geometry.path_smoothing import StepRotationSmoother
 from endoflow.geometry.pose import chain_step, invert_pose, relative_pose
 from endoflow.io import check_replaceable, marked_output, staged_directory, write_bytes, write_json
 from endoflow.losses.photometric import view_synthesis_error
@@ -165,6 +166,11 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
     valid = input_field_of_view(source, options.frames, region, size)
     path = CameraPath()
     tracker = KeyframeTracker(torch.from_numpy(K), options.refine) if options.refine is not None else None
+    # the tracker's path goes on from the poses as aligned; the path written is their rotation smoothed, which holds
+    # each frame back until the steps its window reaches have been aligned
+    chains = PathEnds()
+    smoother: StepRotationSmoother[TrackedFrame] = StepRotationSmoother(
+        options.refine.rotation_smoothing if options.refine is not None else 0.0)
     explained = PathPhotometry(K, record.baselines.mean_relative_pose, options.frames.stride, options.scale, device)
     progress = Progress(source_frame_count(source, options.frames), "frames")
     sampler = FrameSampler()
@@ -179,6 +185,23 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             inputs = stack.enter_context(contextlib.closing(
                 decoded_ahead(model_inputs(source, options.frames, region, size), per_call + READ_AHEAD,
                               side_threads())))
+
+            def settle(tracked: TrackedFrame, pose: np.ndarray) -> None:
+                """Everything that follows from a frame's pose on the path written, in frame order."""
+                nonlocal shown, volume
+                frame, rgb, depth = tracked.frame, tracked.rgb, tracked.depth
+                path.add(frame, pose, tracked.network_pose, depth, size)
+                explained.add(rgb, depth, path)
+                shown = shown or preview_range(depth, record.params.model, options.scale)
+                preview = encoders.submit(write_depth, stage, frame.index, depth, unit, options.npy, shown)
+                writes.submit(write_frame_outputs, frame.index, rgb, depth, pose, preview,
+                              FrameOutputs(unit, K, video, recording, sampler))
+                if options.fuse:
+                    if volume is None:
+                        volume = fusion_volume(depth, K, options, device)
+                    volume.integrate(depth, rgb, K, pose)
+                report_progress(path.count, progress)
+
             for batch in in_batches(inputs, per_call):
                 images = images_to_device(torch.from_numpy(np.stack([rgb for _, rgb in batch])).permute(0, 3, 1, 2)
                                           .contiguous(), device, options.precision)
@@ -187,23 +210,17 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                                                [frame.index for frame, _ in batch])
                 for (frame, rgb), (depth, T_cur_prev) in zip(batch, predicted):
                     depth = np.where(valid, depth, np.float32(0))  # outside the field of view: unknown
-                    network_pose = path.network_step(T_cur_prev, options.scale)
-                    pose = network_pose if tracker is None else tracker.track(
+                    network_pose = chains.network.step(T_cur_prev, options.scale)
+                    aligned = network_pose if tracker is None else tracker.track(
                         unit_float_images(torch.from_numpy(rgb).to(device).permute(2, 0, 1)),
                         torch.from_numpy(depth)[None].to(device),
-                        torch.from_numpy(path.step_from_last(T_cur_prev, options.scale))).cpu().numpy()
-                    path.add(frame, pose, network_pose, depth, size)
-                    explained.add(rgb, depth, path)
-                    shown = shown or preview_range(depth, record.params.model, options.scale)
-                    preview = encoders.submit(write_depth, stage, frame.index, depth, unit, options.npy, shown)
-                    writes.submit(write_frame_outputs, frame.index, rgb, depth, pose, preview,
-                                  FrameOutputs(unit, K, video, recording, sampler))
-                    if options.fuse:
-                        if volume is None:
-                            volume = fusion_volume(depth, K, options, device)
-                        volume.integrate(depth, rgb, K, pose)
-                    report_progress(path.count, progress)
+                        torch.from_numpy(chains.aligned.next_start(T_cur_prev, options.scale))).cpu().numpy()
+                    chains.aligned.end = aligned
+                    for tracked, pose in smoother.push(aligned, TrackedFrame(frame, rgb, depth, network_pose)):
+                        settle(tracked, pose)
                 previous = images[-1:]
+            for tracked, pose in smoother.flush():
+                settle(tracked, pose)
             if path.count == 0:  # a source that did not know its length
                 raise DataFormatError(source.description, f"no frames from --start {options.frames.start} on")
         write_json(stage / "depth" / "depth.json", {
@@ -237,7 +254,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             "field_of_view": {"share": float(valid.mean()), "frames_looked_at": FIELD_OF_VIEW_FRAMES},
             # a refined path's translations come from the keyframes' depth: it has the depth's scale
             "path": {"refined": tracker is not None, "scale_from": "depth" if tracker is not None else "pose network",
-                     **({"keyframes": tracker.keyframes} if tracker is not None else {}),
+                     **({"keyframes": tracker.keyframes, "rotation_smoothing_frames": smoother.sigma_frames}
+                        if tracker is not None else {}),
                      "photometric_error": explained.means()},
             **path.ground_truth_scale(),
             **({"resume_key": resume_key} if resume_key is not None else {}),
@@ -494,6 +512,46 @@ def fusion_summary(volume: TSDFVolume, options: ReconstructOptions) -> dict:
 
 
 @dataclass
+class Chain:
+    """A path's newest pose, ``end`` (None before its first frame), from which the next frame's step goes on."""
+
+    end: Optional[np.ndarray] = None
+
+    def next_start(self, T_cur_prev: Optional[np.ndarray], scale: float) -> np.ndarray:
+        """The pose one network step ``T_cur_prev`` (its translation times ``scale``) on from ``end``; the identity
+        for the first frame."""
+        if T_cur_prev is None:
+            return np.eye(4)
+        step = np.array(T_cur_prev)
+        step[:3, 3] *= scale
+        return chain_step(self.end, step)
+
+    def step(self, T_cur_prev: Optional[np.ndarray], scale: float) -> np.ndarray:
+        """Move ``end`` on by the step (:meth:`next_start`) and return it."""
+        self.end = self.next_start(T_cur_prev, scale)
+        return self.end
+
+
+@dataclass
+class PathEnds:
+    """Where the next frame starts from: the pose network's own chain, and the path as the tracker aligned it (or,
+    unrefined, the network's chain again); the path written, smoothed, ends frames behind them."""
+
+    network: Chain = field(default_factory=Chain)
+    aligned: Chain = field(default_factory=Chain)
+
+
+@dataclass(frozen=True)
+class TrackedFrame:
+    """A frame waiting for its pose on the path written: what follows from it once it has one."""
+
+    frame: InputFrame
+    rgb: np.ndarray
+    depth: np.ndarray
+    network_pose: np.ndarray
+
+
+@dataclass
 class CameraPath:
     """The camera-to-world poses (refined or the network's), the network's own chain, their timestamps and frame
     indices; with ground truth where known."""
@@ -508,22 +566,6 @@ class CameraPath:
     @property
     def count(self) -> int:
         return len(self.poses)
-
-    def network_step(self, T_cur_prev: Optional[np.ndarray], scale: float) -> np.ndarray:
-        """The network's chain one step on (identity for the first frame)."""
-        return self._chained(self.network_poses, T_cur_prev, scale)
-
-    def step_from_last(self, T_cur_prev: Optional[np.ndarray], scale: float) -> np.ndarray:
-        """The network's step from the last pose of the path (identity for the first frame)."""
-        return self._chained(self.poses, T_cur_prev, scale)
-
-    @staticmethod
-    def _chained(poses: list[np.ndarray], T_cur_prev: Optional[np.ndarray], scale: float) -> np.ndarray:
-        if T_cur_prev is None:
-            return np.eye(4)
-        step = np.array(T_cur_prev)
-        step[:3, 3] *= scale
-        return chain_step(poses[-1], step)
 
     def add(self, frame: InputFrame, pose: np.ndarray, network_pose: np.ndarray, depth: np.ndarray,
             size: int) -> None:
