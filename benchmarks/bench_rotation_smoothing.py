@@ -7,7 +7,8 @@ smoothed alike (what smoothing costs a path that is right).
 
 The evaluation's own reader and tracker (``SequenceEvaluator``, the model of ``eval.model``, the settings of
 ``refine``) run once per rotation prior in ``--priors``; each width in ``--sigmas`` (frames,
-:mod:`endoflow.geometry.path_smoothing`) is applied to the same aligned path. ``--split val`` takes every SimCol3D
+:mod:`endoflow.geometry.path_smoothing`) smooths the same aligned path as the evaluation does
+(``evaluate.refined_path``). ``--split val`` takes every SimCol3D
 sequence of that split (what ``refine.rotation_smoothing`` was chosen on), ``--test-set`` one of ``eval.test_sets``.
 Printed per prior and width, averaged over the sequences as the evaluation averages them: the challenge's RTE (cm)
 and ROT (deg). A diagnosis, not a speed figure.
@@ -30,12 +31,12 @@ from endoflow.devices import resolve_device, to_compute_layout, use_cpu_threads
 from endoflow.evaluation import evaluate, metrics
 from endoflow.evaluation.baselines import baseline_relative_poses
 from endoflow.geometry.direct_alignment import tracker_settings
-from endoflow.geometry.path_smoothing import smooth_path_rotations
+from endoflow.geometry.path_smoothing import smooth_path_orientations
 from endoflow.models.endoflow_model import load_trained_model
 
 
 def tracked_sequences(params: Params, test_set: EvalSetConfig, prior: float) -> tuple[list, object]:
-    """Each sequence's longest posed run: (GT poses, aligned refined path), and the model's training baselines."""
+    """Each sequence's result and its longest posed run, and the model's training baselines."""
     urls = evaluate.eval_set_shards(params.eval.shards, test_set)
     device = resolve_device(params.eval.device, "eval.device")
     model, record = load_trained_model(params.eval.model, device)
@@ -47,17 +48,18 @@ def tracked_sequences(params: Params, test_set: EvalSetConfig, prior: float) -> 
         feed = evaluate.EvaluationFeed(urls, shard_entries(urls), partial(evaluate.belongs_to, test_set=test_set),
                                        params.eval.max_frames_per_sequence, params.eval.batch_size, record.baselines)
         evaluate.predict_then_record(evaluator, ordered_loader(feed, 0), False)
-    runs = []
-    for seq in evaluator.sequences:
-        run = evaluate.longest_posed_run(seq.poses, seq.gaps)
-        if run is not None:
-            runs.append((np.stack(seq.poses[run[0]:run[1]]), np.stack(seq.refined[run[0]:run[1]])))
+    runs = [(seq, run) for seq in evaluator.sequences
+            if (run := evaluate.longest_posed_run(seq.poses, seq.gaps)) is not None]
     return runs, record.baselines
 
 
-def figures(runs: list, path_of) -> tuple[float, float]:
-    """Mean over sequences of the challenge's RTE and ROT of the path ``path_of(gt, aligned)`` (relative poses)."""
-    scores = [metrics.simcol_pose_sequence(gt, path_of(gt, aligned)) for gt, aligned in runs]
+def figures(runs: list, relative_of) -> tuple[float, float]:
+    """Mean over sequences of the challenge's RTE and ROT of the relative poses ``relative_of(seq, gt)`` over each
+    sequence's longest posed run (``gt`` its GT poses)."""
+    scores = []
+    for seq, (start, stop) in runs:
+        gt = np.stack(seq.poses[start:stop])
+        scores.append(metrics.simcol_pose_sequence(gt, relative_of(seq, start, stop, gt)))
     return float(np.mean([s["rte"] for s in scores])), float(np.mean([s["rot"] for s in scores]))
 
 
@@ -90,13 +92,14 @@ def main() -> None:
     print("| --- " * (len(args.sigmas) + 1) + "|")
     for prior in priors:
         runs, baselines = tracked_sequences(params, test_set, prior)
-        cells = [figures(runs, lambda gt, aligned, s=s: metrics.relative_poses(smooth_path_rotations(aligned, s)))
-                 for s in args.sigmas]
+        cells = [figures(runs, lambda seq, start, stop, gt, s=s:
+                         metrics.relative_poses(evaluate.refined_path(seq, s)[start:stop])) for s in args.sigmas]
         print(f"| {prior:g} | " + " | ".join(f"{rte:.4f} / {rot:.3f}" for rte, rot in cells) + " |")
-    truth = [figures(runs, lambda gt, aligned, s=s: metrics.relative_poses(smooth_path_rotations(gt, s)))
+    truth = [figures(runs, lambda seq, start, stop, gt, s=s: metrics.relative_poses(smooth_path_orientations(gt, s)))
              for s in args.sigmas]
     print("| the truth smoothed | " + " | ".join(f"{rte:.4f} / {rot:.3f}" for rte, rot in truth) + " |")
-    constant = figures(runs, lambda gt, aligned: baseline_relative_poses(baselines, len(gt) - 1)["constant_velocity"])
+    constant = figures(runs, lambda seq, start, stop, gt:
+                       baseline_relative_poses(baselines, len(gt) - 1)["constant_velocity"])
     print(f"constant velocity: {constant[0]:.4f} / {constant[1]:.3f}; {len(runs)} sequences")
 
 

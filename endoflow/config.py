@@ -586,12 +586,13 @@ class RefineConfig(Section):
     rotation_prior: Number = setting(0.1, "pull of each refined step's rotation towards the pose network's step: "
                                           "a cost of rotation_prior / 2 * (angle between them)^2 per pixel, "
                                           "angle in radians; 0: the rotation is free", ge=0)
-    # chosen on the SimCol3D validation sequences at rotation_prior 0.1 (0, 1, 2, 3, 5, 8): the refined path's ROT
-    # 0.149, 0.132, 0.128, 0.123, 0.125, 0.130 deg, RTE unchanged (default model seed 0; docs/results.md)
-    rotation_smoothing: Number = setting(3.0, "the refined path's step rotations averaged over the steps around "
-                                              "them: the standard deviation of the Gaussian window, which reaches "
-                                              "3 of them either way (reconstruct fuses and writes that many frames "
-                                              "behind the tracker); 0: the rotations as aligned",
+    # chosen on the SimCol3D validation sequences at rotation_prior 0.1 (docs/results.md, "The refined path's
+    # rotation smoothed": benchmarks/bench_rotation_smoothing.py --split val)
+    rotation_smoothing: Number = setting(3.0, "the refined path's orientations smoothed, its positions kept: the "
+                                              "standard deviation of the Gaussian window of a local straight-line "
+                                              "fit over the frames around each, reaching ceil(3 x this) frames "
+                                              "either way (9 at 3; reconstruct fuses and writes that many frames "
+                                              "behind the tracker); 0: the orientations as aligned",
                                          unit="frames", ge=0)
     keyframe_every: Count = setting(6, "a new keyframe after this many frames at most", unit="frames")
     min_overlap: Number = setting(0.5, "... or once a smaller share of the keyframe's pixels still takes part",

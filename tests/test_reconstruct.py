@@ -21,6 +21,7 @@ from endoflow.data.imageio import read_gray16
 from endoflow.data.registry import open_reader
 from endoflow.data.frame_encoding import resize_depth, stored_intrinsics
 from endoflow.errors import DataFormatError
+from endoflow.geometry.pose import rotation_angle_deg
 from endoflow.io import file_sha256
 from endoflow.models.endoflow_model import build_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_model_file, save_model_file
@@ -542,26 +543,31 @@ def test_a_refined_path_is_written_with_the_networks_own_beside_it(scene: Path, 
     _, network = read_tum(tmp_path / "refined" / NETWORK_PATH_FILE)
     np.testing.assert_array_equal(network, read_tum(tmp_path / "plain" / "trajectory.tum")[1])
     _, path = read_tum(tmp_path / "refined" / "trajectory.tum")
-    assert len(path) == len(network) and np.array_equal(path[0], network[0])
+    # both start at the origin; the refined path's first orientation is smoothed like every other
+    assert len(path) == len(network) and np.array_equal(path[0, :3, 3], network[0, :3, 3])
+    assert rotation_angle_deg(path[0, :3, :3]) < 0.5 and np.array_equal(network[0], np.eye(4))
 
 
-def test_the_refined_path_written_is_the_aligned_one_with_its_rotation_smoothed(
+def test_the_refined_path_written_is_the_aligned_one_with_its_orientations_smoothed(
         scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
     """The tracker goes on from the poses as aligned, so smoothing changes only what is written and fused: the path
-    of a run with smoothing is the path of a run without it, smoothed afterwards."""
+    of a run with smoothing is the path of a run without it, smoothed afterwards. A window of 1 frame reaches 3:
+    of the 8 frames, frames 0-4 are written while the tracker goes on, the rest at the end."""
     from endoflow.data.trajectory_files import read_tum
     from endoflow.geometry.direct_alignment import tracker_settings
-    from endoflow.geometry.path_smoothing import smooth_path_rotations
+    from endoflow.geometry.path_smoothing import smooth_path_orientations
 
     settings = tracker_settings(params.refine)
-    smoothed = run(scene, model_file, tmp_path / "smoothed", params, "S1", refine=settings)
+    smoothed = run(scene, model_file, tmp_path / "smoothed", params, "S1",
+                   refine=replace(settings, rotation_smoothing=1.0))
     aligned = run(scene, model_file, tmp_path / "aligned", params, "S1", refine=replace(settings, rotation_smoothing=0))
-    assert (smoothed["frames"], smoothed["path"]["rotation_smoothing_frames"]) == (aligned["frames"], 3.0)
-    assert aligned["path"]["rotation_smoothing_frames"] == 0
+    assert smoothed["frames"] == aligned["frames"] == FRAMES
+    assert (smoothed["path"]["rotation_smoothing_frames"], aligned["path"]["rotation_smoothing_frames"]) == (1.0, 0)
     _, path = read_tum(tmp_path / "smoothed" / "trajectory.tum")
     _, as_aligned = read_tum(tmp_path / "aligned" / "trajectory.tum")
-    assert not np.allclose(path, as_aligned, atol=1e-6)
-    np.testing.assert_allclose(path, smooth_path_rotations(as_aligned, 3.0), atol=1e-6)
+    assert not np.allclose(path[:, :3, :3], as_aligned[:, :3, :3], atol=1e-6)
+    np.testing.assert_allclose(path, smooth_path_orientations(as_aligned, 1.0), atol=1e-6)
+    np.testing.assert_array_equal(path[:, :3, 3], as_aligned[:, :3, 3])  # the positions are the tracker's
 
 
 def test_the_black_border_of_a_circular_field_of_view_gets_no_depth(scene: Path, model_file: Path, params: Params,

@@ -2,7 +2,7 @@
 
 Every frame of each test sequence, in order (:mod:`endoflow.data.sequences`), goes through the networks on
 ``eval.device`` under ``eval.precision``; with ``refine.enabled`` the pose network's path is also refined against
-keyframes (:mod:`endoflow.geometry.direct_alignment`), its step rotations smoothed over ``refine.rotation_smoothing``
+keyframes (:mod:`endoflow.geometry.direct_alignment`), its orientations smoothed over ``refine.rotation_smoothing``
 frames (:mod:`endoflow.geometry.path_smoothing`), and scored as the method ``refined``. Depth is scored in the
 paper's and SimCol3D's protocols beside ``constant_depth`` and ``mean_depth_map``, pose in SimCol3D's, EndoSLAM's
 and the motion protocol beside ``constant_velocity``, and the model's scale consistency
@@ -55,7 +55,7 @@ from endoflow.data.shard_format import ShardEntry, has_ground_truth, manifest_lo
 from endoflow.devices import (autocast, images_to_device, resolve_device, to_compute_layout, unit_float_images,
                               use_cpu_threads)
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings, tracker_settings
-from endoflow.geometry.path_smoothing import smooth_path_rotations
+from endoflow.geometry.path_smoothing import smooth_path_orientations
 from endoflow.locations import absolute_location
 from endoflow.models.endoflow_model import load_trained_model
 from endoflow.models.mlflow_model import is_model_uri, local_model_file
@@ -427,8 +427,7 @@ def depth_sequence_scores(seq: SequenceResult, training: TrainingBaselines) -> l
 def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines, rotation_smoothing: float = 0.0
                          ) -> tuple[list[dict], Optional[dict]]:
     """The challenge's, EndoSLAM's and the motion protocols over the longest run of one sequence's posed frames, for
-    the model (its network's and its refined path, whose step rotations are smoothed over that run with
-    ``rotation_smoothing``, :mod:`endoflow.geometry.path_smoothing`) and constant velocity, and the scale
+    the model (its network's and its refined path, :func:`refined_path`) and constant velocity, and the scale
     consistency of the model's paths where the run has GT depth: the sequence's figures, each frame's RTE and ROT,
     and the trajectories."""
     run = longest_posed_run(seq.poses, seq.gaps)
@@ -437,8 +436,7 @@ def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines, rotat
     start, stop = run
     gt_poses = np.stack(seq.poses[start:stop])
     predicted = {"model": np.stack(seq.predicted_relative[start:stop - 1]),
-                 **({"refined": metrics.relative_poses(smooth_path_rotations(np.stack(seq.refined[start:stop]),
-                                                                              rotation_smoothing))}
+                 **({"refined": metrics.relative_poses(refined_path(seq, rotation_smoothing)[start:stop])}
                     if seq.refined else {}),
                  **baseline_relative_poses(training, stop - start - 1)}
     trajectory = {"gt": gt_poses[:, :3, 3], "frames": seq.frames[start:stop]}
@@ -461,6 +459,15 @@ def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines, rotat
             rows += score_rows(seq.name, None, method, "scale",
                                metrics.scale_consistency(gt_poses, predicted[method], ratios))
     return rows, trajectory
+
+
+def refined_path(seq: SequenceResult, rotation_smoothing: float) -> np.ndarray:
+    """``[N, 4, 4]``: the sequence's refined path as `reconstruct` writes one, each stretch the tracker followed
+    without a break (it starts anew after missing frames) with its orientations smoothed over ``rotation_smoothing``
+    frames (:mod:`endoflow.geometry.path_smoothing`)."""
+    bounds = sorted({0, len(seq.refined), *(gap for gap in seq.gaps if 0 < gap < len(seq.refined))})
+    return np.concatenate([smooth_path_orientations(np.stack(seq.refined[a:b]), rotation_smoothing)
+                           for a, b in zip(bounds[:-1], bounds[1:])])
 
 
 def longest_posed_run(poses: list[Optional[np.ndarray]], gaps: Collection[int] = ()) -> Optional[tuple[int, int]]:

@@ -4,8 +4,8 @@ Frames stream through the model in small batches (:func:`frames_per_call`; centr
 preprocessing does, K following, a batch ahead in a thread, :mod:`endoflow.reconstruction.streams`): each frame's
 depth and the pose network's step from the previous frame, chained into camera-to-world poses from
 the identity at the first frame (``T_world_cur = T_world_prev @ inv(T_cur_prev)``), then refined against
-keyframes with the depth (:mod:`endoflow.geometry.direct_alignment`, unless ``refine`` is None) and their rotation
-smoothed over a window of frames (:mod:`endoflow.geometry.path_smoothing`); the depth is fused along the path. The
+keyframes with the depth (:mod:`endoflow.geometry.direct_alignment`, unless ``refine`` is None) and their
+orientations smoothed over a window of frames (:mod:`endoflow.geometry.path_smoothing`); the depth is fused along the path. The
 outputs go into a staged folder that replaces ``out_dir`` whole, only where it is new, empty or an earlier
 reconstruction (:func:`endoflow.io.check_replaceable`). What is written and what it means: docs/reconstruction.md.
 """
@@ -18,7 +18,7 @@ import math
 import shutil
 import sys
 from concurrent.futures import Future
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator, Optional, TypeVar
@@ -33,7 +33,7 @@ from endoflow.devices import (autocast, compute_dtype, images_to_device, resolve
                               unit_float_images)
 from endoflow.errors import DataFormatError
 from endoflow.geometry.direct_alignment import KeyframeTracker, TrackerSettings
-from endoflow.geometry.path_smoothing import StepRotationSmoother
+from endoflow.geometry.path_smoothing import OrientationSmoother
 from endoflow.geometry.pose import chain_step, invert_pose, relative_pose
 from endoflow.io import check_replaceable, marked_output, staged_directory, write_bytes, write_json
 from endoflow.losses.photometric import view_synthesis_error
@@ -166,10 +166,10 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
     valid = input_field_of_view(source, options.frames, region, size)
     path = CameraPath()
     tracker = KeyframeTracker(torch.from_numpy(K), options.refine) if options.refine is not None else None
-    # the tracker's path goes on from the poses as aligned; the path written is their rotation smoothed, which holds
-    # each frame back until the steps its window reaches have been aligned
-    chains = PathEnds()
-    smoother: StepRotationSmoother[TrackedFrame] = StepRotationSmoother(
+    # the tracker's path goes on from the poses as aligned; the path written has their orientations smoothed, which
+    # holds each frame back until the frames its window reaches have been aligned
+    network_chain, aligned_chain = Chain(), Chain()
+    smoother: OrientationSmoother[TrackedFrame] = OrientationSmoother(
         options.refine.rotation_smoothing if options.refine is not None else 0.0)
     explained = PathPhotometry(K, record.baselines.mean_relative_pose, options.frames.stride, options.scale, device)
     progress = Progress(source_frame_count(source, options.frames), "frames")
@@ -189,7 +189,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             def settle(tracked: TrackedFrame, pose: np.ndarray) -> None:
                 """Everything that follows from a frame's pose on the path written, in frame order."""
                 nonlocal shown, volume
-                frame, rgb, depth = tracked.frame, tracked.rgb, tracked.depth
+                frame, rgb, depth = tracked.frame, tracked.frame.rgb, tracked.depth
                 path.add(frame, pose, tracked.network_pose, depth, size)
                 explained.add(rgb, depth, path)
                 shown = shown or preview_range(depth, record.params.model, options.scale)
@@ -210,13 +210,15 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                                                [frame.index for frame, _ in batch])
                 for (frame, rgb), (depth, T_cur_prev) in zip(batch, predicted):
                     depth = np.where(valid, depth, np.float32(0))  # outside the field of view: unknown
-                    network_pose = chains.network.step(T_cur_prev, options.scale)
-                    aligned = network_pose if tracker is None else tracker.track(
-                        unit_float_images(torch.from_numpy(rgb).to(device).permute(2, 0, 1)),
-                        torch.from_numpy(depth)[None].to(device),
-                        torch.from_numpy(chains.aligned.next_start(T_cur_prev, options.scale))).cpu().numpy()
-                    chains.aligned.end = aligned
-                    for tracked, pose in smoother.push(aligned, TrackedFrame(frame, rgb, depth, network_pose)):
+                    network_pose = network_chain.step(T_cur_prev, options.scale)
+                    aligned = network_pose
+                    if tracker is not None:
+                        aligned_chain.end = aligned = tracker.track(
+                            unit_float_images(torch.from_numpy(rgb).to(device).permute(2, 0, 1)),
+                            torch.from_numpy(depth)[None].to(device),
+                            torch.from_numpy(aligned_chain.next_start(T_cur_prev, options.scale))).cpu().numpy()
+                    held = TrackedFrame(replace(frame, rgb=rgb), depth, network_pose)
+                    for tracked, pose in smoother.push(aligned, held):
                         settle(tracked, pose)
                 previous = images[-1:]
             for tracked, pose in smoother.flush():
@@ -513,7 +515,9 @@ def fusion_summary(volume: TSDFVolume, options: ReconstructOptions) -> dict:
 
 @dataclass
 class Chain:
-    """A path's newest pose, ``end`` (None before its first frame), from which the next frame's step goes on."""
+    """A path's newest pose, ``end`` (None before its first frame), from which the next frame's step goes on: the
+    pose network's own chain, and the path as the tracker aligned it, whose next frame starts one network step on
+    (the path written, smoothed, ends frames behind them)."""
 
     end: Optional[np.ndarray] = None
 
@@ -532,21 +536,12 @@ class Chain:
         return self.end
 
 
-@dataclass
-class PathEnds:
-    """Where the next frame starts from: the pose network's own chain, and the path as the tracker aligned it (or,
-    unrefined, the network's chain again); the path written, smoothed, ends frames behind them."""
-
-    network: Chain = field(default_factory=Chain)
-    aligned: Chain = field(default_factory=Chain)
-
-
 @dataclass(frozen=True)
 class TrackedFrame:
-    """A frame waiting for its pose on the path written: what follows from it once it has one."""
+    """A frame waiting for its pose on the path written: what follows from it once it has one. Its colour is the
+    model's input (``size`` x ``size``): the native frame, which nothing after the model reads, is not held."""
 
     frame: InputFrame
-    rgb: np.ndarray
     depth: np.ndarray
     network_pose: np.ndarray
 
