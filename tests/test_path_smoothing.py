@@ -107,7 +107,7 @@ def test_a_long_stream_holds_back_no_more_than_its_reach():
     rng = np.random.default_rng(4)
     smoother = OrientationSmoother(3.0)
     pushed = returned = 0
-    for T in jittered(turning_path(2000, rng), rng):
+    for T in jittered(turning_path(600, rng), rng):
         pushed += 1
         returned += len(smoother.push(T, None))
         assert pushed - returned == min(pushed, smoother.reach)
