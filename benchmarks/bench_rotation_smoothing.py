@@ -1,5 +1,5 @@
 """How much of the refined path's rotation error is frame-to-frame jitter: a test set's refined path (what `evaluate`
-scores as ``refined``) with its step rotations smoothed at several widths, beside constant velocity and the truth
+scores as ``refined``) with its orientations smoothed at several widths, beside constant velocity and the truth
 smoothed alike (what smoothing costs a path that is right).
 
     python benchmarks/bench_rotation_smoothing.py [--params params.yaml] [--test-set simcol_12 | --split val]
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from endoflow.config import EvalSetConfig, Params, load_params
+from endoflow.config import ConfigError, EvalSetConfig, Params, load_params
 from endoflow.data.loader import ordered_loader
 from endoflow.data.shard_format import shard_entries
 from endoflow.devices import resolve_device, to_compute_layout, use_cpu_threads
@@ -54,8 +54,8 @@ def tracked_sequences(params: Params, test_set: EvalSetConfig, prior: float) -> 
 
 
 def figures(runs: list, relative_of) -> tuple[float, float]:
-    """Mean over sequences of the challenge's RTE and ROT of the relative poses ``relative_of(seq, gt)`` over each
-    sequence's longest posed run (``gt`` its GT poses)."""
+    """Mean over sequences of the challenge's RTE and ROT of the relative poses ``relative_of(seq, start, stop, gt)``
+    over each sequence's longest posed run ``[start, stop)`` (``gt`` its GT poses)."""
     scores = []
     for seq, (start, stop) in runs:
         gt = np.stack(seq.poses[start:stop])
@@ -74,7 +74,12 @@ def main() -> None:
                         help="refine.rotation_prior values to track with (default: the params')")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
-    params = load_params(args.params)
+    if not all(0 <= value < float("inf") for value in [*args.sigmas, *(args.priors or [])]):
+        parser.error(f"--sigmas {args.sigmas} and --priors {args.priors}: each must be finite and >= 0")
+    try:
+        params = load_params(args.params)
+    except ConfigError as error:
+        parser.error(str(error))
     if args.split is not None:
         test_set, name = EvalSetConfig(dataset="simcol", split=args.split), f"SimCol3D {args.split}"
     elif args.test_set in params.eval.test_sets:

@@ -82,7 +82,7 @@ class SequenceResult:
     # per frame (as ``frames``), the paper protocol's median scaling of the model's depth; None without GT depth
     depth_ratios: list[Optional[float]] = field(default_factory=list)
     # per frame, T_world_cam of the refined path as the tracker aligned it (endoflow.geometry.direct_alignment),
-    # from an identity first pose; scored with its rotation smoothed
+    # from an identity first pose; scored with its orientations smoothed (refined_path)
     refined: list[np.ndarray] = field(default_factory=list)
 
 

@@ -370,8 +370,8 @@ def _linearise(level: _Level, sample: _Sample, gradients: torch.Tensor, brightne
 @dataclass(frozen=True)
 class TrackerSettings:
     """The alignment of each frame, and when a frame becomes the keyframe (``refine.keyframe_every``,
-    ``refine.min_overlap``); the smoothing of the refined path's rotation (``refine.rotation_smoothing``), which the
-    path's users apply to what the tracker returns (:mod:`endoflow.geometry.path_smoothing`): the tracker itself
+    ``refine.min_overlap``); the smoothing of the refined path's orientations (``refine.rotation_smoothing``), which
+    the path's users apply to what the tracker returns (:mod:`endoflow.geometry.path_smoothing`): the tracker itself
     goes on from the poses as aligned."""
 
     alignment: AlignmentSettings = AlignmentSettings()

@@ -54,7 +54,8 @@ class OrientationSmoother(Generic[Payload]):
     def __init__(self, sigma_frames: float) -> None:
         self.reach = smoothing_reach(sigma_frames)
         self.sigma_frames = sigma_frames
-        self._weights = np.exp(-0.5 * (np.arange(-self.reach, self.reach + 1) / max(sigma_frames, 1e-300)) ** 2)
+        offsets = np.arange(-self.reach, self.reach + 1)
+        self._weights = np.exp(-0.5 * (offsets / sigma_frames) ** 2) if self.reach else np.ones(1)
         self._window: deque[np.ndarray] = deque()  # the poses of frames _first, _first + 1, ...
         self._first = 0
         self._waiting: deque[Payload] = deque()  # the payloads of frames _next, _next + 1, ...
@@ -87,7 +88,7 @@ class OrientationSmoother(Generic[Payload]):
         window = np.stack([self._window[j - self._first] for j in range(lo, hi + 1)])
         pose = self._window[i - self._first].copy()
         offsets = np.arange(lo, hi + 1) - i
-        pose[:3, :3] = nearest_rotation(pose[:3, :3] @ fitted_correction(
+        pose[:3, :3] = nearest_rotation(pose[:3, :3] @ _fitted_correction(
             pose[:3, :3], window[:, :3, :3], offsets, self._weights[offsets + self.reach]))
         self._next += 1
         while self._first < self._next - self.reach:
@@ -96,7 +97,7 @@ class OrientationSmoother(Generic[Payload]):
         return self._waiting.popleft(), pose
 
 
-def fitted_correction(R: np.ndarray, rotations: np.ndarray, offsets: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def _fitted_correction(R: np.ndarray, rotations: np.ndarray, offsets: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """``exp(a)`` ``[3, 3]``: ``a`` the intercept of the weighted least-squares line through the axis-angles of
     ``R^T rotations`` (``[m, 3, 3]``) against the frame ``offsets`` ``[m]`` (``R`` at offset 0); the weighted mean
     where the offsets cannot fix a slope (a single frame)."""

@@ -5,9 +5,10 @@ preprocessing does, K following, a batch ahead in a thread, :mod:`endoflow.recon
 depth and the pose network's step from the previous frame, chained into camera-to-world poses from
 the identity at the first frame (``T_world_cur = T_world_prev @ inv(T_cur_prev)``), then refined against
 keyframes with the depth (:mod:`endoflow.geometry.direct_alignment`, unless ``refine`` is None) and their
-orientations smoothed over a window of frames (:mod:`endoflow.geometry.path_smoothing`); the depth is fused along the path. The
-outputs go into a staged folder that replaces ``out_dir`` whole, only where it is new, empty or an earlier
-reconstruction (:func:`endoflow.io.check_replaceable`). What is written and what it means: docs/reconstruction.md.
+orientations smoothed over a window of frames (:mod:`endoflow.geometry.path_smoothing`); the depth is fused along
+the path. The outputs go into a staged folder that replaces ``out_dir`` whole, only where it is new, empty or an
+earlier reconstruction (:func:`endoflow.io.check_replaceable`). What is written and what it means:
+docs/reconstruction.md.
 """
 
 from __future__ import annotations
