@@ -18,15 +18,12 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from endoflow.config import ConfigError, EvalSetConfig, Params, load_params
-from endoflow.data.loader import ordered_loader
-from endoflow.data.shard_format import shard_entries
 from endoflow.devices import resolve_device, to_compute_layout, use_cpu_threads
 from endoflow.evaluation import evaluate, metrics
 from endoflow.evaluation.baselines import baseline_relative_poses
@@ -45,9 +42,7 @@ def tracked_sequences(params: Params, test_set: EvalSetConfig, prior: float) -> 
     with tempfile.TemporaryDirectory() as scratch:
         evaluator = evaluate.SequenceEvaluator(model, record.baselines, Path(scratch), device, params.eval.precision,
                                                0, refine)
-        feed = evaluate.EvaluationFeed(urls, shard_entries(urls), partial(evaluate.belongs_to, test_set=test_set),
-                                       params.eval.max_frames_per_sequence, params.eval.batch_size, record.baselines)
-        evaluate.predict_then_record(evaluator, ordered_loader(feed, 0), False)
+        evaluate.record_test_set(evaluator, params, test_set, urls, 0, False)
     runs = [(seq, run) for seq in evaluator.sequences
             if (run := evaluate.longest_posed_run(seq.poses, seq.gaps)) is not None]
     return runs, record.baselines

@@ -389,9 +389,9 @@ def score_sequences(evaluator: SequenceEvaluator) -> tuple[dict, pd.DataFrame, p
     """Aggregate metrics, per-frame table, per-sequence table and trajectories from a finished evaluator."""
     rows = list(evaluator.scores)
     trajectories: dict = {}
+    smoothing = evaluator.refine.rotation_smoothing if evaluator.refine is not None else 0.0
     for seq in evaluator.sequences:
         rows += depth_sequence_scores(seq, evaluator.baselines)
-        smoothing = evaluator.refine.rotation_smoothing if evaluator.refine is not None else 0.0
         pose_rows, trajectory = pose_sequence_scores(seq, evaluator.baselines, smoothing)
         rows += pose_rows
         if trajectory is not None:
@@ -512,9 +512,7 @@ def evaluate_test_set(params: Params, name: str, urls: list[str], model_path: st
         refine = tracker_settings(params.refine) if params.refine.enabled else None
         evaluator = SequenceEvaluator(model, record.baselines, predictions_dir, device, params.eval.precision,
                                       params.eval.depth_examples, refine, scoring if overlapped else None)
-        feed = EvaluationFeed(urls, shard_entries(urls), partial(belongs_to, test_set=test_set),
-                              params.eval.max_frames_per_sequence, params.eval.batch_size, record.baselines)
-        predict_then_record(evaluator, ordered_loader(feed, params.train.loader_workers), overlapped)
+        record_test_set(evaluator, params, test_set, urls, params.train.loader_workers, overlapped)
         if not evaluator.sequences:
             raise ValueError(f"test set {name}: no frames found in the selected shards")
         elapsed = time.perf_counter() - started
@@ -534,6 +532,15 @@ def evaluate_test_set(params: Params, name: str, urls: list[str], model_path: st
     write_plots(name, out_plots, evaluator, frames_table, trajectories)
     write_json(out_metrics, dvc_metrics(name, result))
     return result
+
+
+def record_test_set(evaluator: SequenceEvaluator, params: Params, test_set: EvalSetConfig, urls: list[str],
+                    loader_workers: int, overlapped: bool) -> None:
+    """Every frame of ``test_set`` in its shards ``urls``, read by ``loader_workers`` loader processes (0: this
+    process), through ``evaluator`` (:func:`predict_then_record`)."""
+    feed = EvaluationFeed(urls, shard_entries(urls), partial(belongs_to, test_set=test_set),
+                          params.eval.max_frames_per_sequence, params.eval.batch_size, evaluator.baselines)
+    predict_then_record(evaluator, ordered_loader(feed, loader_workers), overlapped)
 
 
 def predict_then_record(evaluator: SequenceEvaluator, batches: Iterable[FrameBatch], overlapped: bool) -> None:
