@@ -9,7 +9,7 @@ export DVC_NO_ANALYTICS := 1
 export RAY_USAGE_STATS_ENABLED := 0
 export MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR := false
 
-.PHONY: install repro test dvc-deps clean-venv
+.PHONY: install repro test dvc-deps dvc-plots clean-venv
 
 install: $(STAMP)
 
@@ -23,8 +23,8 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 # Stage commands call `python`: the venv's must come first on PATH. The code deps are brought up to date first, so
-# a new import reruns the stages that now run it.
-repro: $(STAMP) dvc-deps
+# a new import reruns the stages that now run it, and the charts, so that every test set of params.yaml has its own.
+repro: $(STAMP) dvc-deps dvc-plots
 	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/dvc repro
 
 # Three processes (pytest-xdist), a test module each at a time: a module's fixtures (a whole `dvc repro`) run once.
@@ -39,6 +39,10 @@ test: $(STAMP)
 # dvc.yaml's code deps, written from what each stage imports (tools/dvc_deps.py).
 dvc-deps: $(STAMP)
 	$(BIN)/python -m tools.dvc_deps
+
+# dvc.yaml's charts, written for the test sets and reconstructed sequences of params.yaml (tools/dvc_plots.py).
+dvc-plots: $(STAMP)
+	$(BIN)/python -m tools.dvc_plots
 
 clean-venv:
 	rm -rf $(VENV)

@@ -40,11 +40,17 @@ def run(args: list[str], cwd: Path, env: dict[str, str], timeout: int = 900) -> 
 
 
 def clone_project(clone: Path, params_text: str, env: dict[str, str]) -> None:
-    """Copy the project to ``clone`` with ``params_text`` as its params.yaml, committed in a new git repository."""
+    """Copy the project to ``clone`` with ``params_text`` as its params.yaml and dvc.yaml's charts written for it (as
+    `make repro` writes them), committed in a new git repository."""
+    from endoflow.config import load_params
+    from tools.dvc_plots import rewrite_plots
+
     for name in project_files():
         (clone / name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(PROJECT / name, clone / name)
     (clone / "params.yaml").write_text(params_text)
+    dvc_yaml = clone / "dvc.yaml"
+    dvc_yaml.write_text(rewrite_plots(dvc_yaml.read_text(), load_params(clone / "params.yaml")))
     run(["git", "init", "-q"], clone, env)
     run(["git", "add", "-A"], clone, env)
     run(["git", "commit", "-q", "-m", "params"], clone, env)

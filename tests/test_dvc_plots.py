@@ -1,5 +1,6 @@
 """dvc.yaml's plots: every chart names its x and its y columns, the model beside its baselines, for every test set
-and reconstructed sequence of every preset (DVC cannot loop over them in its top-level plots); stage plots are
+and reconstructed sequence of the params and none other (DVC cannot loop over them in its top-level plots:
+`make dvc-plots` writes them from params.yaml, for the default params and for every preset alike); stage plots are
 pictures only, so that `dvc plots show` never charts a default column; the HTML page DVC writes says why charts
 are missing offline and shows the training's figures first, then the evaluation's, then the reconstruction's."""
 
@@ -16,12 +17,14 @@ from endoflow.config import load_params, params_to_dict
 from endoflow.evaluation.evaluate import DEPTH_METHODS, POSE_METHODS
 from endoflow.reconstruction.measure import PATH_ROWS
 from tests.project_clone import PROJECT
+from tools.dvc_plots import COMMAND, rewrite_plots
 
 PARAMS_FILES = [PROJECT / "params.yaml", *sorted((PROJECT / "presets").glob("*.yaml"))]
 
 
-def top_level_plots() -> dict[str, dict]:
-    dvc = yaml.safe_load((PROJECT / "dvc.yaml").read_text())
+def top_level_plots(params_file: Path = PROJECT / "params.yaml") -> dict[str, dict]:
+    """dvc.yaml's charts as `make dvc-plots` writes them for ``params_file``."""
+    dvc = yaml.safe_load(rewrite_plots((PROJECT / "dvc.yaml").read_text(), load_params(params_file)))
     return {name: props for entry in dvc["plots"] for name, props in entry.items()}
 
 
@@ -38,7 +41,7 @@ def resolved(text: str, params_file: Path) -> str:
 def charted_columns(params_file: Path) -> dict[str, set[str]]:
     """``{file: columns}`` over every top-level chart, paths resolved with ``params_file``."""
     columns: dict[str, set[str]] = {}
-    for props in top_level_plots().values():
+    for props in top_level_plots(params_file).values():
         assert set(props) >= {"x", "y"}, props
         for path, names in props["y"].items():
             columns.setdefault(resolved(path, params_file), set()).update(names)
@@ -60,6 +63,31 @@ def test_every_reconstructed_sequence_is_charted_beside_constant_velocity(params
     columns = charted_columns(params_file)
     for name in params.reconstruct.sequences:
         assert columns.get(f"{params.reconstruct.out}/{name}/path_errors.csv") == set(PATH_ROWS), name
+
+
+def test_the_committed_charts_are_those_of_the_committed_params():
+    text = (PROJECT / "dvc.yaml").read_text()
+    assert rewrite_plots(text, load_params(PROJECT / "params.yaml")) == text, (
+        f"dvc.yaml's charts are not params.yaml's test sets and sequences: run `{COMMAND}` (python -m tools.dvc_plots)")
+
+
+def test_a_test_set_or_sequence_left_out_of_the_params_has_no_chart():
+    """A chart of a file the pipeline no longer writes is an error in `dvc plots show`."""
+    params = load_params(PROJECT / "params.yaml")
+    params.eval.test_sets = {"simcol_3": params.eval.test_sets["simcol_3"]}
+    params.reconstruct.sequences = {"simcol_O1": params.reconstruct.sequences["simcol_O1"]}
+    charted = yaml.safe_load(rewrite_plots((PROJECT / "dvc.yaml").read_text(), params))["plots"]
+    tables = {path for entry in charted for props in entry.values() for path in props["y"]}
+    assert tables == {"${train.plots}/history.csv", "${eval.predictions}/simcol_3/per_frame.csv",
+                      "${reconstruct.out}/simcol_O1/path_errors.csv"}
+
+
+def test_rewriting_keeps_everything_above_the_charts_and_refuses_a_file_without_them():
+    text = (PROJECT / "dvc.yaml").read_text()
+    above = text[:text.index("\nplots:\n") + 1]
+    assert rewrite_plots(text, load_params(PROJECT / "params.yaml")).startswith(above)
+    with pytest.raises(ValueError, match="no top-level block starting with 'plots:'"):
+        rewrite_plots(above, load_params(PROJECT / "params.yaml"))
 
 
 def test_training_curves_chart_loss_and_validation_error_per_epoch():
