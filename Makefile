@@ -40,8 +40,9 @@ test: $(STAMP)
 dvc-deps: $(STAMP)
 	$(BIN)/python -m tools.dvc_deps
 
-# dvc.yaml's charts, written for the test sets and reconstructed sequences of params.yaml (tools/dvc_plots.py).
-dvc-plots: $(STAMP)
+# dvc.yaml's charts, written for the test sets and reconstructed sequences of params.yaml (tools/dvc_plots.py); after
+# dvc-deps, which rewrites the same file.
+dvc-plots: $(STAMP) dvc-deps
 	$(BIN)/python -m tools.dvc_plots
 
 clean-venv:

@@ -42,6 +42,7 @@ def run(args: list[str], cwd: Path, env: dict[str, str], timeout: int = 900) -> 
 def clone_project(clone: Path, params_text: str, env: dict[str, str]) -> None:
     """Copy the project to ``clone`` with ``params_text`` as its params.yaml and dvc.yaml's charts written for it (as
     `make repro` writes them), committed in a new git repository."""
+    # imported here: the modules that want only PROJECT (the docs' link check) need not load torch through them
     from endoflow.config import load_params
     from tools.dvc_plots import rewrite_plots
 

@@ -74,7 +74,7 @@ def test_presets_state_only_their_differences(path):
     raw = yaml.safe_load(path.read_text())
     params, defaults_tree = load_params(path), Params()
     for section, field in NAMED_ENTRIES:
-        if field in raw.get(section, {}):
+        if field in (raw.get(section) or {}):
             given = getattr(getattr(params, section), field)
             assert given != getattr(getattr(defaults_tree, section), field), (
                 f"{path.name}: {section}.{field} repeats the default")

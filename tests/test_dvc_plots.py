@@ -6,6 +6,7 @@ are missing offline and shows the training's figures first, then the evaluation'
 
 from __future__ import annotations
 
+import difflib
 import json
 import re
 from pathlib import Path
@@ -67,8 +68,10 @@ def test_every_reconstructed_sequence_is_charted_beside_constant_velocity(params
 
 def test_the_committed_charts_are_those_of_the_committed_params():
     text = (PROJECT / "dvc.yaml").read_text()
-    assert rewrite_plots(text, load_params(PROJECT / "params.yaml")) == text, (
-        f"dvc.yaml's charts are not params.yaml's test sets and sequences: run `{COMMAND}` (python -m tools.dvc_plots)")
+    written = rewrite_plots(text, load_params(PROJECT / "params.yaml"))
+    change = list(difflib.unified_diff(text.splitlines(), written.splitlines(), "dvc.yaml", "params", lineterm=""))
+    assert written == text, (f"dvc.yaml's charts are not params.yaml's test sets and sequences: run `{COMMAND}` "
+                             f"(python -m tools.dvc_plots)\n" + "\n".join(change[:40]))
 
 
 def test_a_test_set_or_sequence_left_out_of_the_params_has_no_chart():
@@ -82,12 +85,15 @@ def test_a_test_set_or_sequence_left_out_of_the_params_has_no_chart():
                       "${reconstruct.out}/simcol_O1/path_errors.csv"}
 
 
-def test_rewriting_keeps_everything_above_the_charts_and_refuses_a_file_without_them():
+def test_rewriting_keeps_everything_above_the_charts_and_refuses_what_it_would_lose():
     text = (PROJECT / "dvc.yaml").read_text()
     above = text[:text.index("\nplots:\n") + 1]
     assert rewrite_plots(text, load_params(PROJECT / "params.yaml")).startswith(above)
     with pytest.raises(ValueError, match="no top-level block starting with 'plots:'"):
         rewrite_plots(above, load_params(PROJECT / "params.yaml"))
+    with pytest.raises(ValueError, match="must be the file's last; 'artifacts:' follows it"):
+        rewrite_plots(text + "# the model\nartifacts:\n  endoflow:\n    path: models/endoflow.pt\n",
+                      load_params(PROJECT / "params.yaml"))
 
 
 def test_training_curves_chart_loss_and_validation_error_per_epoch():

@@ -10,6 +10,7 @@ one removed leaves no chart of a file the pipeline no longer writes. Everything 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 from endoflow.config import Params, load_params
@@ -21,6 +22,7 @@ PROJECT = Path(__file__).resolve().parents[1]
 COMMAND = "make dvc-plots"  # what a failing check tells the user to run
 BLOCK_START = "plots:\n"
 TRAINING_COLUMNS = ("train_loss", "val_abs_rel", "val_rmse", "val_photometric")
+WIDTH = 118  # the longest line written; a flow list longer than that continues under its first column
 
 
 def charts_block(params: Params) -> str:
@@ -36,15 +38,16 @@ def charts_block(params: Params) -> str:
         lines += chart(f"{name} pose error per frame", "index", table, [f"rte_{m}" for m in POSE_METHODS],
                        y_label="RTE (cm)")
     for name in params.reconstruct.sequences:
-        lines += chart(f"{name} camera path error", "frame", f"${{reconstruct.out}}/{name}/path_errors.csv", PATH_ROWS,
+        table = f"${{reconstruct.out}}/{name}/path_errors.csv"
+        lines += chart(f"{name} camera path error", "frame", table, PATH_ROWS,
                        y_label="position error after alignment (cm)")
     return "\n".join(lines) + "\n"
 
 
-def chart(name: str, x: str, table: str, columns: list[str] | tuple[str, ...], title: str | None = None,
+def chart(name: str, x: str, table: str, columns: Sequence[str], title: str | None = None,
           y_label: str | None = None) -> list[str]:
     """One top-level chart: ``columns`` of ``table`` against ``x``."""
-    lines = [f"  - {name}:", f"      x: {x}", "      y:", f"        {table}: [{', '.join(columns)}]"]
+    lines = [f"  - {name}:", f"      x: {x}", "      y:", *wrapped(f"        {table}: [", columns)]
     if title is not None:
         lines.append(f'      title: "{title}"')
     if y_label is not None:
@@ -52,11 +55,32 @@ def chart(name: str, x: str, table: str, columns: list[str] | tuple[str, ...], t
     return lines
 
 
+def wrapped(head: str, columns: Sequence[str]) -> list[str]:
+    """``head`` followed by the flow list of ``columns``, in lines of at most :data:`WIDTH` characters."""
+    lines, line = [], head
+    for i, column in enumerate(columns):
+        item = column + ("]" if i == len(columns) - 1 else ",")
+        if line != head and not line.endswith(" ") and len(line) + 1 + len(item) > WIDTH:
+            lines.append(line)
+            line = " " * len(head) + item
+        else:
+            line += ("" if line == head else " ") + item
+    return [*lines, line]
+
+
 def rewrite_plots(text: str, params: Params) -> str:
-    """``text`` (dvc.yaml) with its top-level ``plots:`` block, the file's last, written for ``params``."""
+    """``text`` (dvc.yaml) with its top-level ``plots:`` block written for ``params``.
+
+    Raises:
+        ValueError: dvc.yaml has no such block, or another top-level key follows it (it would be lost).
+    """
     start = text.find(f"\n{BLOCK_START}")
     if start < 0:
         raise ValueError(f"dvc.yaml has no top-level block starting with {BLOCK_START.strip()!r}")
+    after = text[start + 1 + len(BLOCK_START):].splitlines()
+    following = [line for line in after if line[:1] not in ("", " ", "#")]
+    if following:
+        raise ValueError(f"dvc.yaml: the top-level plots block must be the file's last; {following[0]!r} follows it")
     return text[:start + 1] + charts_block(params)
 
 
