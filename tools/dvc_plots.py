@@ -87,7 +87,10 @@ def rewrite_plots(text: str, params: Params) -> str:
 def main() -> None:
     dvc_yaml = PROJECT / "dvc.yaml"
     text = dvc_yaml.read_text()
-    new = rewrite_plots(text, load_params(PROJECT / "params.yaml"))
+    try:
+        new = rewrite_plots(text, load_params(PROJECT / "params.yaml"))
+    except ValueError as exc:  # bad params (ConfigError) or a dvc.yaml it cannot rewrite: the message names the file
+        raise SystemExit(f"make dvc-plots: {exc}") from None
     if new == text:
         print("dvc.yaml: the charts are those of params.yaml's test sets and sequences already")
         return
