@@ -57,15 +57,14 @@ def chart(name: str, x: str, table: str, columns: Sequence[str], title: str | No
 
 def wrapped(head: str, columns: Sequence[str]) -> list[str]:
     """``head`` followed by the flow list of ``columns``, in lines of at most :data:`WIDTH` characters."""
-    lines, line = [], head
-    for i, column in enumerate(columns):
-        item = column + ("]" if i == len(columns) - 1 else ",")
-        if line != head and not line.endswith(" ") and len(line) + 1 + len(item) > WIDTH:
-            lines.append(line)
-            line = " " * len(head) + item
+    items = [f"{column}," for column in columns[:-1]] + [f"{columns[-1]}]"]
+    lines = [head + items[0]]
+    for item in items[1:]:
+        if len(lines[-1]) + 1 + len(item) > WIDTH:
+            lines.append(" " * len(head) + item)
         else:
-            line += ("" if line == head else " ") + item
-    return [*lines, line]
+            lines[-1] += " " + item
+    return lines
 
 
 def rewrite_plots(text: str, params: Params) -> str:
