@@ -575,6 +575,8 @@ class RefineConfig(Section):
 
     enabled: bool = setting(True, "refine the path (false: the pose network's chain as it is)")
     levels: Count = setting(3, "image pyramid levels, coarse to fine")
+    max_size: Optional[Count] = setting(None, "the finest level's longer side at most this: larger frames are "
+                                              "halved until they fit; null: full resolution", unit="px")
     iterations: Count = setting(12, "Gauss-Newton steps per level at most")
     huber: Number = setting(0.04, "residual beyond which a pixel counts less (intensity in [0, 1])", gt=0)
     # 0.91 (an inverse-square fall-off through display gamma 2.2) is right with exact depth; with the model's depth

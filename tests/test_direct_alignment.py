@@ -93,6 +93,30 @@ def test_trying_several_dampings_at_once_as_a_gpu_does_takes_the_step_one_at_a_t
     assert three.cost_end == pytest.approx(one.cost_end, rel=1e-5) and three.valid_share == one.valid_share
 
 
+def test_no_step_shorter_than_the_floor_is_tried_which_saves_evaluations_and_not_accuracy(
+        rendered: dict, monkeypatch: pytest.MonkeyPatch):
+    truth = relative_pose(rendered["poses"][3], rendered["poses"][0])
+    nudge = pose_vec_to_matrix(torch.tensor([0.004, -0.003, 0.002, 0.08, -0.06, 0.08], dtype=torch.float64))
+    tried = []  # the largest component of each pose step tried
+    original = direct_alignment.pose_vec_to_matrix
+    monkeypatch.setattr(direct_alignment, "pose_vec_to_matrix",
+                        lambda step: tried.append(float(step.abs().max())) or original(step))
+
+    def aligned(floor: float) -> tuple[np.ndarray, int]:
+        monkeypatch.setattr(direct_alignment, "MIN_STEP", floor)
+        tried.clear()
+        result = align_to_keyframe(rendered["rgb"][0], rendered["depth"][0], rendered["rgb"][3], rendered["K"],
+                                   nudge @ torch.from_numpy(truth), EXACT)
+        assert min(tried) >= floor
+        return result.T_frame_key.numpy(), len(tried)
+
+    (floored, evaluations), (unfloored, every) = aligned(direct_alignment.MIN_STEP), aligned(0.0)
+    assert min(tried) < 1e-7  # without the floor, steps shrink far below it before the damping gives up
+    assert evaluations < 0.8 * every
+    rotation, translation = errors(floored, unfloored)
+    assert rotation < 1e-3 and translation < 1e-4  # degrees, cm: a hundredth of the error against the truth
+
+
 def test_a_strong_rotation_prior_keeps_the_start_rotation_and_leaves_the_translation_to_the_frames(rendered: dict):
     truth = relative_pose(rendered["poses"][3], rendered["poses"][0])
     turned = pose_vec_to_matrix(torch.tensor([0.003, -0.002, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)).numpy()
@@ -138,13 +162,32 @@ def test_the_rotation_priors_gauss_newton_terms_are_the_derivatives_of_its_cost_
 
 
 def test_the_tracker_takes_every_refine_setting_from_the_params():
-    cfg = RefineConfig(levels=2, iterations=5, huber=0.03, light_falloff=0.5, rotation_prior=0.3, keyframe_every=4,
+    cfg = RefineConfig(levels=2, max_size=128, iterations=5, huber=0.03, light_falloff=0.5, rotation_prior=0.3, keyframe_every=4,
                        min_overlap=0.4, rotation_smoothing=1.5)
     settings = tracker_settings(cfg)
     alignment = settings.alignment
-    assert (alignment.levels, alignment.iterations, alignment.huber, alignment.light_falloff,
-            alignment.rotation_prior) == (2, 5, 0.03, 0.5, 0.3)
+    assert (alignment.levels, alignment.max_size, alignment.iterations, alignment.huber, alignment.light_falloff,
+            alignment.rotation_prior) == (2, 128, 5, 0.03, 0.5, 0.3)
     assert (settings.keyframe_every, settings.min_overlap, settings.rotation_smoothing) == (4, 0.4, 1.5)
+
+
+@pytest.mark.parametrize("size, max_size, halvings", [
+    ((480, 480), None, 0), ((480, 480), 480, 0), ((480, 480), 479, 1), ((480, 480), 240, 1), ((480, 480), 239, 2),
+    ((1080, 1350), 256, 3), ((64, 64), 256, 0), ((32, 480), 64, 3),
+    ((16, 480), 64, 2)])  # 4 px high, 120 wide: the shorter side is not halved below 4 px
+def test_a_frame_is_halved_until_its_longer_side_fits_the_finest_level(size: tuple, max_size, halvings: int):
+    assert direct_alignment.halvings_to_fit(*size, max_size) == halvings
+
+
+def test_a_capped_pyramid_is_the_full_pyramids_coarser_levels(rendered: dict):
+    arguments = (rendered["rgb"][0].float(), rendered["depth"][0].float(), rendered["rgb"][3].float(),
+                 rendered["K"].float())
+    full = direct_alignment._pyramid(*arguments, levels=3)
+    capped = direct_alignment._pyramid(*arguments, levels=2, max_size=SIZE // 2)
+    assert len(capped) == 2
+    for ours, theirs in zip(capped, full[1:]):
+        for field in ("key_rgb", "points", "usable", "frame", "gradients", "K"):
+            assert torch.equal(getattr(ours, field), getattr(theirs, field)), field
 
 
 def test_a_change_of_brightness_is_taken_up_by_the_gain_and_offset(rendered: dict):
