@@ -58,16 +58,15 @@ def render_scene(work: Path, frames: int, threads: int) -> Path:
 
 def run_worker(args: argparse.Namespace) -> dict:
     """One call at one ``max_size``: its rate, and the errors of the refined and the network's paths."""
-    import torch
-
     from endoflow.config import Params
     from endoflow.data.trajectory_files import read_tum
+    from endoflow.devices import use_cpu_threads
     from endoflow.geometry.direct_alignment import tracker_settings
     from endoflow.reconstruction.frames import FrameRange, open_frames
     from endoflow.reconstruction.measure import path_errors
     from endoflow.reconstruction.reconstruct import NETWORK_PATH_FILE, ReconstructOptions, reconstruct
 
-    torch.set_num_threads(args.threads)
+    use_cpu_threads(args.threads)
     scene, max_size, out = Path(args.worker[0]), int(args.worker[1]), Path(args.worker[2])
     params = Params()
     source = open_frames(scene, "S1", params)
@@ -82,7 +81,7 @@ def run_worker(args: argparse.Namespace) -> dict:
     started = time.perf_counter()
     summary = call(FrameRange(), out / "timed")
     seconds = time.perf_counter() - started
-    truth = [source.sequence.frame(index).T_world_cam for index in range(len(source.sequence))]
+    truth = source.sequence.poses
     errors = {}
     for name, file in (("refined", "trajectory.tum"), ("network", NETWORK_PATH_FILE)):
         measured = path_errors(truth, read_tum(out / "timed" / file)[1], with_scale=True)
@@ -122,7 +121,7 @@ def main() -> None:
     first = statistics.median(run["frames_per_s"] for run in runs[args.max_sizes[0]])
     for max_size in args.max_sizes:
         rate = statistics.median(run["frames_per_s"] for run in runs[max_size])
-        refined = runs[max_size][0]["refined"]  # the same path in every round
+        refined = runs[max_size][0]["refined"]  # the first round's path
         print(f"{max_size or 'full':>8} {rate:9.2f} {rate / first:8.2f} {refined['rpe_trans']:9.5f} "
               f"{refined['rpe_rot']:8.4f} {refined['ate_rmse']:8.4f}")
     network = runs[args.max_sizes[0]][0]["network"]

@@ -162,8 +162,8 @@ def test_the_rotation_priors_gauss_newton_terms_are_the_derivatives_of_its_cost_
 
 
 def test_the_tracker_takes_every_refine_setting_from_the_params():
-    cfg = RefineConfig(levels=2, max_size=128, iterations=5, huber=0.03, light_falloff=0.5, rotation_prior=0.3, keyframe_every=4,
-                       min_overlap=0.4, rotation_smoothing=1.5)
+    cfg = RefineConfig(levels=2, max_size=128, iterations=5, huber=0.03, light_falloff=0.5, rotation_prior=0.3,
+                       keyframe_every=4, min_overlap=0.4, rotation_smoothing=1.5)
     settings = tracker_settings(cfg)
     alignment = settings.alignment
     assert (alignment.levels, alignment.max_size, alignment.iterations, alignment.huber, alignment.light_falloff,
@@ -173,10 +173,23 @@ def test_the_tracker_takes_every_refine_setting_from_the_params():
 
 @pytest.mark.parametrize("size, max_size, halvings", [
     ((480, 480), None, 0), ((480, 480), 480, 0), ((480, 480), 479, 1), ((480, 480), 240, 1), ((480, 480), 239, 2),
+    ((481, 481), 240, 1),  # a halving rounds down: 240
     ((1080, 1350), 256, 3), ((64, 64), 256, 0), ((32, 480), 64, 3),
     ((16, 480), 64, 2)])  # 4 px high, 120 wide: the shorter side is not halved below 4 px
 def test_a_frame_is_halved_until_its_longer_side_fits_the_finest_level(size: tuple, max_size, halvings: int):
     assert direct_alignment.halvings_to_fit(*size, max_size) == halvings
+
+
+def test_with_the_finest_level_at_half_the_frames_size_most_of_a_known_motion_is_recovered(rendered: dict):
+    truth = relative_pose(rendered["poses"][3], rendered["poses"][0])
+    nudge = pose_vec_to_matrix(torch.tensor([0.004, -0.003, 0.002, 0.08, -0.06, 0.08], dtype=torch.float64))
+    error = {max_size: errors(align_to_keyframe(rendered["rgb"][0], rendered["depth"][0], rendered["rgb"][3],
+                                                rendered["K"], nudge @ torch.from_numpy(truth),
+                                                replace(EXACT, max_size=max_size)).T_frame_key.numpy(), truth)
+             for max_size in (None, SIZE // 2)}
+    rotation, translation = error[SIZE // 2]
+    assert rotation < 0.75 * 0.31 and translation < 0.2 * 0.128  # of the start's 0.31 degree and 0.128 cm
+    assert rotation > error[None][0] and translation > error[None][1]  # a quarter of the pixels: less exact
 
 
 def test_a_capped_pyramid_is_the_full_pyramids_coarser_levels(rendered: dict):

@@ -21,6 +21,7 @@ never worse than the start. See docs/reconstruction.md, "The path refined".
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from functools import cached_property
 from typing import NamedTuple
@@ -38,11 +39,11 @@ SATURATED = 0.98  # a keyframe pixel with a channel above this is a highlight
 BLACK = 0.02  # a keyframe pixel with every channel below this is outside the field of view
 KEPT_SHARE = 0.5  # a step that leaves fewer than this share of the pixels taking part is refused
 # A level ends once the step it would try next moves the pose by less than this (radians, or the depth's unit: cm):
-# at the cost's noise floor Levenberg-Marquardt refuses step after step, each a quarter of the last, and at 480 px
-# four cost evaluations in five went to such steps. Against 1e-7 (the accepted step's old threshold), 1e-5 took half
-# the pixel evaluations at 480 px and 0.7 at 64 px, and left the errors of 12 tracked frames of exact depth against
-# the truth the same to 4 digits at 64, 256 and 480 px (the steps moved by at most 2.3e-4 deg); 1e-4 moved them
-# (docs/reconstruction.md, "The path refined").
+# at the cost's noise floor Levenberg-Marquardt refuses step after step, each a quarter of the last, down to 1e-9.
+# Against 1e-7 (the accepted step's old threshold), 1e-5 took the cost evaluations of a tracked frame of exact depth
+# from 56.4 to 30.2 at 480 px (half the pixels evaluated) and from 52.2 to 36.0 at 64 px, and left the errors of 12
+# tracked frames against the truth the same to 4 digits at 64, 256 and 480 px (the steps moved by at most 2.3e-4
+# deg); 1e-4 moved them (docs/benchmarks.md, "The refinement's levels end at the noise floor").
 MIN_STEP = 1e-5
 # On a GPU the dampings a step would try one after the other are tried this many at a time: one more costs little
 # there, and each wait for the device costs much (with the untrained model's depth at 480 px a step tried 1.6
@@ -170,9 +171,8 @@ class _Level:
 def halvings_to_fit(height: int, width: int, max_size: int | None) -> int:
     """How many times a ``height x width`` image is halved for its longer side to be at most ``max_size`` (None:
     never), its shorter side kept at 4 px at least."""
-    halvings = 0
-    while (max_size is not None and max(height, width) > max_size * 2**halvings
-           and min(height, width) >= 8 * 2**halvings):
+    halvings = 0  # each halving rounds down, as average pooling does
+    while max_size is not None and max(height, width) >> halvings > max_size and min(height, width) >> halvings >= 8:
         halvings += 1
     return halvings
 
@@ -346,8 +346,10 @@ def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor, s
             dampings = [damping * 4 ** k for k in range(at_once) if damping * 4 ** k < 1e6]
             steps = [-torch.linalg.solve(hessian + tried * torch.diag(hessian.diagonal().clamp(min=1e-12)), gradient)
                      for tried in dampings]
-            kept = [(tried, step) for tried, step in zip(dampings, steps) if float(step[:6].abs().max()) >= MIN_STEP]
-            if not kept:  # a larger damping only shortens the step: converged
+            # one at a time, the first step below the floor ends the level: tried together, the steps before it
+            kept = list(itertools.takewhile(lambda pair: float(pair[1][:6].abs().max()) >= MIN_STEP,
+                                            zip(dampings, steps)))
+            if not kept:
                 return pose, brightness
             dampings, steps = [tried for tried, _ in kept], [step for _, step in kept]
             poses = torch.stack([pose_vec_to_matrix(tried[:6]) @ pose for tried in steps])
