@@ -233,3 +233,21 @@ def test_without_a_writable_cache_folder_the_loops_compile_in_each_process(monke
     monkeypatch.setattr(numba, "njit", no_cache_folder)
     assert tsdf_loops._compiled(double)(21) == 42
     assert asked == [{"cache": True, "nogil": True}, {"nogil": True}]
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["loops", "tensors"])
+def test_voxels_in_the_cameras_plane_are_left_out_as_those_behind_it(compiled: bool) -> None:
+    """A camera half a voxel above the origin has a layer of voxel centres exactly in its plane (z = 0): the loops
+    once divided by that 0 and raised on a real video."""
+    voxel_cm, trunc_cm = 0.25, 1.0  # a truncation that reaches back past the camera's plane
+    depth = np.full((8, 8), 0.25, np.float32)
+    K = np.array([[4.0, 0, 4.0], [0, 4.0, 4.0], [0, 0, 1]])
+    T_world_cam = np.eye(4)
+    T_world_cam[2, 3] = 0.5 * voxel_cm
+    volume = TSDFVolume(voxel_cm, trunc_cm, compiled=compiled)
+    volume.integrate(depth, np.zeros((8, 8, 3), np.uint8), K, T_world_cam)
+    reference = TSDFVolume(voxel_cm, trunc_cm, compiled=not compiled)
+    reference.integrate(depth, np.zeros((8, 8, 3), np.uint8), K, T_world_cam)
+    assert volume.block_count == reference.block_count > 0
+    assert torch.equal(volume._tsdf, reference._tsdf) and torch.equal(volume._weight, reference._weight)
+    assert (volume._weight > 0).any()

@@ -102,9 +102,11 @@ def _update_voxels(per_block, per_voxel, rows, depth, colour, tsdf, weight, colo
         row = rows[block]
         for voxel in range(len(per_voxel)):
             z = per_block[block, 2] + per_voxel[voxel, 2]
+            if not z > 0:  # behind the camera, or in its plane: numba's float division by 0 raises
+                continue
             u = np.rint((per_block[block, 0] + per_voxel[voxel, 0]) / z)
             v = np.rint((per_block[block, 1] + per_voxel[voxel, 1]) / z)
-            if not (z > 0 and 0 <= u < width and 0 <= v < height):
+            if not (0 <= u < width and 0 <= v < height):
                 continue
             pixel_v, pixel_u = np.int64(v), np.int64(u)
             observed = depth[pixel_v, pixel_u]
