@@ -27,7 +27,6 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
 SIZE = 480
 WARM_UP_FRAMES = 3
 ERRORS = ("rpe_trans", "rpe_rot", "ate_rmse")
