@@ -1,14 +1,17 @@
 """The path refinement (``KeyframeTracker``) of an earlier version of the code against this one, in one run.
 
     python benchmarks/bench_tracker.py --baseline DIR [--sizes 64 256 480] [--frames 12] [--threads 2] [--device cpu]
+                                       [--model FILE] [--rounds 1]
 
 ``DIR`` holds an earlier ``endoflow`` package (``git archive <commit> endoflow | tar -x -C DIR``). For each size,
 sequence S1 of a synthetic SimCol3D layout is rendered once by this tree (``--frames`` frames with their exact depth,
 intrinsics and poses). Each version then tracks it in a fresh process with ``--threads`` torch threads, the
 default ``refine`` params and the frames on ``--device`` (``cuda``: a GPU, waited for before the clock stops): every
 frame from the previous refined pose times the previous refined step (constant velocity; the first step from the
-truth), aligned to the keyframes with the exact depth. One untimed pass, then a timed one. Printed per size: ms a
-tracked frame of each version and their ratio, how far this tree's steps are from the earlier one's (translation
+truth), aligned to the keyframes with the exact depth, or with ``--model``'s depth (this tree's networks in float32
+on the CPU: a trained model's depth is wrong in shape, and there the tracker works harder). One untimed pass, then a
+timed one; with ``--rounds`` > 1 the versions alternate, so that load from other processes hits them alike, and
+the median is printed. Printed per size: ms a tracked frame of each version and their ratio, how far this tree's steps are from the earlier one's (translation
 relative to the step's length, rotation in degrees, the largest over the frames), and each version's mean step
 errors against the truth (translation in cm, rotation in degrees). Figures are printed, not asserted.
 """
@@ -18,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -39,13 +43,15 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--frames", type=int, default=12)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu", help="where the frames are: cpu or cuda")
+    parser.add_argument("--model", type=Path, help="track with this trained model's depth (default: the exact one)")
+    parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--worker", nargs=2, metavar=("INPUTS", "OUT"), help=argparse.SUPPRESS)
     return parser.parse_args()
 
 
-def make_inputs(folder: Path, size: int, frames: int, threads: int) -> Path:
-    """S1 rendered at ``size`` px: its frames ``[N, 3, H, W]`` in [0, 1], depth ``[N, 1, H, W]`` in cm, ``K`` and
-    camera-to-world poses, saved as plain tensors for both versions to read."""
+def make_inputs(folder: Path, size: int, frames: int, threads: int, model: Path | None) -> Path:
+    """S1 rendered at ``size`` px: its frames ``[N, 3, H, W]`` in [0, 1], depth ``[N, 1, H, W]`` in cm (exact, or
+    ``model``'s), ``K`` and camera-to-world poses, saved as plain tensors for both versions to read."""
     import torch
 
     from endoflow.config import Params
@@ -58,11 +64,28 @@ def make_inputs(folder: Path, size: int, frames: int, threads: int) -> Path:
                       workers=threads, device="cpu")
     sequence = next(s for s in open_reader(root, None, params).sequences() if s.name == "S1")
     path = folder / f"inputs{size}.pt"
-    torch.save({"rgb": torch.from_numpy(np.stack([sequence.load_rgb(i) for i in range(len(sequence))]))
-                .permute(0, 3, 1, 2).double() / 255,
-                "depth": torch.from_numpy(np.stack([sequence.load_depth(i) for i in range(len(sequence))]))[:, None],
-                "K": torch.from_numpy(sequence.K), "poses": torch.from_numpy(np.stack(sequence.poses))}, path)
+    rgb = torch.from_numpy(np.stack([sequence.load_rgb(i) for i in range(len(sequence))])).permute(0, 3, 1, 2)
+    depth = (predicted_depth(model, rgb) if model else
+             torch.from_numpy(np.stack([sequence.load_depth(i) for i in range(len(sequence))]))[:, None])
+    torch.save({"rgb": rgb.double() / 255, "depth": depth, "K": torch.from_numpy(sequence.K),
+                "poses": torch.from_numpy(np.stack(sequence.poses))}, path)
     return path
+
+
+def predicted_depth(model_file: Path, rgb: torch.Tensor) -> torch.Tensor:
+    """``[N, 1, H, W]`` cm: the model's depth of 8-bit frames ``rgb [N, 3, H, W]``, one at a time, as
+    ``reconstruct`` predicts it on a CPU in float32."""
+    import torch
+
+    from endoflow.devices import images_to_device, to_compute_layout
+    from endoflow.models.endoflow_model import load_trained_model
+
+    cpu = torch.device("cpu")
+    model, _ = load_trained_model(model_file, cpu)
+    model = to_compute_layout(model, cpu, "float32", rgb.shape[-1])
+    with torch.no_grad():
+        return torch.cat([model.predict_depth(images_to_device(frame[None].contiguous(), cpu, "float32")).float()
+                          for frame in rgb])
 
 
 def run_worker(inputs: Path, out: Path, threads: int, device: str) -> None:
@@ -126,24 +149,27 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_tracker_") as folder:
         work = Path(folder)
         for size in args.sizes:
-            inputs = make_inputs(work, size, args.frames, args.threads)
-            results = {}
-            for version in VERSIONS:
-                tree = args.baseline.resolve() if version == "before" else ROOT
-                out = work / f"{version}{size}.json"
-                command = [sys.executable, __file__, "--baseline", str(args.baseline), "--threads", str(args.threads),
-                           "--device", args.device, "--worker", str(inputs), str(out)]
-                subprocess.run(command, env=environment_importing(tree), check=True)
-                results[version] = json.loads(out.read_text())
-                print(f"{size} px {version:6s} {results[version]['ms_per_frame']:8.1f} ms a tracked frame", flush=True)
+            inputs = make_inputs(work, size, args.frames, args.threads, args.model)
+            results: dict[str, list[dict]] = {version: [] for version in VERSIONS}
+            for _ in range(args.rounds):
+                for version in VERSIONS:
+                    tree = args.baseline.resolve() if version == "before" else ROOT
+                    out = work / f"{version}{size}.json"
+                    command = [sys.executable, __file__, "--baseline", str(args.baseline), "--threads",
+                               str(args.threads), "--device", args.device, "--worker", str(inputs), str(out)]
+                    subprocess.run(command, env=environment_importing(tree), check=True)
+                    results[version].append(json.loads(out.read_text()))
+                    print(f"{size} px {version:6s} {results[version][-1]['ms_per_frame']:8.1f} ms a tracked frame",
+                          flush=True)
             import torch
 
             truth = torch.load(inputs, weights_only=True)["poses"].double().numpy()
-            before, after = (np.array(results[v]["poses"]) for v in VERSIONS)
-            rows.append((size, results["before"]["ms_per_frame"], results["after"]["ms_per_frame"],
+            before, after = (np.array(results[v][0]["poses"]) for v in VERSIONS)  # the same in every round
+            rows.append((size, *(statistics.median(run["ms_per_frame"] for run in results[v]) for v in VERSIONS),
                          *step_differences(before, after), *step_errors(truth, before), *step_errors(truth, after)))
-    print(f"\nKeyframeTracker, {args.frames} rendered frames with exact depth, {args.threads} torch threads, "
-          f"frames on {args.device}; before: {args.baseline}")
+    depth = f"the depth of {args.model}" if args.model else "exact depth"
+    print(f"\nKeyframeTracker, {args.frames} rendered frames with {depth}, {args.threads} torch threads, frames on "
+          f"{args.device}, median of {args.rounds} round(s); before: {args.baseline}")
     print(f"{'size':>5s} {'before ms':>10s} {'after ms':>9s} {'before/after':>13s} {'steps: d trans':>15s} "
           f"{'d rot (deg)':>12s} {'error before: cm':>17s} {'deg':>7s} {'after: cm':>10s} {'deg':>7s}")
     for size, slow, fast, d_trans, d_rot, t_before, r_before, t_after, r_after in rows:

@@ -117,6 +117,22 @@ def test_the_compiled_loops_fuse_the_volume_of_the_tensor_code_to_the_bit() -> N
     assert (loops._weight > 1).any()  # frames overlapped: averaging, not only first sightings, was compared
 
 
+def test_the_compiled_loops_name_each_block_the_tensor_code_touches_and_few_twice() -> None:
+    volumes = [TSDFVolume(0.031, 0.124, compiled=compiled) for compiled in (True, False)]
+    from endoflow.reconstruction import fusion, tsdf_loops
+
+    for depth, _, K, T_world_cam in wavy_frames():
+        depth = np.where(np.isfinite(depth), depth, 0).astype(np.float32)
+        touched = [volume._touched_keys(torch.from_numpy(depth), K, T_world_cam) for volume in volumes]
+        assert torch.equal(*touched) and len(touched[0]) > 50
+        block_cm = fusion.BLOCK * volumes[0].voxel_cm
+        offsets = np.append(np.arange(-0.124, 0.124 + block_cm, block_cm / 2), 0.124)
+        named, _ = tsdf_loops.ray_block_keys(depth, K, T_world_cam, offsets, block_cm, fusion._KEY_BITS)
+        assert torch.equal(torch.unique(torch.from_numpy(named)), touched[0])
+        # of some 10,000 ray points, in about 1,000 blocks: a key is written again only where another took its slot
+        assert len(named) < 1.2 * len(touched[0]) < 0.12 * (depth > 0).sum() * len(offsets)
+
+
 @pytest.mark.parametrize("compiled", [True, False], ids=["loops", "tensors"])
 def test_a_frame_beyond_the_keys_range_is_refused_with_the_option_that_helps(compiled: bool) -> None:
     volume = TSDFVolume(0.01, 0.04, compiled=compiled)

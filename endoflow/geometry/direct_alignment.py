@@ -259,8 +259,11 @@ def _grid_sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
 
 
 def _huber(residual: torch.Tensor, delta: float) -> torch.Tensor:
+    """``0.5 r^2`` up to ``|r| = delta``, ``delta (|r| - delta / 2)`` beyond: both as ``m (|r| - m / 2)`` with ``m =
+    min(|r|, delta)``, the same to the bit (halving is exact) in fewer passes over the pixels."""
     absolute = residual.abs()
-    return torch.where(absolute <= delta, 0.5 * residual**2, delta * (absolute - 0.5 * delta))
+    least = absolute.clamp(max=delta)
+    return least * (absolute - 0.5 * least)
 
 
 def _lit(level: _Level, moved: torch.Tensor, falloff: float) -> torch.Tensor | float:
@@ -328,13 +331,12 @@ def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor, s
         points = (level.usable & sample.inside[0]).nonzero()[:, 0]  # the pixels taking part
         if len(points) < settings.min_pixels:
             break
-        residual, jacobian = _linearise(level, sample, _sampled_gradients(level, sample, points), brightness, points,
-                                        settings.light_falloff)
-        weights = torch.where(residual.abs() <= settings.huber, torch.ones_like(residual),
-                              settings.huber / residual.abs().clamp(min=1e-12))
-        # [8, 9]: the Hessian and the gradient, read back in one transfer
-        normal = torch.cat([jacobian.T @ (weights[:, None] * jacobian), (jacobian.T @ (weights * residual))[:, None]],
-                           dim=1).cpu().to(pose.dtype)
+        system = _linearise(level, sample, _sampled_gradients(level, sample, points), brightness, points,
+                            settings.light_falloff)
+        # Huber's weights, 1 up to the threshold and threshold / |r| beyond (huber / huber is exactly 1)
+        weights = settings.huber / system[8].abs().clamp(min=settings.huber)
+        # [8, 9]: the Hessian and the gradient in one product, read back in one transfer
+        normal = ((system[:8] * weights) @ system.T).cpu().to(pose.dtype)
         hessian, gradient = normal[:, :8], normal[:, 8]
         if prior.weight:
             prior_hessian, prior_gradient = prior.normal_equations(pose, len(points))
@@ -367,32 +369,35 @@ def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor, s
 
 
 def _linearise(level: _Level, sample: _Sample, gradients: torch.Tensor, brightness: torch.Tensor,
-               points: torch.Tensor, falloff: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Residuals ``[M]`` and their Jacobian ``[M, 8]`` in (omega, t, gain, offset), over the three channels of the
-    ``points [M]`` (indices) taking part, whose ``gradients [6, M]`` are sampled. A left increment moves a point
-    ``X`` to ``X + omega x X + t``."""
+               points: torch.Tensor, falloff: float) -> torch.Tensor:
+    """``[9, 3 M]``: the Jacobian's rows in (omega, t, gain, offset), then the residuals, over the three channels
+    (channel-major) of the ``points [M]`` (indices) taking part, whose ``gradients [6, M]`` are sampled. A left
+    increment moves a point ``X`` to ``X + omega x X + t``. Transposed, so that the normal equations are one
+    product of long rows (a [3 M, 8] Jacobian cost a copy and two products)."""
     lit = _lit(level, sample.moved[0], falloff)
     gain = torch.exp(brightness[0]) * (lit.index_select(1, points) if falloff else lit)
     # what the step reads of each point taking part, gathered in one pass
     X, pixels, values, key_values = torch.cat([sample.moved[0], sample.pixels[0], sample.values[0],
                                                level.key_values]).index_select(1, points).split([3, 2, 3, 3])
     u, v = pixels
-    z = X[2]
     K = level.K
-    du = (K[0][:, None] - u * K[2][:, None]) / z  # [3, M]: d u / d X
-    dv = (K[1][:, None] - v * K[2][:, None]) / z
+    du = (K[0][:, None] - u * K[2][:, None]) / X[2]  # [3, M]: d u / d X
+    dv = (K[1][:, None] - v * K[2][:, None]) / X[2]
     gx, gy = gradients[0:3], gradients[3:6]
-    # d image / d X per channel: [3 channels, 3 coordinates, M]; the light's factor grows with |X|
-    d_image = gx[:, None, :] * du[None] + gy[:, None, :] * dv[None]
+    # d image / d X per coordinate and channel: [3 coordinates, 3 channels, M]; the light's factor grows with |X|
+    d_image = gx[None] * du[:, None] + gy[None] * dv[:, None]
     if falloff:
         d_lit = falloff * X / X.square().sum(dim=0).clamp(min=1e-18)  # d log(lit) / d X
-        d_image = d_image + values[:, None, :] * d_lit[None]
+        d_image = d_image + values[None] * d_lit[:, None]
     d_image = gain * d_image
-    # d X / d omega = -[X]_x, so d image / d omega = X x (d image / d X)
-    d_omega = torch.cross(X[None].expand_as(d_image), d_image, dim=1)
-    jacobian = torch.cat([d_omega, d_image, (gain * values)[:, None, :], torch.ones_like(values)[:, None, :]], dim=1)
+    # d X / d omega = -[X]_x, so d image / d omega = X x (d image / d X), written out (torch.cross of the [3, 3, M]
+    # blocks cost as much as the rest of the Jacobian)
+    x, y, z = X[:, None]
+    d_x, d_y, d_z = d_image
+    d_omega = [y * d_z - z * d_y, z * d_x - x * d_z, x * d_y - y * d_x]
     residual = gain * values + brightness[1] - key_values
-    return residual.reshape(-1), jacobian.permute(0, 2, 1).reshape(-1, 8)
+    rows = [*d_omega, *d_image, gain * values, torch.ones_like(values), residual]
+    return torch.stack(rows).reshape(9, -1)
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,11 @@ import numba
 import numpy as np
 
 _NO_KEY = np.int64(-1)  # packed keys are never negative: each field is offset by half its range
+# The keys met last, one per slot of a direct-mapped table (a power of 2): a key found in its slot is not written
+# again. A frame's rays touch a few thousand blocks (4,526 at 480 px, with a trained model's depth) but meet them
+# about 900,000 times; dropping only a repeat of the key just before left those 894,033 keys to the sort of
+# `torch.unique`, which took longer than finding them.
+RECENT_KEYS = 1 << 13
 
 
 def _compiled(function: Callable) -> Callable:
@@ -34,16 +39,15 @@ def _compiled(function: Callable) -> Callable:
 def ray_block_keys(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, offsets_cm: np.ndarray,
                    block_cm: float, key_bits: int) -> tuple[np.ndarray, bool]:
     """The keys (``fusion.packed_keys``, ``key_bits`` per axis) of the blocks holding a point ``depth + offset``
-    along the ray of a pixel of known depth, for each of ``offsets_cm``, a key left out where the one before it
-    was the same (unsorted, not unique: ``fusion.TSDFVolume._touched_keys`` makes them so); and whether a block
-    lay beyond the keys' range. ``depth`` ``H x W`` float32 (0: unknown)."""
+    along the ray of a pixel of known depth, for each of ``offsets_cm``, each at least once, a key left out where
+    it was met lately (:data:`RECENT_KEYS`; unsorted, not unique: ``fusion.TSDFVolume._touched_keys`` makes them
+    so); and whether a block lay beyond the keys' range. ``depth`` ``H x W`` float32 (0: unknown)."""
     intrinsics = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float32)
-    keys, counts, beyond = _ray_block_keys(np.ascontiguousarray(depth, np.float32), intrinsics,
-                                           np.ascontiguousarray(T_world_cam, np.float32),
-                                           np.ascontiguousarray(offsets_cm, np.float32), np.float32(block_cm),
-                                           key_bits)
-    kept = [row[:count] for row, count in zip(keys, counts)]
-    return (np.concatenate(kept) if kept else np.zeros(0, np.int64)), bool(beyond)
+    keys, count, beyond = _ray_block_keys(np.ascontiguousarray(depth, np.float32), intrinsics,
+                                          np.ascontiguousarray(T_world_cam, np.float32),
+                                          np.ascontiguousarray(offsets_cm, np.float32), np.float32(block_cm),
+                                          key_bits, RECENT_KEYS)
+    return keys[:count].copy(), bool(beyond)
 
 
 def update_blocks(per_block: np.ndarray, per_voxel: np.ndarray, rows: np.ndarray, depth: np.ndarray,
@@ -57,18 +61,17 @@ def update_blocks(per_block: np.ndarray, per_voxel: np.ndarray, rows: np.ndarray
 
 
 @_compiled
-def _ray_block_keys(depth, intrinsics, T, offsets, block_cm, key_bits):  # pragma: no cover (compiled)
-    """Per image row: the keys of its pixels' ray points, repeats of the key before dropped; the count kept per
-    row; and whether any block lay beyond the keys' range."""
+def _ray_block_keys(depth, intrinsics, T, offsets, block_cm, key_bits, recent_keys):  # pragma: no cover (compiled)
+    """The keys of the pixels' ray points, those met lately dropped, and their count; and whether any block lay
+    beyond the keys' range."""
     height, width = depth.shape
     half = np.int64(1) << (key_bits - 1)
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    keys = np.empty((height, width * len(offsets)), np.int64)
-    counts = np.zeros(height, np.int64)
-    beyond = np.zeros(height, np.bool_)
+    keys = np.empty(height * width * len(offsets), np.int64)
+    recent = np.full(recent_keys, _NO_KEY)
+    count, beyond = 0, False
     for v in range(height):
         ry = (np.float32(v) - cy) / fy
-        count, last = 0, _NO_KEY
         for u in range(width):
             z = depth[v, u]
             if z == 0:
@@ -77,19 +80,20 @@ def _ray_block_keys(depth, intrinsics, T, offsets, block_cm, key_bits):  # pragm
             for offset in offsets:
                 along = z + offset
                 x, y = rx * along, ry * along
-                packed = np.int64(0)
+                packed, slot = np.int64(0), np.int64(0)
                 for axis in range(3):
                     world = T[axis, 0] * x + T[axis, 1] * y + T[axis, 2] * along + T[axis, 3]
                     block = np.int64(np.floor(world / block_cm))
                     if block >= half or block <= -half:  # as fusion.packed_keys refuses
-                        beyond[v] = True
+                        beyond = True
                     packed = (packed << key_bits) + (block + half)
-                if packed != last:
-                    keys[v, count] = packed
+                    slot = slot * 31 + block  # neighbouring blocks fall in different slots
+                slot &= recent_keys - 1
+                if recent[slot] != packed:
+                    recent[slot] = packed
+                    keys[count] = packed
                     count += 1
-                    last = packed
-        counts[v] = count
-    return keys, counts, beyond.any()
+    return keys, count, beyond
 
 
 @_compiled
