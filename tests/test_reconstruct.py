@@ -16,7 +16,7 @@ import yaml
 from scipy.ndimage import map_coordinates
 
 from endoflow.cli import main as cli
-from endoflow.config import Params
+from endoflow.config import ConfigError, Params
 from endoflow.data.imageio import read_gray16
 from endoflow.data.registry import open_reader
 from endoflow.data.frame_encoding import resize_depth, stored_intrinsics
@@ -236,6 +236,15 @@ def test_an_empty_surface_is_written_and_said_with_the_voxel_that_would_give_one
     footprint = float(warning.split("footprint there, ")[1].split(" cm")[0])
     finer = run(scene, model_file, tmp_path / "finer", params, "S1", frames=FrameRange(stop=3), voxel_cm=footprint)
     assert finer["mesh"]["vertices"] > 0
+
+
+def test_a_frame_that_fusion_refuses_fails_the_call_with_the_option_that_helps_and_leaves_no_output(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
+    # the untrained model sees everything at about 0.2 cm, some 2.5 million blocks of 8e-8 cm from the origin,
+    # beyond the keys' 2^20
+    with pytest.raises(ConfigError, match="--voxel-cm"):
+        run(scene, model_file, tmp_path / "out", params, "S1", frames=FrameRange(stop=3), voxel_cm=1e-8)
+    assert not (tmp_path / "out").exists()
 
 
 def test_the_default_voxel_is_a_pixels_footprint_at_the_far_part_of_the_known_depth() -> None:
