@@ -11,9 +11,10 @@ frame from the previous refined pose times the previous refined step (constant v
 truth), aligned to the keyframes with the exact depth, or with ``--model``'s depth (this tree's networks in float32
 on the CPU: a trained model's depth is wrong in shape, and there the tracker works harder). One untimed pass, then a
 timed one; with ``--rounds`` > 1 the versions alternate, so that load from other processes hits them alike, and
-the median is printed. Printed per size: ms a tracked frame of each version and their ratio, how far this tree's steps are from the earlier one's (translation
-relative to the step's length, rotation in degrees, the largest over the frames), and each version's mean step
-errors against the truth (translation in cm, rotation in degrees). Figures are printed, not asserted.
+the median is printed. Printed per size: ms a tracked frame of each version and their ratio, how far this tree's
+steps are from the earlier one's (translation relative to the step's length, rotation in degrees, the largest over
+the frames), and each version's mean step errors against the truth (translation in cm, rotation in degrees).
+Figures are printed, not asserted.
 """
 
 from __future__ import annotations

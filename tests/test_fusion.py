@@ -118,9 +118,9 @@ def test_the_compiled_loops_fuse_the_volume_of_the_tensor_code_to_the_bit() -> N
 
 
 def test_the_compiled_loops_name_each_block_the_tensor_code_touches_and_few_twice() -> None:
-    volumes = [TSDFVolume(0.031, 0.124, compiled=compiled) for compiled in (True, False)]
     from endoflow.reconstruction import fusion, tsdf_loops
 
+    volumes = [TSDFVolume(0.031, 0.124, compiled=compiled) for compiled in (True, False)]
     for depth, _, K, T_world_cam in wavy_frames():
         depth = np.where(np.isfinite(depth), depth, 0).astype(np.float32)
         touched = [volume._touched_keys(torch.from_numpy(depth), K, T_world_cam) for volume in volumes]
