@@ -146,6 +146,8 @@ def main() -> None:
     if args.worker:
         run_worker(Path(args.worker[0]), Path(args.worker[1]), args.threads, args.device)
         return
+    if args.model and not args.model.is_file():
+        raise SystemExit(f"{args.model}: no such model file")
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_tracker_") as folder:
         work = Path(folder)
