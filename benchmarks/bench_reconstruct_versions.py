@@ -25,6 +25,7 @@ more of them, and each is read a second time inside the per-frame figure (a 1080
 
 - ``video64``: the 1080p video at the model's 64 px, fused (decoding large frames on the critical path or not);
 - ``data64``: the 480 px dataset sequence at 64 px, fused;
+- ``data64-refined``: ``data64`` with the path refined (as ``data480-refined`` below), the built-in data's size;
 - ``data480``: the dataset sequence at 480 px, fused (every fused case with the voxel :func:`far_footprint_cm` of
   the first frame's depth, the same in both versions);
 - ``data480-nofusion``: the same without fusion;
@@ -64,7 +65,7 @@ if TYPE_CHECKING:  # each run imports the endoflow its version names, inside the
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = {"video64": ("video", 64, True, False), "data64": ("data", 64, True, False),
-         "data480": ("data", 480, True, False), "data480-nofusion": ("data", 480, False, False),
+         "data64-refined": ("data", 64, True, True), "data480": ("data", 480, True, False), "data480-nofusion": ("data", 480, False, False),
          "data480-refined": ("data", 480, True, True), "core64": ("core", 64, True, False),
          "core480": ("core", 480, True, False)}  # kind, size, fused, path refined
 VIDEO_SIZE = (1080, 1920)

@@ -28,6 +28,7 @@ FORBIDDEN = {
     "endoflow.locations": ["endoflow."],
     "endoflow.progress": ["endoflow."],
     "endoflow.shapes": ["endoflow."],
+    "endoflow.compiled": ["endoflow."],
     "endoflow.ray_worker_setup": ["endoflow."],  # run first in every Ray worker process: nothing it need not load
     "endoflow.ray_runtime": ["endoflow.data", "endoflow.models", "endoflow.training", "endoflow.evaluation",
                              "endoflow.synth"],

@@ -12,7 +12,7 @@ import torch
 
 from endoflow.config import Params, RefineConfig
 from endoflow.evaluation import metrics
-from endoflow.geometry import direct_alignment
+from endoflow.geometry import alignment_loops, direct_alignment
 from endoflow.geometry.direct_alignment import (
     AlignmentSettings,
     KeyframeTracker,
@@ -269,3 +269,63 @@ def test_modelling_the_lights_fall_off_takes_out_most_of_the_rotation_bias_with_
                                                replace(EXACT, light_falloff=falloff)).T_frame_key.numpy(), truth)[0]
              for falloff in (0.0, 0.91)}
     assert error[0.91] < 0.5 * error[0.0]
+
+
+def _level_and_states(rendered: dict, settings: AlignmentSettings, compiled: bool) -> tuple:
+    """The finest level of frames 0 and 3 and three states around the truth (as ``_costs`` takes them)."""
+    level = direct_alignment._pyramid(rendered["rgb"][0].float(), rendered["depth"][0].float(),
+                                      rendered["rgb"][3].float(), rendered["K"].float(), levels=1,
+                                      compiled=compiled)[0]
+    truth = torch.from_numpy(relative_pose(rendered["poses"][3], rendered["poses"][0]))
+    nudges = torch.tensor([[0.0] * 6, [0.004, -0.003, 0.002, 0.08, -0.06, 0.08], [-0.01, 0.0, 0.01, 0.0, 0.2, 0.0]],
+                          dtype=torch.float64)
+    poses = torch.stack([pose_vec_to_matrix(nudge) @ truth for nudge in nudges])
+    brightness = torch.tensor([[0.0, 0.0], [0.1, -0.02], [-0.05, 0.01]], dtype=torch.float64)
+    prior = direct_alignment._RotationPrior(truth[:3, :3], settings.rotation_prior)
+    return level, poses, brightness, prior
+
+
+@pytest.mark.parametrize("settings", [EXACT, AlignmentSettings(huber=0.01)], ids=["light fall-off", "rotation prior"])
+def test_the_compiled_loops_cost_and_linearise_a_state_as_the_tensor_code_does(rendered: dict,
+                                                                              settings: AlignmentSettings):
+    """To float32 rounding: the loops sample at the pixel directly, the tensor code through grid_sample's grid."""
+    loops, tensors = (_level_and_states(rendered, settings, compiled) for compiled in (True, False))
+    assert loops[0].compiled and not tensors[0].compiled
+    (cost_loops, part_loops, at_loops), (cost_tensors, part_tensors, at_tensors) = (
+        direct_alignment._costs(level, poses, brightness, settings, prior)
+        for level, poses, brightness, prior in (loops, tensors))
+    both = part_loops & part_tensors
+    assert (part_loops != part_tensors).sum() <= 3 and both.sum() > 0.5 * both[0].numel()  # a point on an edge
+    torch.testing.assert_close(cost_loops[both], cost_tensors[both], rtol=1e-4, atol=1e-7)
+    assert not cost_loops[~part_loops].any()  # a point that does not take part costs nothing
+    for index in range(3):
+        (normal_loops, count_loops), (normal_tensors, count_tensors) = (
+            direct_alignment._normal_equations(level, at.pick(index), brightness[index], settings)
+            for (level, _, brightness, _), at in ((loops, at_loops), (tensors, at_tensors)))
+        assert count_loops == int(part_loops[index].sum()) and abs(count_loops - count_tensors) <= 3
+        assert normal_loops.dtype == torch.float64 and normal_loops.shape == (8, 9)
+        # the Hessian symmetric to rounding, and each entry the tensor code's to a millionth of the largest in its row
+        torch.testing.assert_close(normal_loops[:, :8], normal_loops[:, :8].T, rtol=1e-5, atol=0)
+        scale = normal_tensors.abs().amax(dim=1, keepdim=True)
+        assert ((normal_loops - normal_tensors).abs() <= 1e-4 * scale).all()
+
+
+def test_the_compiled_loops_align_a_frame_as_the_tensor_code_does(rendered: dict):
+    truth = relative_pose(rendered["poses"][3], rendered["poses"][0])
+    nudge = pose_vec_to_matrix(torch.tensor([0.004, -0.003, 0.002, 0.08, -0.06, 0.08], dtype=torch.float64))
+    for settings in (EXACT, AlignmentSettings()):
+        loops, tensors = (align_to_keyframe(rendered["rgb"][0], rendered["depth"][0], rendered["rgb"][3],
+                                            rendered["K"], nudge @ torch.from_numpy(truth),
+                                            replace(settings, compiled=compiled)) for compiled in (True, False))
+        torch.testing.assert_close(loops.T_frame_key, tensors.T_frame_key, rtol=0, atol=1e-6)
+        assert loops.cost_end == pytest.approx(tensors.cost_end, rel=1e-4)
+        assert loops.valid_share == pytest.approx(tensors.valid_share, abs=1e-3)
+
+
+def test_where_no_pixel_takes_part_the_compiled_normal_equations_are_empty(rendered: dict):
+    level, poses, brightness, _ = _level_and_states(rendered, EXACT, compiled=True)
+    behind = poses[0].clone()
+    behind[2, 3] -= 1e3  # the scene 10 m behind the camera
+    states = torch.cat([behind[:3].reshape(1, 12), torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)], dim=1)
+    normal, count = alignment_loops.normal_equations(level.loop_arrays(0.0), states[0].float().numpy(), 0.1, 0.0)
+    assert count == 0 and torch.equal(normal, torch.zeros(8, 9, dtype=torch.float64))

@@ -232,7 +232,7 @@ def test_a_depth_map_laid_out_column_first_fuses_as_its_copy(compiled: bool) -> 
 def test_without_a_writable_cache_folder_the_loops_compile_in_each_process(monkeypatch: pytest.MonkeyPatch) -> None:
     import numba
 
-    from endoflow.reconstruction import tsdf_loops
+    from endoflow import compiled
 
     asked: list[dict] = []
     njit = numba.njit
@@ -240,14 +240,14 @@ def test_without_a_writable_cache_folder_the_loops_compile_in_each_process(monke
     def no_cache_folder(**options):  # what numba raises when no folder for its cache is writable
         asked.append(options)
         if options.get("cache"):
-            raise RuntimeError("cannot cache function 'double': no locator available for file 'tsdf_loops.py'")
+            raise RuntimeError("cannot cache function 'double': no locator available for file 'compiled.py'")
         return njit(**options)
 
     def double(x):
         return 2 * x
 
     monkeypatch.setattr(numba, "njit", no_cache_folder)
-    assert tsdf_loops._compiled(double)(21) == 42
+    assert compiled.compiled_loop(double)(21) == 42
     assert asked == [{"cache": True, "nogil": True}, {"nogil": True}]
 
 

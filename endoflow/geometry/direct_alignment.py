@@ -16,7 +16,8 @@ each pixel's cost, ``theta`` the axis-angle of the rotation between the current 
 depth, which is wrong in shape away from its training data, the photometric cost trades rotation against
 translation, and the pose network's rotation keeps the two apart. A step is kept only where it lowers the cost
 over the pixels that take part both before and after it (and keeps at least half of them), so the result is
-never worse than the start. See docs/reconstruction.md, "The path refined".
+never worse than the start. On a CPU the costs and the normal equations' rows are compiled loops
+(``alignment_loops.py``), the same arithmetic to float32 rounding. See docs/reconstruction.md, "The path refined".
 """
 
 from __future__ import annotations
@@ -26,10 +27,12 @@ from dataclasses import dataclass
 from functools import cached_property
 from typing import NamedTuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 from endoflow.config import RefineConfig
+from endoflow.geometry import alignment_loops
 from endoflow.geometry.camera import backproject, intrinsics_inverse, scale_intrinsics
 from endoflow.geometry.warp import sampling_grid
 from endoflow.geometry.pose import invert_pose, nearest_rigid, pose_vec_to_matrix
@@ -69,6 +72,9 @@ class AlignmentSettings:
     min_pixels: int = 64  # fewer valid pixels at a level: that level is skipped
     light_falloff: float = REFINE.light_falloff
     rotation_prior: float = REFINE.rotation_prior
+    # on a CPU the costs and normal equations as compiled loops (alignment_loops.py); False: the tensor code, as on
+    # a GPU
+    compiled: bool = True
 
 
 @dataclass(frozen=True)
@@ -105,7 +111,8 @@ def align_to_keyframe(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb:
     check_shape("T_frame_key", T_frame_key, "4,4")
     device = key_rgb.device
     pyramid = _pyramid(key_rgb.to(PIXEL_DTYPE), key_depth.to(device, PIXEL_DTYPE), frame_rgb.to(device, PIXEL_DTYPE),
-                       K.to(device, PIXEL_DTYPE), settings.levels, settings.max_size)
+                       K.to(device, PIXEL_DTYPE), settings.levels, settings.max_size,
+                       compiled=settings.compiled and device.type == "cpu")
     pose = T_frame_key.detach().to("cpu", torch.float64).clone()
     brightness = torch.zeros(2, dtype=torch.float64)
     start, start_brightness = pose.clone(), brightness.clone()
@@ -161,11 +168,26 @@ class _Level:
     frame: torch.Tensor  # [1, 4, H, W] the frame and where it is well exposed
     gradients: torch.Tensor  # [1, 6, H, W] its horizontal and vertical gradients (only a step needs them)
     K: torch.Tensor
+    compiled: bool = False  # its costs and normal equations computed by alignment_loops (on a CPU)
 
     @cached_property
     def distance(self) -> torch.Tensor:
         """``[N]`` the points' distance from the keyframe's camera (its light): only a light fall-off needs it."""
         return self.points.norm(dim=0).clamp(min=1e-9)
+
+    def loop_arrays(self, falloff: float) -> alignment_loops.LevelArrays:
+        """What :mod:`alignment_loops` reads of the level, as arrays sharing the tensors' memory (the distances
+        empty without a light fall-off, which alone reads them)."""
+        distance = self.distance if falloff else self.points.new_empty(0)
+        return alignment_loops.LevelArrays(self.points.numpy(), self.key_values.numpy(), self.usable.numpy(),
+                                           self.frame[0].numpy(), self.gradients[0].numpy(), self.K.numpy(),
+                                           distance.numpy(), self._rows)
+
+    @cached_property
+    def _rows(self) -> np.ndarray:
+        """The room the compiled loops write a step's Jacobian into (25 MB at 480 px), made once per level rather
+        than at each step."""
+        return np.empty((3 * self.points.shape[1], alignment_loops.JACOBIAN_ROWS + 1), np.float32)
 
 
 def halvings_to_fit(height: int, width: int, max_size: int | None) -> int:
@@ -178,8 +200,9 @@ def halvings_to_fit(height: int, width: int, max_size: int | None) -> int:
 
 
 def _pyramid(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb: torch.Tensor, K: torch.Tensor,
-             levels: int, max_size: int | None = None) -> list[_Level]:
-    """``levels`` levels, finest first, the finest halved from the images until it fits ``max_size``."""
+             levels: int, max_size: int | None = None, compiled: bool = False) -> list[_Level]:
+    """``levels`` levels, finest first, the finest halved from the images until it fits ``max_size``; ``compiled``:
+    their per-pixel work as compiled loops (the images on the CPU)."""
     pyramid = []
     # well exposed at full resolution: a coarse pixel is only if all four below it are (a coarse pixel at the
     # field of view's edge averages black in, and is no image of the scene)
@@ -202,7 +225,7 @@ def _pyramid(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb: torch.Te
         gx = F.pad(frame_rgb[:, :, 2:] - frame_rgb[:, :, :-2], (1, 1, 0, 0)) / 2
         gy = F.pad(frame_rgb[:, 2:, :] - frame_rgb[:, :-2, :], (0, 0, 1, 1)) / 2
         frame, gradients = torch.cat([frame_rgb, frame_good])[None], torch.cat([gx, gy])[None]
-        pyramid.append(_Level(key_rgb, points, key_rgb.reshape(3, -1), usable, frame, gradients, K))
+        pyramid.append(_Level(key_rgb, points, key_rgb.reshape(3, -1), usable, frame, gradients, K, compiled))
     return pyramid
 
 
@@ -230,6 +253,17 @@ class _Sample(NamedTuple):
                        self.grid[:, index:index + 1], self.inside[index:index + 1])
 
 
+class _States(NamedTuple):
+    """What the compiled loops need to take a state up again: the states as :func:`_costs` packs them ``[B, 15]``
+    (float32; they sample the frame themselves)."""
+
+    packed: torch.Tensor
+
+    def pick(self, index: int) -> "_States":
+        """State ``index`` alone (``B`` = 1)."""
+        return _States(self.packed[index:index + 1])
+
+
 def _sample(level: _Level, rigid: torch.Tensor) -> _Sample:
     """The frame's colours at the keyframe points moved by each of ``rigid [B, 3, 4]`` (``[R | t]`` on the pixels'
     device; a cost needs no more; a step also samples the gradients there, :func:`_sampled_gradients`: most
@@ -243,7 +277,7 @@ def _sample(level: _Level, rigid: torch.Tensor) -> _Sample:
     grid = sampling_grid(u, v, height, width)[None]
     sampled = _grid_sample(level.frame, grid)
     return _Sample(sampled[:3].transpose(0, 1), moved, torch.stack([u, v], dim=1), grid,
-                   inside & (sampled[3] > 0.999))
+                   inside & (sampled[3] > float(alignment_loops.WELL_EXPOSED)))
 
 
 def _sampled_gradients(level: _Level, sample: _Sample, points: torch.Tensor) -> torch.Tensor:
@@ -276,22 +310,28 @@ def _lit(level: _Level, moved: torch.Tensor, falloff: float) -> torch.Tensor | f
 
 
 def _costs(level: _Level, poses: torch.Tensor, brightness: torch.Tensor, settings: AlignmentSettings,
-           prior: _RotationPrior) -> tuple[torch.Tensor, torch.Tensor, _Sample]:
+           prior: _RotationPrior) -> tuple[torch.Tensor, torch.Tensor, _Sample | _States]:
     """Per-pixel costs ``[B, N]`` (Huber, summed over channels, plus the rotation prior's share) at each of ``B``
     states (``poses [B, 4, 4]`` and ``brightness [B, 2]``, float64 on the CPU), where the pixels take part ``[B,
-    N]``, and the frame sampled at the poses (what a step from one linearises)."""
+    N]``, and what a step from one linearises: the frame sampled at the poses, or for the compiled loops the
+    states."""
     prior_costs = torch.tensor([prior.cost(pose) for pose in poses], dtype=poses.dtype)
     # each state as [R | t], gain, offset and prior cost, sent to the pixels' device in one copy that does not wait
     # for the device (from pageable memory the bytes are staged at once)
     packed = torch.cat([poses[:, :3].reshape(len(poses), 12), brightness[:, :1].exp(), brightness[:, 1:],
                         prior_costs[:, None]], dim=1).to(level.points.dtype).to(level.points.device, non_blocking=True)
+    if level.compiled:
+        costs, part = alignment_loops.state_costs(level.loop_arrays(settings.light_falloff), packed.numpy(),
+                                                  settings.huber, settings.light_falloff)
+        return torch.from_numpy(costs), torch.from_numpy(part), _States(packed)
     sample = _sample(level, packed[:, :12].reshape(-1, 3, 4))
     gain, offset, prior_cost = packed[:, 12:13, None], packed[:, 13:14, None], packed[:, 14:15]
     residual = gain * _lit(level, sample.moved, settings.light_falloff) * sample.values + offset - level.key_values
     return _huber(residual, settings.huber).sum(dim=1) + prior_cost, level.usable & sample.inside, sample
 
 
-def _pick(costs: tuple[torch.Tensor, torch.Tensor, _Sample], index: int) -> tuple[torch.Tensor, torch.Tensor, _Sample]:
+def _pick(costs: tuple[torch.Tensor, torch.Tensor, _Sample | _States], index: int
+          ) -> tuple[torch.Tensor, torch.Tensor, _Sample | _States]:
     """State ``index`` alone of :func:`_costs`' result."""
     cost, part, sample = costs
     return cost[index:index + 1], part[index:index + 1], sample.pick(index)
@@ -327,19 +367,12 @@ def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor, s
     at_once = candidates_at_once(level.points.device)
     current = _costs(level, pose[None], brightness[None], settings, prior)  # then the accepted candidate's
     for _ in range(settings.iterations):
-        sample = current[2]  # the frame sampled at the pose
-        points = (level.usable & sample.inside[0]).nonzero()[:, 0]  # the pixels taking part
-        if len(points) < settings.min_pixels:
+        normal, taking_part = _normal_equations(level, current[2], brightness, settings)
+        if taking_part < settings.min_pixels:
             break
-        system = _linearise(level, sample, _sampled_gradients(level, sample, points), brightness, points,
-                            settings.light_falloff)
-        # Huber's weights, 1 up to the threshold and threshold / |r| beyond (huber / huber is exactly 1)
-        weights = settings.huber / system[8].abs().clamp(min=settings.huber)
-        # [8, 9]: the Hessian and the gradient in one product, read back in one transfer
-        normal = ((system[:8] * weights) @ system.T).cpu().to(pose.dtype)
         hessian, gradient = normal[:, :8], normal[:, 8]
         if prior.weight:
-            prior_hessian, prior_gradient = prior.normal_equations(pose, len(points))
+            prior_hessian, prior_gradient = prior.normal_equations(pose, taking_part)
             hessian[:6, :6] += prior_hessian
             gradient[:6] += prior_gradient
         step = None  # the accepted one
@@ -366,6 +399,21 @@ def _refine_level(level: _Level, pose: torch.Tensor, brightness: torch.Tensor, s
         if step is None:
             break
     return pose, brightness
+
+
+def _normal_equations(level: _Level, at: _Sample | _States, brightness: torch.Tensor, settings: AlignmentSettings
+                      ) -> tuple[torch.Tensor, int]:
+    """The Gauss-Newton system at the state ``at`` (one, as :func:`_costs` left it) over the pixels taking part:
+    ``[8, 9]`` float64 on the CPU, the Huber-weighted Hessian beside the gradient; and how many pixels took part."""
+    if level.compiled:
+        return alignment_loops.normal_equations(level.loop_arrays(settings.light_falloff), at.packed[0].numpy(),
+                                                settings.huber, settings.light_falloff)
+    points = (level.usable & at.inside[0]).nonzero()[:, 0]  # the pixels taking part
+    system = _linearise(level, at, _sampled_gradients(level, at, points), brightness, points, settings.light_falloff)
+    # Huber's weights, 1 up to the threshold and threshold / |r| beyond (huber / huber is exactly 1)
+    weights = settings.huber / system[8].abs().clamp(min=settings.huber)
+    # [8, 9]: the Hessian and the gradient in one product, read back in one transfer
+    return ((system[:8] * weights) @ system.T).cpu().to(torch.float64), len(points)
 
 
 def _linearise(level: _Level, sample: _Sample, gradients: torch.Tensor, brightness: torch.Tensor,

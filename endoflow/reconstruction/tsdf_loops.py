@@ -5,19 +5,15 @@ Why loops: on a CPU the tensor code makes some twenty passes over every voxel of
 million at 480 px), each writing a temporary, and the passes run at memory speed. A loop visits each voxel once and
 keeps the rest in registers. On a GPU the tensor code is the fast one and stays (``fusion.py``).
 
-The loops run in the calling thread, one core: numba's own thread pool would contend with torch's on a small
-machine and, in its default layer, aborts the process when two threads call it at once. They release the GIL, so
-the threads that read frames ahead and write outputs behind go on meanwhile. Compiled on first use (about 2 s), then
-loaded from numba's cache beside this file or in the user's cache folder (``NUMBA_CACHE_DIR`` sets another); where
-no cache folder is writable, compiled once per process instead.
+The loops run in the calling thread, one core, and release the GIL (``endoflow/compiled.py`` says how they are
+compiled and cached).
 """
 
 from __future__ import annotations
 
-from typing import Callable
-
-import numba
 import numpy as np
+
+from endoflow.compiled import compiled_loop
 
 _NO_KEY = np.int64(-1)  # packed keys are never negative: each field is offset by half its range
 # The keys met last, one per slot of a direct-mapped table (a power of 2): a key found in its slot is not written
@@ -25,15 +21,6 @@ _NO_KEY = np.int64(-1)  # packed keys are never negative: each field is offset b
 # about 900,000 times; dropping only a repeat of the key just before left those 894,033 keys to the sort of
 # `torch.unique`, which took longer than finding them.
 RECENT_KEYS = 1 << 13
-
-
-def _compiled(function: Callable) -> Callable:
-    """``function`` compiled by numba without the GIL, cached on disk where numba finds a writable folder for it
-    (a read-only install run by a user without a writable home has none: numba then refuses ``cache=True``)."""
-    try:
-        return numba.njit(cache=True, nogil=True)(function)
-    except RuntimeError:  # "cannot cache function ...: no locator available"
-        return numba.njit(nogil=True)(function)
 
 
 def ray_block_keys(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, offsets_cm: np.ndarray,
@@ -60,7 +47,7 @@ def update_blocks(per_block: np.ndarray, per_voxel: np.ndarray, rows: np.ndarray
     _update_voxels(per_block, per_voxel, rows, depth, colour, tsdf, weight, colours, np.float32(trunc_cm))
 
 
-@_compiled
+@compiled_loop
 def _ray_block_keys(depth, intrinsics, T, offsets, block_cm, key_bits, recent_keys):  # pragma: no cover (compiled)
     """The keys of the pixels' ray points, those met lately dropped, and their count; and whether any block lay
     beyond the keys' range."""
@@ -96,7 +83,7 @@ def _ray_block_keys(depth, intrinsics, T, offsets, block_cm, key_bits, recent_ke
     return keys, count, beyond
 
 
-@_compiled
+@compiled_loop
 def _update_voxels(per_block, per_voxel, rows, depth, colour, tsdf, weight, colours, trunc):  # pragma: no cover
     """Each voxel of each block that projects into the image onto known depth no farther than ``trunc`` behind it:
     its truncated signed distance and colour averaged in, its weight counted up."""
