@@ -65,9 +65,9 @@ if TYPE_CHECKING:  # each run imports the endoflow its version names, inside the
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = {"video64": ("video", 64, True, False), "data64": ("data", 64, True, False),
-         "data64-refined": ("data", 64, True, True), "data480": ("data", 480, True, False), "data480-nofusion": ("data", 480, False, False),
-         "data480-refined": ("data", 480, True, True), "core64": ("core", 64, True, False),
-         "core480": ("core", 480, True, False)}  # kind, size, fused, path refined
+         "data64-refined": ("data", 64, True, True), "data480": ("data", 480, True, False),
+         "data480-nofusion": ("data", 480, False, False), "data480-refined": ("data", 480, True, True),
+         "core64": ("core", 64, True, False), "core480": ("core", 480, True, False)}  # kind, size, fused, path refined
 VIDEO_SIZE = (1080, 1920)
 WARM_UP_FRAMES = 3
 VERSIONS = ("before", "after")

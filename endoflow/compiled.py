@@ -15,8 +15,8 @@ def compiled_loop(function: Callable) -> Callable:
 
     The loops run in the calling thread, one core: numba's own thread pool would contend with torch's on a small
     machine and, in its default layer, aborts the process when two threads call it at once. They release the GIL,
-    so the threads that read frames ahead and write outputs behind go on meanwhile. Compiled on first use (about
-    2 s each), then loaded from numba's cache beside the module or in the user's cache folder (``NUMBA_CACHE_DIR``
+    so the threads that read frames ahead and write outputs behind go on meanwhile. Compiled on first use (a few
+    seconds), then loaded from numba's cache beside the module or in the user's cache folder (``NUMBA_CACHE_DIR``
     sets another); where no cache folder is writable, compiled once per process instead."""
     try:
         return numba.njit(cache=True, nogil=True)(function)

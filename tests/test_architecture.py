@@ -34,7 +34,7 @@ FORBIDDEN = {
                              "endoflow.synth"],
     "endoflow.synth": ["endoflow.models", "endoflow.training", "endoflow.evaluation"],
     "endoflow.geometry": ["endoflow.data", "endoflow.models", "endoflow.losses", "endoflow.training",
-                          "endoflow.evaluation", "endoflow.synth"],
+                          "endoflow.evaluation", "endoflow.synth", "endoflow.reconstruction"],
     "endoflow.losses": ["endoflow.data", "endoflow.models", "endoflow.training", "endoflow.evaluation"],
     "endoflow.data": ["endoflow.models", "endoflow.training", "endoflow.evaluation", "endoflow.reconstruction"],
     "endoflow.data.frame_encoding": ["endoflow.data."],

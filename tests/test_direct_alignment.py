@@ -271,11 +271,22 @@ def test_modelling_the_lights_fall_off_takes_out_most_of_the_rotation_bias_with_
     assert error[0.91] < 0.5 * error[0.0]
 
 
-def _level_and_states(rendered: dict, settings: AlignmentSettings, compiled: bool) -> tuple:
-    """The finest level of frames 0 and 3 and three states around the truth (as ``_costs`` takes them)."""
-    level = direct_alignment._pyramid(rendered["rgb"][0].float(), rendered["depth"][0].float(),
-                                      rendered["rgb"][3].float(), rendered["K"].float(), levels=1,
-                                      compiled=compiled)[0]
+def _level_and_states(rendered: dict, settings: AlignmentSettings, compiled: bool, odd_camera: bool = False
+                      ) -> tuple:
+    """The finest level of frames 0 and 3 and three states around the truth (as ``_costs`` takes them); with an
+    ``odd_camera``, the frames cropped to 64 x 40 off centre, K skewed, a black corner and a highlight in both
+    (every term of K and of the exposure test then counts)."""
+    key, frame, depth, K = (rendered["rgb"][0].float(), rendered["rgb"][3].float(), rendered["depth"][0].float(),
+                            rendered["K"].float())
+    if odd_camera:
+        key, frame, depth = (image[:, 6:46].clone() for image in (key, frame, depth))
+        K = K.clone()
+        K[1, 2] -= 6  # the crop's principal point
+        K[0, 1] = 0.8  # a skew: the tests compare the two codes, not the geometry
+        for image in (key, frame):
+            image[:, :10, :12] = 0  # black, as outside a field of view
+            image[:, 20:24, 30:36] = 1  # saturated, as a highlight
+    level = direct_alignment._pyramid(key, depth, frame, K, levels=1, compiled=compiled)[0]
     truth = torch.from_numpy(relative_pose(rendered["poses"][3], rendered["poses"][0]))
     nudges = torch.tensor([[0.0] * 6, [0.004, -0.003, 0.002, 0.08, -0.06, 0.08], [-0.01, 0.0, 0.01, 0.0, 0.2, 0.0]],
                           dtype=torch.float64)
@@ -285,11 +296,14 @@ def _level_and_states(rendered: dict, settings: AlignmentSettings, compiled: boo
     return level, poses, brightness, prior
 
 
-@pytest.mark.parametrize("settings", [EXACT, AlignmentSettings(huber=0.01)], ids=["light fall-off", "rotation prior"])
+@pytest.mark.parametrize("settings, odd_camera", [
+    (EXACT, False), (AlignmentSettings(huber=0.01), False), (EXACT, True)],
+    ids=["light fall-off", "no fall-off, rotation prior, huber 0.01", "light fall-off, odd camera"])
 def test_the_compiled_loops_cost_and_linearise_a_state_as_the_tensor_code_does(rendered: dict,
-                                                                              settings: AlignmentSettings):
+                                                                              settings: AlignmentSettings,
+                                                                              odd_camera: bool):
     """To float32 rounding: the loops sample at the pixel directly, the tensor code through grid_sample's grid."""
-    loops, tensors = (_level_and_states(rendered, settings, compiled) for compiled in (True, False))
+    loops, tensors = (_level_and_states(rendered, settings, compiled, odd_camera) for compiled in (True, False))
     assert loops[0].compiled and not tensors[0].compiled
     (cost_loops, part_loops, at_loops), (cost_tensors, part_tensors, at_tensors) = (
         direct_alignment._costs(level, poses, brightness, settings, prior)
@@ -304,7 +318,8 @@ def test_the_compiled_loops_cost_and_linearise_a_state_as_the_tensor_code_does(r
             for (level, _, brightness, _), at in ((loops, at_loops), (tensors, at_tensors)))
         assert count_loops == int(part_loops[index].sum()) and abs(count_loops - count_tensors) <= 3
         assert normal_loops.dtype == torch.float64 and normal_loops.shape == (8, 9)
-        # the Hessian symmetric to rounding, and each entry the tensor code's to a millionth of the largest in its row
+        # the Hessian symmetric to rounding, and each entry the tensor code's to a ten-thousandth of the largest in
+        # its row
         torch.testing.assert_close(normal_loops[:, :8], normal_loops[:, :8].T, rtol=1e-5, atol=0)
         scale = normal_tensors.abs().amax(dim=1, keepdim=True)
         assert ((normal_loops - normal_tensors).abs() <= 1e-4 * scale).all()
@@ -329,3 +344,13 @@ def test_where_no_pixel_takes_part_the_compiled_normal_equations_are_empty(rende
     states = torch.cat([behind[:3].reshape(1, 12), torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)], dim=1)
     normal, count = alignment_loops.normal_equations(level.loop_arrays(0.0), states[0].float().numpy(), 0.1, 0.0)
     assert count == 0 and torch.equal(normal, torch.zeros(8, 9, dtype=torch.float64))
+
+
+def test_frames_and_depth_that_carry_gradients_are_aligned_as_any_others(rendered: dict):
+    """The alignment reads the tensors' values: a caller's autograd graph is neither needed nor followed."""
+    truth = relative_pose(rendered["poses"][3], rendered["poses"][0])
+    arguments = [rendered["rgb"][0], rendered["depth"][0].float(), rendered["rgb"][3], rendered["K"]]
+    plain = align_to_keyframe(*arguments, torch.from_numpy(truth), EXACT)
+    tracked = align_to_keyframe(*(tensor.clone().requires_grad_() for tensor in arguments), torch.from_numpy(truth),
+                                EXACT)
+    assert torch.equal(tracked.T_frame_key, plain.T_frame_key) and not tracked.T_frame_key.requires_grad

@@ -229,28 +229,6 @@ def test_a_depth_map_laid_out_column_first_fuses_as_its_copy(compiled: bool) -> 
     assert torch.equal(volumes[0]._tsdf, volumes[1]._tsdf)
 
 
-def test_without_a_writable_cache_folder_the_loops_compile_in_each_process(monkeypatch: pytest.MonkeyPatch) -> None:
-    import numba
-
-    from endoflow import compiled
-
-    asked: list[dict] = []
-    njit = numba.njit
-
-    def no_cache_folder(**options):  # what numba raises when no folder for its cache is writable
-        asked.append(options)
-        if options.get("cache"):
-            raise RuntimeError("cannot cache function 'double': no locator available for file 'compiled.py'")
-        return njit(**options)
-
-    def double(x):
-        return 2 * x
-
-    monkeypatch.setattr(numba, "njit", no_cache_folder)
-    assert compiled.compiled_loop(double)(21) == 42
-    assert asked == [{"cache": True, "nogil": True}, {"nogil": True}]
-
-
 @pytest.mark.parametrize("compiled", [True, False], ids=["loops", "tensors"])
 def test_voxels_in_the_cameras_plane_are_left_out_as_those_behind_it(compiled: bool) -> None:
     """A camera half a voxel above the origin has a layer of voxel centres exactly in its plane (z = 0): the loops

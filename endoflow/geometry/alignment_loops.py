@@ -6,10 +6,12 @@ four channels and six gradients bilinearly, residual, Huber, the Jacobian's 27 r
 memory speed. A loop visits each point once and keeps the rest in registers. On a GPU the tensor code is the fast
 one and stays.
 
-The same arithmetic as the tensor code, per point in float32, in another order: a point's pixel and its bilinear
-weights are taken from its coordinates directly (the tensor code goes through ``grid_sample``'s normalised grid
-and back), and the rows carry the root of their Huber weight (the tensor code weights one side of the product). So
-the figures agree to float32 rounding, not to the bit (``tests/test_direct_alignment.py``). The loops run in the
+The tensor code's arithmetic, in another order and partly wider: a point's move and projection are float32, as
+there; its bilinear weights are taken from its pixel directly (the tensor code goes through ``grid_sample``'s
+normalised grid and back) and are float64 (numba widens a float32 less an integer), and with them the samples,
+residuals, costs and rows, rounded to float32 where they are written; the rows carry the root of their Huber weight
+(the tensor code weights one side of the product). So the figures agree to float32 rounding, not to the bit
+(``tests/test_direct_alignment.py``). The loops run in the
 calling thread (``endoflow/compiled.py``): split over two threads beside torch's, they gained 4 % at 480 px and took
 1.7 times as long at 64 px (``benchmarks/bench_tracker.py`` with a trained model's depth).
 """
@@ -39,7 +41,7 @@ class LevelArrays(NamedTuple):
     gradients: np.ndarray  # [6, H, W] the frame's horizontal, then vertical gradients
     K: np.ndarray  # [3, 3]
     distance: np.ndarray  # [N] the points' distance from the keyframe's camera: read with a light fall-off alone
-    rows: np.ndarray  # [3 N, 9] room for the weighted Jacobian row and residual of every point and channel
+    rows: np.ndarray  # [3 U, 9] room for the weighted Jacobian row and residual of each channel of the U usable points
 
 
 def state_costs(level: LevelArrays, states: np.ndarray, huber: float, falloff: float
@@ -62,7 +64,8 @@ def normal_equations(level: LevelArrays, state: np.ndarray, huber: float, fallof
 
     The loop writes each channel's Jacobian row and residual, times the root of its Huber weight, into
     ``level.rows``, and torch's matrix product sums them. (A loop that summed the 72 products of each row itself took
-    20.0 ms at 480 px, against 13.1 for the tensor code's whole linearisation.)"""
+    20.0 ms on a 480 px level, against 13.1 for the tensor code's whole linearisation in the same run:
+    docs/benchmarks.md.)"""
     taking_part = _each_point(*level, state[None], np.float32(huber), np.float32(falloff), True,
                               np.empty((0, 0), np.float32), np.empty((0, 0), np.bool_))
     written = torch.from_numpy(level.rows[:3 * taking_part])
@@ -88,10 +91,9 @@ def _moved_pixel(points, n, state, K, width, height):  # pragma: no cover (compi
 def _corner(u, v):  # pragma: no cover (compiled)
     """The pixel above and left of ``u, v`` and the four bilinear weights of it and its neighbours (right, below,
     below right)."""
-    one = np.float32(1)  # an integer 1 would take the float32 arithmetic to float64
     left, top = int(np.floor(u)), int(np.floor(v))
-    a, c = u - left, v - top
-    return left, top, (one - a) * (one - c), a * (one - c), (one - a) * c, a * c
+    a, c = u - left, v - top  # float64: numba widens a float32 less an integer
+    return left, top, (1 - a) * (1 - c), a * (1 - c), (1 - a) * c, a * c
 
 
 @compiled_loop
@@ -123,8 +125,8 @@ def _lit(x, y, z, distance, n, falloff):  # pragma: no cover (compiled)
 def _each_point(points, key_values, usable, frame, gradients, K, distance, rows, states, huber, falloff, linearise,
                 costs, part):  # pragma: no cover (compiled)
     """At each of ``states``, each point taking part: its cost and that it takes part into ``costs`` and ``part``
-    [B, N], or, to ``linearise`` at one state, its weighted rows written one after the other into ``rows``; how
-    many points took part (in all states)."""
+    [B, N], or, to ``linearise`` at one state (``rows`` holds three rows for each usable point, no more), its
+    weighted rows written one after the other into ``rows``; how many points took part (in all states)."""
     taking_part = 0
     for b in range(len(states)):
         state = states[b]

@@ -17,7 +17,7 @@ depth, which is wrong in shape away from its training data, the photometric cost
 translation, and the pose network's rotation keeps the two apart. A step is kept only where it lowers the cost
 over the pixels that take part both before and after it (and keeps at least half of them), so the result is
 never worse than the start. On a CPU the costs and the normal equations' rows are compiled loops
-(``alignment_loops.py``), the same arithmetic to float32 rounding. See docs/reconstruction.md, "The path refined".
+(``alignment_loops.py``), the same figures to float32 rounding. See docs/reconstruction.md, "The path refined".
 """
 
 from __future__ import annotations
@@ -110,6 +110,7 @@ def align_to_keyframe(key_rgb: torch.Tensor, key_depth: torch.Tensor, frame_rgb:
     check_shape("K", K, "3,3")
     check_shape("T_frame_key", T_frame_key, "4,4")
     device = key_rgb.device
+    key_rgb, key_depth, frame_rgb, K = (tensor.detach() for tensor in (key_rgb, key_depth, frame_rgb, K))
     pyramid = _pyramid(key_rgb.to(PIXEL_DTYPE), key_depth.to(device, PIXEL_DTYPE), frame_rgb.to(device, PIXEL_DTYPE),
                        K.to(device, PIXEL_DTYPE), settings.levels, settings.max_size,
                        compiled=settings.compiled and device.type == "cpu")
@@ -164,7 +165,7 @@ class _Level:
     key_rgb: torch.Tensor  # [3, H, W]
     points: torch.Tensor  # [3, N] keyframe-camera points of the pixels with depth
     key_values: torch.Tensor  # [3, N] their colours
-    usable: torch.Tensor  # [N] bool: neither saturated nor black
+    usable: torch.Tensor  # [N] bool: with depth, neither saturated nor black
     frame: torch.Tensor  # [1, 4, H, W] the frame and where it is well exposed
     gradients: torch.Tensor  # [1, 6, H, W] its horizontal and vertical gradients (only a step needs them)
     K: torch.Tensor
@@ -185,9 +186,9 @@ class _Level:
 
     @cached_property
     def _rows(self) -> np.ndarray:
-        """The room the compiled loops write a step's Jacobian into (25 MB at 480 px), made once per level rather
-        than at each step."""
-        return np.empty((3 * self.points.shape[1], alignment_loops.JACOBIAN_ROWS + 1), np.float32)
+        """The room the compiled loops write a step's Jacobian into (three rows of 9 for each usable point: up to 25
+        MB at 480 px), made once per level rather than at each step."""
+        return np.empty((3 * int(self.usable.sum()), alignment_loops.JACOBIAN_ROWS + 1), np.float32)
 
 
 def halvings_to_fit(height: int, width: int, max_size: int | None) -> int:
@@ -337,8 +338,8 @@ def _pick(costs: tuple[torch.Tensor, torch.Tensor, _Sample | _States], index: in
     return cost[index:index + 1], part[index:index + 1], sample.pick(index)
 
 
-def _compare(before: tuple[torch.Tensor, torch.Tensor, _Sample], after: tuple[torch.Tensor, torch.Tensor, _Sample]
-             ) -> list[tuple[float, float, int]]:
+def _compare(before: tuple[torch.Tensor, torch.Tensor, _Sample | _States],
+             after: tuple[torch.Tensor, torch.Tensor, _Sample | _States]) -> list[tuple[float, float, int]]:
     """For each state of ``after`` (:func:`_costs`), the mean costs before (one state) and after over the pixels
     taking part in both, and how many those are: sums in float64 on the pixels' device, read back at once. A state
     that keeps fewer than :data:`KEPT_SHARE` of the pixels taking part before costs infinity."""
