@@ -11,9 +11,9 @@ there; its bilinear weights are taken from its pixel directly (the tensor code g
 normalised grid and back) and are float64 (numba widens a float32 less an integer), and with them the samples,
 residuals, costs and rows, rounded to float32 where they are written; the rows carry the root of their Huber weight
 (the tensor code weights one side of the product). So the figures agree to float32 rounding, not to the bit
-(``tests/test_direct_alignment.py``). The loops run in the
-calling thread (``endoflow/compiled.py``): split over two threads beside torch's, they gained 4 % at 480 px and took
-1.7 times as long at 64 px (``benchmarks/bench_tracker.py`` with a trained model's depth).
+(``tests/test_direct_alignment.py``). The loops run in the calling thread (``endoflow/compiled.py``): split over
+two threads beside torch's, they gained 4 % at 480 px and took 1.7 times as long at 64 px
+(``benchmarks/bench_tracker.py`` with a trained model's depth).
 """
 
 from __future__ import annotations
