@@ -36,9 +36,14 @@ def test_the_real_sample_reads_as_one_sequence_with_its_frames_depth_poses_and_p
     np.testing.assert_allclose(sequence.K, [[camera.a0, 0, camera.cx], [0, camera.a0, camera.cy], [0, 0, 1]])
     # pose.txt line 1, column-major, mm -> cm
     np.testing.assert_allclose(sequence.pose(0)[:3, 3], [5.52977, 3.93949, -10.9741])
+    # pose.txt's six significant digits leave its rotations orthonormal to about 1.5e-6: the reader makes them
+    # exact, which trajectory tools check to 1e-6 (evo refused the sample's path before)
     rotations = sequence.poses[:, :3, :3]
     np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rotations.shape),
-                               atol=1e-5)
+                               atol=1e-12)
+    assert np.linalg.det(rotations) == pytest.approx(np.ones(len(rotations)), abs=1e-12)
+    as_written = np.loadtxt(SEQUENCE / "pose.txt", delimiter=",")[sequence.frame_ids].reshape(-1, 4, 4)
+    np.testing.assert_allclose(rotations, as_written.transpose(0, 2, 1)[:, :3, :3], atol=2e-6)
     frame = sequence.frame(0)
     assert frame.rgb.shape == (1080, 1350, 3) and frame.depth_cm.dtype == np.float32
 
@@ -103,6 +108,20 @@ def test_a_tiny_layout_reads_in_cm_with_depth_0_where_the_fisheye_sees_nothing(t
     assert depth[15, 20] == pytest.approx(20000 / 65535 * 10, rel=1e-6)
 
 
+
+def test_rotations_rounded_in_the_file_are_read_as_exact_rotations(tmp_path: Path):
+    folder = write_sequence(tmp_path)
+    angle = np.radians(0.4)
+    rounded = np.round(np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]), 6)
+    pose = np.eye(4)
+    pose[:3, :3] = rounded
+    (folder / "pose.txt").write_text(("{}\n".format(",".join(str(v) for v in pose.T.ravel()))) * 3)
+    rotations = read_poses(folder / "pose.txt", [0, 1, 2], [])[:, :3, :3]
+    assert np.abs(rounded.T @ rounded - np.eye(3)).max() > 1e-7  # the file's rotation, as written, is not exact
+    np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (3, 3, 3)),
+                               atol=1e-14)
+    np.testing.assert_allclose(rotations, np.broadcast_to(rounded, (3, 3, 3)), atol=1e-6)
+
 @pytest.mark.parametrize("damage, message", [
     (lambda folder: (folder.parent / "calibration" / "cfhq190l_omnidirectional_values.txt").unlink(),
      "calibration not found"),
@@ -114,6 +133,11 @@ def test_a_tiny_layout_reads_in_cm_with_depth_0_where_the_fisheye_sees_nothing(t
     (lambda folder: (folder / "pose.txt").write_text("1,0,0,5,0,1,0,0,0,0,1,0,0,0,0,1\n" * 3),
      "not column-major"),
     (lambda folder: (folder / "pose.txt").write_text("1,0,0\n" * 3), "line 1: expected 16 comma-separated numbers"),
+    # a rotation block scaled by 1.01, and one mirrored: no rotation, whatever the file's rounding
+    (lambda folder: (folder / "pose.txt").write_text("1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1\n"
+                                                     "1.01,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1\n"
+                                                     "-1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1\n"),
+     r"frame\(s\) 1, 2: the 3x3 block is not a rotation \(R\^T R differs from the identity by up to 0.02"),
 ])
 def test_bad_input_is_refused_naming_the_file(tmp_path: Path, damage, message):
     folder = write_sequence(tmp_path)

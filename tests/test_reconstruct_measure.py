@@ -34,6 +34,7 @@ from endoflow.reconstruction.measure import (
 )
 from endoflow.synth.writers import synthesize_layout
 from tests.module_temp import ModuleTemp
+from tests.samples import C3VD_SAMPLE
 from tests.small_model import small_model_params
 
 SIZE = 64
@@ -93,7 +94,7 @@ def write_ground_truth_as_reconstruction(source: DatasetFrames, out: Path) -> tu
         "frame_range": {"start": 0, "stop": None, "stride": 1}, "size": SIZE, "K": K.tolist(),
         "depth_unit_cm": UNIT_CM, "frames_per_second": 10.0,
         "tsdf": {"voxel_cm": volume.voxel_cm, "trunc_cm": volume.trunc_cm},  # in its own unit, as it fused
-        "ground_truth_scale": {"median": s, "spread": 0.0, "frames": FRAMES}})
+        "ground_truth_scale": {"median": s, "spread": 0.0, "frames": len(poses)}})
     return R, t, s
 
 
@@ -121,6 +122,19 @@ def test_ground_truth_in_another_frame_and_scale_measures_as_perfect(measured) -
     assert surface["accuracy_median"] == pytest.approx(floor["accuracy_median"], abs=voxel)
     assert surface["completeness_ratio"] > 0.95
 
+
+
+@pytest.mark.skipif(not C3VD_SAMPLE.is_dir(), reason=f"real C3VD sample not found at {C3VD_SAMPLE}")
+def test_the_real_c3vd_sample_as_its_own_reconstruction_measures_as_perfect(params: Params, tmp_path: Path) -> None:
+    """Real registered poses (pose.txt, rotations rounded to six digits) through the same protocol: the path of the
+    ground truth, in another frame and scale, is recovered."""
+    source = DatasetFrames(C3VD_SAMPLE, "cecum_t1_a", params)
+    _, _, s = write_ground_truth_as_reconstruction(source, tmp_path)
+    result = measure_reconstruction(source, tmp_path, baselines())
+    model = result["path"]["model"]
+    assert result["frames"] == 10 and model["scale"] == pytest.approx(s, rel=1e-6)
+    assert model["ate_rmse"] < 1e-5 and model["rpe_trans"] < 1e-5 and model["rpe_rot"] < 1e-3
+    assert result["surface"]["model"]["completeness_ratio"] > 0.9
 
 def test_the_floor_is_within_a_voxel_and_the_trivial_baselines_are_worse(measured) -> None:
     result, _ = measured

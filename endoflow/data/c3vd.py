@@ -27,14 +27,18 @@ import numpy as np
 from endoflow.config import C3VDConfig
 from endoflow.data.base import DatasetReader, Sequence
 from endoflow.data.imageio import image_size, read_gray16, read_rgb
-from endoflow.data.layout import natural_key, numbered_files, report_frame_gaps, report_non_finite_rows, sized_loader
+from endoflow.data.layout import (natural_key, numbered_files, report_frame_gaps, report_non_finite_rows, shown_numbers,
+                                  sized_loader)
 from endoflow.errors import DataFormatError
+from endoflow.geometry.pose import nearest_rotation
 
 COLOR_PATTERN = r"(\d+)_color\.png"
 DEPTH_PATTERN = r"(\d+)_depth\.tiff"
 POSE_FILE = "pose.txt"
 DEPTH_FULL_SCALE_CM = 10.0  # 65535 counts are 100 mm
 MM_PER_CM = 10.0
+# |R^T R - I| beyond this is a damaged pose, not the rounding of pose.txt's six significant digits (1.5e-6)
+ROTATION_TOLERANCE = 1e-4
 CALIBRATION_FIELDS = ("width", "height", "cx", "cy", "a0", "a2", "a3", "a4", "e", "f", "g")
 
 
@@ -202,5 +206,24 @@ def read_poses(path: Path, frame_ids: list[int], problems: list[str]) -> np.ndar
     bottom = poses[:, 3]
     if not np.allclose(bottom[np.isfinite(bottom).all(axis=1)], [0, 0, 0, 1], atol=1e-6):
         raise DataFormatError(path, "a pose's last row is not 0 0 0 1: the file is not column-major 4x4 transforms")
+    poses[:, :3, :3] = _rotations_made_exact(path, poses[:, :3, :3], frame_ids)
     poses[:, :3, 3] /= MM_PER_CM
     return poses
+
+
+def _rotations_made_exact(path: Path, rotations: np.ndarray, frame_ids: list[int]) -> np.ndarray:
+    """Each finite rotation of ``pose.txt`` projected onto the nearest rotation, or an error naming the frames
+    whose matrix is no rotation. The file's six significant digits leave its rotations orthonormal to about
+    1.5e-6, which trajectory tools (``evo``: 1e-6) refuse as a rotation."""
+    finite = np.isfinite(rotations).all(axis=(1, 2))
+    gram_error = np.abs(np.swapaxes(rotations, 1, 2) @ rotations - np.eye(3)).max(axis=(1, 2))
+    bad = finite & ((gram_error > ROTATION_TOLERANCE) | (np.linalg.det(rotations) < 0))
+    if bad.any():
+        frames = [frame_ids[i] for i in np.flatnonzero(bad)]
+        raise DataFormatError(path, f"frame(s) {shown_numbers(frames)}: the 3x3 block is not a rotation "
+                                    f"(R^T R differs from the identity by up to {gram_error[bad].max():.2g}, at "
+                                    f"most {ROTATION_TOLERANCE:g} expected, and its determinant must be +1)")
+    exact = rotations.copy()
+    for i in np.flatnonzero(finite):
+        exact[i] = nearest_rotation(rotations[i])
+    return exact
