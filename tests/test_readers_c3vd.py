@@ -4,6 +4,7 @@ undistortion to a pinhole, and every bad input named."""
 from __future__ import annotations
 
 import shutil
+import warnings
 from pathlib import Path
 
 import cv2
@@ -108,19 +109,37 @@ def test_a_tiny_layout_reads_in_cm_with_depth_0_where_the_fisheye_sees_nothing(t
     assert depth[15, 20] == pytest.approx(20000 / 65535 * 10, rel=1e-6)
 
 
+def pose_file_lines(poses: list[np.ndarray]) -> str:
+    """pose.txt's layout: each 4x4 column by column, its numbers with six significant digits as C3VD writes them."""
+    return "".join(",".join(f"{v:g}" for v in pose.T.ravel()) + "\n" for pose in poses)
+
 
 def test_rotations_rounded_in_the_file_are_read_as_exact_rotations(tmp_path: Path):
     folder = write_sequence(tmp_path)
-    angle = np.radians(0.4)
-    rounded = np.round(np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]), 6)
+    axis = np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81])
     pose = np.eye(4)
-    pose[:3, :3] = rounded
-    (folder / "pose.txt").write_text(("{}\n".format(",".join(str(v) for v in pose.T.ravel()))) * 3)
+    pose[:3, :3] = cv2.Rodrigues(axis * np.radians(67.0))[0]  # its rounding leaves R^T R 1.5e-6 off
+    (folder / "pose.txt").write_text(pose_file_lines([pose] * 3))
+    as_written = np.loadtxt(folder / "pose.txt", delimiter=",")[0].reshape(4, 4).T[:3, :3]
+    assert np.abs(as_written.T @ as_written - np.eye(3)).max() > 1e-6  # beyond what evo accepts as a rotation
     rotations = read_poses(folder / "pose.txt", [0, 1, 2], [])[:, :3, :3]
-    assert np.abs(rounded.T @ rounded - np.eye(3)).max() > 1e-7  # the file's rotation, as written, is not exact
     np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (3, 3, 3)),
                                atol=1e-14)
-    np.testing.assert_allclose(rotations, np.broadcast_to(rounded, (3, 3, 3)), atol=1e-6)
+    np.testing.assert_allclose(rotations, np.broadcast_to(as_written, (3, 3, 3)), atol=2e-6)
+
+
+def test_a_frame_without_a_pose_is_reported_and_the_others_made_exact_without_warnings(tmp_path: Path):
+    folder = write_sequence(tmp_path)
+    lines = pose_file_lines([np.eye(4)] * 3).splitlines()
+    lines[1] = ",".join(["nan"] * 15 + ["1"])
+    (folder / "pose.txt").write_text("\n".join(lines) + "\n")
+    problems: list[str] = []
+    with warnings.catch_warnings(), pytest.warns(UserWarning, match=r"non-finite pose values .* \(1\)"):
+        warnings.simplefilter("error", RuntimeWarning)  # no stray 'invalid value' from the NaN block
+        poses = read_poses(folder / "pose.txt", [0, 1, 2], problems)
+    assert len(problems) == 1 and "no pose" in problems[0]
+    assert np.isnan(poses[1, :3, :3]).all() and (poses[[0, 2], :3, :3] == np.eye(3)).all()
+
 
 @pytest.mark.parametrize("damage, message", [
     (lambda folder: (folder.parent / "calibration" / "cfhq190l_omnidirectional_values.txt").unlink(),
@@ -137,7 +156,8 @@ def test_rotations_rounded_in_the_file_are_read_as_exact_rotations(tmp_path: Pat
     (lambda folder: (folder / "pose.txt").write_text("1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1\n"
                                                      "1.01,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1\n"
                                                      "-1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1\n"),
-     r"frame\(s\) 1, 2: the 3x3 block is not a rotation \(R\^T R differs from the identity by up to 0.02"),
+     r"the 3x3 block is not a rotation: frame\(s\) 1: R\^T R differs from the identity by up to 0.02 \(at most "
+     r"0.0001 expected\); frame\(s\) 2: determinant negative \(a mirror\)"),
 ])
 def test_bad_input_is_refused_naming_the_file(tmp_path: Path, damage, message):
     folder = write_sequence(tmp_path)

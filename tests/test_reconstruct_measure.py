@@ -123,7 +123,6 @@ def test_ground_truth_in_another_frame_and_scale_measures_as_perfect(measured) -
     assert surface["completeness_ratio"] > 0.95
 
 
-
 @pytest.mark.skipif(not C3VD_SAMPLE.is_dir(), reason=f"real C3VD sample not found at {C3VD_SAMPLE}")
 def test_the_real_c3vd_sample_as_its_own_reconstruction_measures_as_perfect(params: Params, tmp_path: Path) -> None:
     """Real registered poses (pose.txt, rotations rounded to six digits) through the same protocol: the path of the
@@ -135,6 +134,7 @@ def test_the_real_c3vd_sample_as_its_own_reconstruction_measures_as_perfect(para
     assert result["frames"] == 10 and model["scale"] == pytest.approx(s, rel=1e-6)
     assert model["ate_rmse"] < 1e-5 and model["rpe_trans"] < 1e-5 and model["rpe_rot"] < 1e-3
     assert result["surface"]["model"]["completeness_ratio"] > 0.9
+
 
 def test_the_floor_is_within_a_voxel_and_the_trivial_baselines_are_worse(measured) -> None:
     result, _ = measured

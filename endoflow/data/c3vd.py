@@ -37,7 +37,8 @@ DEPTH_PATTERN = r"(\d+)_depth\.tiff"
 POSE_FILE = "pose.txt"
 DEPTH_FULL_SCALE_CM = 10.0  # 65535 counts are 100 mm
 MM_PER_CM = 10.0
-# |R^T R - I| beyond this is a damaged pose, not the rounding of pose.txt's six significant digits (1.5e-6)
+# R^T R off the identity by more than this in any element is a damaged pose, not the rounding of pose.txt's six
+# significant digits (up to 1.5e-6 there)
 ROTATION_TOLERANCE = 1e-4
 CALIBRATION_FIELDS = ("width", "height", "cx", "cy", "a0", "a2", "a3", "a4", "e", "f", "g")
 
@@ -213,17 +214,24 @@ def read_poses(path: Path, frame_ids: list[int], problems: list[str]) -> np.ndar
 
 def _rotations_made_exact(path: Path, rotations: np.ndarray, frame_ids: list[int]) -> np.ndarray:
     """Each finite rotation of ``pose.txt`` projected onto the nearest rotation, or an error naming the frames
-    whose matrix is no rotation. The file's six significant digits leave its rotations orthonormal to about
-    1.5e-6, which trajectory tools (``evo``: 1e-6) refuse as a rotation."""
-    finite = np.isfinite(rotations).all(axis=(1, 2))
-    gram_error = np.abs(np.swapaxes(rotations, 1, 2) @ rotations - np.eye(3)).max(axis=(1, 2))
-    bad = finite & ((gram_error > ROTATION_TOLERANCE) | (np.linalg.det(rotations) < 0))
-    if bad.any():
-        frames = [frame_ids[i] for i in np.flatnonzero(bad)]
-        raise DataFormatError(path, f"frame(s) {shown_numbers(frames)}: the 3x3 block is not a rotation "
-                                    f"(R^T R differs from the identity by up to {gram_error[bad].max():.2g}, at "
-                                    f"most {ROTATION_TOLERANCE:g} expected, and its determinant must be +1)")
+    whose matrix is no rotation (frames without a pose are left as they are). The file's six significant digits
+    leave its rotations orthonormal only to about 1.5e-6, and the relative rotations composed from them further
+    off: trajectory tools refuse those (``evo`` checks to 1e-6)."""
+    finite = np.flatnonzero(np.isfinite(rotations).all(axis=(1, 2)))
+    known = rotations[finite]
+    gram_error = np.abs(np.swapaxes(known, 1, 2) @ known - np.eye(3)).max(axis=(1, 2))
+    stretched, mirrored = gram_error > ROTATION_TOLERANCE, np.linalg.det(known) < 0
+    problems = []
+    if stretched.any():
+        problems.append(f"frame(s) {shown_numbers([frame_ids[i] for i in finite[stretched]])}: R^T R differs from "
+                        f"the identity by up to {gram_error[stretched].max():.2g} (at most {ROTATION_TOLERANCE:g} "
+                        f"expected)")
+    if mirrored.any():
+        problems.append(f"frame(s) {shown_numbers([frame_ids[i] for i in finite[mirrored]])}: determinant "
+                        f"negative (a mirror)")
+    if problems:
+        raise DataFormatError(path, "the 3x3 block is not a rotation: " + "; ".join(problems))
     exact = rotations.copy()
-    for i in np.flatnonzero(finite):
+    for i in finite:
         exact[i] = nearest_rotation(rotations[i])
     return exact
