@@ -314,6 +314,18 @@ def test_chain_step_is_the_inverse_step_composed_and_stays_rigid():
     assert np.linalg.det(rotation) == pytest.approx(1.0) and np.abs(rotation - step[:3, :3]).max() < 1e-3
 
 
+def test_orthonormality_error_is_zero_for_rotations_and_mirrors_and_grows_with_a_stretch():
+    from endoflow.geometry.pose import orthonormality_error
+
+    rotation = axis_angle_to_matrix(torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64)).numpy()
+    mirror = np.diag([-1.0, 1.0, 1.0])
+    stretched = np.diag([1.01, 1.0, 1.0])
+    errors = orthonormality_error(np.stack([rotation, mirror, stretched]))
+    assert errors.shape == (3,) and errors[0] < 1e-15 and errors[1] == 0
+    assert errors[2] == pytest.approx(1.01 ** 2 - 1)
+    assert orthonormality_error(stretched).shape == ()  # one matrix: one number
+
+
 def test_nearest_rigid_keeps_a_rigid_pose_and_makes_a_shrunken_rotation_rigid_again():
     from endoflow.geometry.pose import nearest_rigid
 

@@ -30,7 +30,7 @@ from endoflow.data.imageio import image_size, read_gray16, read_rgb
 from endoflow.data.layout import (natural_key, numbered_files, report_frame_gaps, report_non_finite_rows, shown_numbers,
                                   sized_loader)
 from endoflow.errors import DataFormatError
-from endoflow.geometry.pose import nearest_rotation
+from endoflow.geometry.pose import nearest_rotation, orthonormality_error
 
 COLOR_PATTERN = r"(\d+)_color\.png"
 DEPTH_PATTERN = r"(\d+)_depth\.tiff"
@@ -219,7 +219,7 @@ def _rotations_made_exact(path: Path, rotations: np.ndarray, frame_ids: list[int
     off: trajectory tools refuse those (``evo`` checks to 1e-6)."""
     finite = np.flatnonzero(np.isfinite(rotations).all(axis=(1, 2)))
     known = rotations[finite]
-    gram_error = np.abs(np.swapaxes(known, 1, 2) @ known - np.eye(3)).max(axis=(1, 2))
+    gram_error = orthonormality_error(known)
     stretched, mirrored = gram_error > ROTATION_TOLERANCE, np.linalg.det(known) < 0
     problems = []
     if stretched.any():

@@ -14,7 +14,8 @@ from typing import Optional
 import numpy as np
 
 from endoflow.errors import DataFormatError
-from endoflow.geometry.pose import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix, relative_pose
+from endoflow.geometry.pose import (matrix_to_quaternion_xyzw, orthonormality_error, quaternion_xyzw_to_matrix,
+                                    relative_pose)
 from endoflow.io import files_only, staged_directory, write_json, write_text
 
 # Largest |R^T R - I| entry (and |last row - (0, 0, 0, 1)|) accepted as rigid: float32 rotations, such as the
@@ -237,7 +238,7 @@ def _rigidity_problem(pose: np.ndarray) -> Optional[str]:
     if bottom > ROTATION_TOLERANCE:
         return f"its last row {pose[3].tolist()} is not 0 0 0 1"
     rotation = pose[:3, :3]
-    error = np.max(np.abs(rotation.T @ rotation - np.eye(3)))
+    error = float(orthonormality_error(rotation))
     if error > ROTATION_TOLERANCE:
         return f"its rotation is not orthonormal (max |R^T R - I| = {error:.3g} > {ROTATION_TOLERANCE:g})"
     if np.linalg.det(rotation) < 0:

@@ -116,6 +116,12 @@ def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
+def orthonormality_error(rotations: np.ndarray) -> np.ndarray:
+    """``max |R^T R - I|`` of each ``[..., 3, 3]`` matrix: 0 for a rotation (and for a reflection; the determinant
+    tells them apart)."""
+    return np.abs(np.swapaxes(rotations, -1, -2) @ rotations - np.eye(3)).max(axis=(-2, -1))
+
+
 def chain_step(T_world_prev: np.ndarray, T_cur_prev: np.ndarray) -> np.ndarray:
     """``T_world_cur = T_world_prev @ inv(T_cur_prev)``: the next camera-to-world pose of a path from the
     relative pose a pose network predicts, with the step's and the result's rotations kept rigid
