@@ -601,6 +601,13 @@ class RefineConfig(Section):
     keyframe_every: Count = setting(6, "a new keyframe after this many frames at most", unit="frames")
     min_overlap: Number = setting(0.5, "... or once a smaller share of the keyframe's pixels still takes part",
                                   ge=0, le=1)
+    # off: with the model's depth the chained factors drift while the camera advances (to 0.59 over SimCol O1), though
+    # they take the real C3VD sample's drift from 1.56 to 1.09 (seed 0; docs/results.md, "The depth rescaled to its
+    # keyframes")
+    depth_scale: bool = setting(False, "each frame's depth rescaled, once the frame is aligned, to agree with its "
+                                       "keyframe's seen from there, chained from the first frame: the depth and "
+                                       "the path in one scale along the sequence (reconstruct fuses and writes "
+                                       "the rescaled depth)")
 
 
 # -------------------------------------------------------------------------------------------- tracking

@@ -213,6 +213,29 @@ def test_the_refined_path_is_scored_with_its_orientations_smoothed_as_reconstruc
     assert max(smoothed["rte"], as_aligned["rte"]) < 0.002 * 0.1  # 0.2 % of a step: the positions are as aligned
 
 
+def test_the_refined_paths_scale_is_compared_with_the_depth_as_the_tracker_rescaled_it():
+    """With ``refine.depth_scale`` the tracker multiplies each frame's depth by a factor, and the refined path has
+    the depth's scale so rescaled: its scale figures divide each frame's ratio of GT over predicted depth by that
+    factor; the network's keep the depth as predicted. The truth advances 0.1 a frame, both paths 0.05, the ground
+    truth is twice the predicted depth, and the tracker doubled the depth from the fifth frame on."""
+    truth = [rigid_pose((0, 0, 0), (0, 0, 0.1 * i)) for i in range(9)]
+    half = rigid_pose((0, 0, 0), (0, 0, 0.05))
+    seq = SequenceResult("S1", "SyntheticColon_I", frames=list(range(9)), poses=truth,
+                         predicted_relative=[half] * 8, refined=[rigid_pose((0, 0, 0), (0, 0, 0.05 * i))
+                                                                 for i in range(9)],
+                         depth_ratios=[2.0] * 9, depth_scales=[1.0] * 4 + [2.0] * 5)
+
+    def scale_figures(method: str) -> dict[str, float]:
+        rows, _ = pose_sequence_scores(seq, oracle_baselines())
+        return {row["metric"]: row["value"] for row in rows if row["method"] == method and row["protocol"] == "scale"}
+
+    assert scale_figures("model") == pytest.approx({"path_over_depth": 1.0, "depth_drift": 1.0})
+    # rescaled ratios 2, 2, 2, 2, 1, 1, 1, 1, 1: median 1, the last quarter's half the first's
+    assert scale_figures("refined") == pytest.approx({"path_over_depth": 2.0, "depth_drift": 0.5})
+    seq.depth_scales = [1.0] * 9  # the setting off: the refined path's figures are the network's
+    assert scale_figures("refined") == pytest.approx(scale_figures("model"))
+
+
 def test_the_refined_path_is_smoothed_apart_on_either_side_of_missing_frames():
     """After missing frames the tracker starts anew from the identity: the smoothing never reaches across."""
     from endoflow.evaluation.evaluate import refined_path

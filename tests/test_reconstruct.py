@@ -579,6 +579,25 @@ def test_the_refined_path_written_is_the_aligned_one_with_its_orientations_smoot
     np.testing.assert_array_equal(path[:, :3, 3], as_aligned[:, :3, 3])  # the positions are the tracker's
 
 
+def test_with_the_depth_rescaled_to_its_keyframes_the_depth_written_is_the_networks_times_the_trackers_factor(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path) -> None:
+    """``refine.depth_scale``: the first frame keeps its depth, the others are written (and fused) times the factor
+    the tracker fitted, and the summary says the factors' range; without it nothing is rescaled."""
+    from endoflow.geometry.direct_alignment import tracker_settings
+
+    settings = tracker_settings(params.refine)
+    rescaled = run(scene, model_file, tmp_path / "rescaled", params, "S1", refine=replace(settings, depth_scale=True))
+    plain = run(scene, model_file, tmp_path / "plain", params, "S1", refine=settings)
+    assert plain["path"]["depth_rescaled"] is None
+    factors = rescaled["path"]["depth_rescaled"]
+    assert factors["min"] <= factors["last"] <= factors["max"] and factors["min"] != factors["max"]
+    unit = json.loads((tmp_path / "plain" / "depth" / "depth.json").read_text())["unit_cm"]
+    np.testing.assert_array_equal(depth_of(tmp_path / "rescaled", 0), depth_of(tmp_path / "plain", 0))
+    last = FRAMES - 1
+    np.testing.assert_allclose(depth_of(tmp_path / "rescaled", last),
+                               depth_of(tmp_path / "plain", last) * factors["last"], atol=unit * (1 + factors["last"]))
+
+
 def test_the_black_border_of_a_circular_field_of_view_gets_no_depth(scene: Path, model_file: Path, params: Params,
                                                                     tmp_path: Path) -> None:
     folder = image_folder(scene, params, tmp_path / "frames")

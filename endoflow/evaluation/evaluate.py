@@ -84,6 +84,9 @@ class SequenceResult:
     # per frame, T_world_cam of the refined path as the tracker aligned it (endoflow.geometry.direct_alignment),
     # from an identity first pose; scored with its orientations smoothed (refined_path)
     refined: list[np.ndarray] = field(default_factory=list)
+    # per frame, the tracker's factor on its depth (refine.depth_scale; 1 without it): the refined path's scale is
+    # the depth's so rescaled
+    depth_scales: list[float] = field(default_factory=list)
 
 
 # ------------------------------------------------------------------------------------------ selection
@@ -318,6 +321,7 @@ class SequenceEvaluator:
             start = np.eye(4) if step is None else result.refined[-1] @ step
             result.refined.append(self.tracker.track(image, torch.from_numpy(depth)[None],
                                                      torch.from_numpy(start)).numpy())
+            result.depth_scales.append(self.tracker.depth_scale)
 
     def _camera_K(self, frame: FrameRecord) -> torch.Tensor:
         """The frame's K, or where it is assumed (a camera nobody calibrated) its camera's learned one."""
@@ -453,12 +457,21 @@ def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines, rotat
             rows += score_rows(seq.name, frame, method, "pose_simcol",
                                {"rte": result["per_frame"]["rte"][i], "rot": result["per_frame"]["rot"][i]})
         trajectory[method] = result["trajectory"][:, :3, 3]
-    ratios = [ratio for ratio in seq.depth_ratios[start:stop] if ratio is not None]
-    for method in ("model", "refined") if ratios else ():
-        if method in predicted and np.any(predicted[method][:, :3, 3]):
+    for method in ("model", "refined"):
+        ratios = depth_ratios(seq, start, stop, rescaled=method == "refined")
+        if ratios and method in predicted and np.any(predicted[method][:, :3, 3]):
             rows += score_rows(seq.name, None, method, "scale",
                                metrics.scale_consistency(gt_poses, predicted[method], ratios))
     return rows, trajectory
+
+
+def depth_ratios(seq: SequenceResult, start: int, stop: int, rescaled: bool) -> list[float]:
+    """The per-frame median ratios of GT over predicted depth of frames ``start:stop`` that have GT depth; with
+    ``rescaled``, of the depth as the tracker rescaled it (``refine.depth_scale``), whose scale the refined path
+    has."""
+    scales = seq.depth_scales if rescaled and seq.depth_scales else [1.0] * len(seq.depth_ratios)
+    return [ratio / scale for ratio, scale in zip(seq.depth_ratios[start:stop], scales[start:stop])
+            if ratio is not None]
 
 
 def refined_path(seq: SequenceResult, rotation_smoothing: float) -> np.ndarray:

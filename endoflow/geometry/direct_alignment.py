@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from endoflow.config import RefineConfig
 from endoflow.geometry import alignment_loops
 from endoflow.geometry.camera import backproject, intrinsics_inverse, scale_intrinsics
+from endoflow.geometry.depth_scale import depth_scale_to_keyframe
 from endoflow.geometry.warp import sampling_grid
 from endoflow.geometry.pose import invert_pose, nearest_rigid, pose_vec_to_matrix
 from endoflow.shapes import check_shape
@@ -454,12 +455,14 @@ class TrackerSettings:
     """The alignment of each frame, and when a frame becomes the keyframe (``refine.keyframe_every``,
     ``refine.min_overlap``); the smoothing of the refined path's orientations (``refine.rotation_smoothing``), which
     the path's users apply to what the tracker returns (:mod:`endoflow.geometry.path_smoothing`): the tracker itself
-    goes on from the poses as aligned."""
+    goes on from the poses as aligned; whether each frame's depth is rescaled to its keyframe's
+    (``refine.depth_scale``, :mod:`endoflow.geometry.depth_scale`)."""
 
     alignment: AlignmentSettings = AlignmentSettings()
     keyframe_every: int = REFINE.keyframe_every
     min_overlap: float = REFINE.min_overlap
     rotation_smoothing: float = REFINE.rotation_smoothing
+    depth_scale: bool = REFINE.depth_scale
 
 
 def tracker_settings(cfg: RefineConfig) -> TrackerSettings:
@@ -467,13 +470,17 @@ def tracker_settings(cfg: RefineConfig) -> TrackerSettings:
     alignment = AlignmentSettings(levels=cfg.levels, max_size=cfg.max_size, iterations=cfg.iterations, huber=cfg.huber,
                                   light_falloff=cfg.light_falloff, rotation_prior=cfg.rotation_prior)
     return TrackerSettings(alignment, keyframe_every=cfg.keyframe_every, min_overlap=cfg.min_overlap,
-                           rotation_smoothing=cfg.rotation_smoothing)
+                           rotation_smoothing=cfg.rotation_smoothing, depth_scale=cfg.depth_scale)
 
 
 class KeyframeTracker:
     """Camera-to-world poses of a frame sequence, each aligned to the current keyframe (the last frame made one)
     from a start the caller gives (the pose network's chain): :func:`align_to_keyframe`. Translations are in the
-    keyframes' depth unit, so the path takes the depth's scale."""
+    keyframes' depth unit, so the path takes the depth's scale. With ``depth_scale`` each frame's depth is brought to
+    its keyframe's once the frame is aligned (:func:`~endoflow.geometry.depth_scale.depth_scale_to_keyframe`; where
+    too little of the keyframe lands on it, the last frame's factor), and a keyframe keeps its depth so rescaled: the
+    whole sequence takes the first frame's scale. :attr:`depth_scale` is the factor on the last frame's depth, which
+    the caller applies to what it fuses and writes (1 without the setting)."""
 
     def __init__(self, K: torch.Tensor, settings: TrackerSettings = TrackerSettings()) -> None:
         check_shape("K", K, "3,3")
@@ -483,6 +490,7 @@ class KeyframeTracker:
         self.since_keyframe = 0
         self.keyframes = 0  # made so far
         self.last: Alignment | None = None
+        self.depth_scale = 1.0
 
     def track(self, rgb: torch.Tensor, depth: torch.Tensor, T_world_start: torch.Tensor) -> torch.Tensor:
         """``T_world_frame [4, 4]`` (float64) of the next frame (``rgb [3, H, W]`` in [0, 1], its depth
@@ -491,6 +499,7 @@ class KeyframeTracker:
         check_shape("T_world_start", T_world_start, "4,4")
         start = nearest_rigid(T_world_start.detach().to("cpu", torch.float64))
         if self.keyframe is None:
+            self.depth_scale = 1.0
             self._make_keyframe(rgb, depth, start)
             return start
         key_rgb, key_depth, T_world_key = self.keyframe
@@ -498,9 +507,12 @@ class KeyframeTracker:
         self.last = align_to_keyframe(key_rgb, key_depth, rgb, self.K, T_frame_key, self.settings.alignment)
         # rigid at every frame: otherwise rounding, compounded through keyframes, shrinks the rotations to nothing
         T_world_frame = nearest_rigid(T_world_key @ invert_pose(self.last.T_frame_key))
+        if self.settings.depth_scale:
+            fitted = depth_scale_to_keyframe(key_depth, depth, self.K, self.last.T_frame_key)
+            self.depth_scale = fitted if fitted is not None else self.depth_scale
         self.since_keyframe += 1
         if self.since_keyframe >= self.settings.keyframe_every or self.last.valid_share < self.settings.min_overlap:
-            self._make_keyframe(rgb, depth, T_world_frame)
+            self._make_keyframe(rgb, depth * self.depth_scale, T_world_frame)
         return T_world_frame
 
     def _make_keyframe(self, rgb: torch.Tensor, depth: torch.Tensor, T_world_frame: torch.Tensor) -> None:

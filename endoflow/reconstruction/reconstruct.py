@@ -170,6 +170,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
     # the tracker's path goes on from the poses as aligned; the path written has their orientations smoothed, which
     # holds each frame back until the frames its window reaches have been aligned
     network_chain, aligned_chain = Chain(), Chain()
+    depth_scales: list[float] = []  # per frame, the tracker's factor on its depth (refine.depth_scale)
     smoother: OrientationSmoother[TrackedFrame] = OrientationSmoother(
         options.refine.rotation_smoothing if options.refine is not None else 0.0)
     explained = PathPhotometry(K, record.baselines.mean_relative_pose, options.frames.stride, options.scale, device)
@@ -218,6 +219,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                             unit_float_images(torch.from_numpy(rgb).to(device).permute(2, 0, 1)),
                             torch.from_numpy(depth)[None].to(device),
                             torch.from_numpy(aligned_chain.next_start(T_cur_prev, options.scale))).cpu().numpy()
+                        depth_scales.append(tracker.depth_scale)
+                        depth = depth * np.float32(tracker.depth_scale)  # 1 unless refine.depth_scale
                     held = TrackedFrame(replace(frame, rgb=rgb), depth, network_pose)
                     for tracked, pose in smoother.push(aligned, held):
                         settle(tracked, pose)
@@ -257,7 +260,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             "field_of_view": {"share": float(valid.mean()), "frames_looked_at": FIELD_OF_VIEW_FRAMES},
             # a refined path's translations come from the keyframes' depth: it has the depth's scale
             "path": {"refined": tracker is not None, "scale_from": "depth" if tracker is not None else "pose network",
-                     **({"keyframes": tracker.keyframes, "rotation_smoothing_frames": smoother.sigma_frames}
+                     **({"keyframes": tracker.keyframes, "rotation_smoothing_frames": smoother.sigma_frames,
+                         "depth_rescaled": depth_scale_summary(depth_scales) if options.refine.depth_scale else None}
                         if tracker is not None else {}),
                      "photometric_error": explained.means()},
             **path.ground_truth_scale(),
@@ -595,6 +599,12 @@ class CameraPath:
             return {}
         return {"ground_truth_scale": {"median": float(np.median(self.depth_ratios)),
                                        "spread": float(np.std(self.depth_ratios)), "frames": len(self.depth_ratios)}}
+
+
+def depth_scale_summary(scales: list[float]) -> dict:
+    """What ``reconstruction.json`` says of the depth rescaled to its keyframes (``refine.depth_scale``): the
+    factors on the frames' depth (the first frame's is 1): their range and the last."""
+    return {"min": float(min(scales)), "max": float(max(scales)), "last": float(scales[-1])}
 
 
 def preview_range(depth: np.ndarray, model_cfg: ModelConfig, scale: float) -> tuple[float, float]:
