@@ -60,7 +60,7 @@ def test_a_turned_camera_is_answered_through_its_pose_not_its_pixels():
 
 def test_unknown_depth_on_either_side_does_not_count():
     frame = plane(2.0)
-    frame[:, :, : SIZE // 2] = 0  # the frame's left half unknown
+    frame[:, :, : 3 * SIZE // 4] = 0  # three quarters of the frame unknown: counted, they would set the median
     key = plane(4.0)
     key[:, : SIZE // 2] = 0  # the keyframe's top half unknown
     assert depth_scale_to_keyframe(key, frame, K, torch.eye(4, dtype=torch.float64)) == pytest.approx(2.0)
@@ -79,10 +79,15 @@ def test_too_few_points_landing_in_front_of_the_frame_give_no_factor():
 
 
 def test_points_landing_outside_the_frame_do_not_count():
-    # moved 2 sideways at 5 deep: 12 of the 32 columns land outside; the rest see the wall as the frame does
+    # moved 2 sideways at 5 deep: the keyframe's points move 12 columns left, its first 12 columns out of the frame
     T = torch.eye(4, dtype=torch.float64)
     T[0, 3] = -2.0
     assert depth_scale_to_keyframe(plane(5.0), plane(2.5), K, T) == pytest.approx(2.0)
+    # the frame's depth known only in its last 12 columns, where no point lands inside it (a negative column taken as
+    # an index from the right would land there)
+    right_only = plane(2.5)
+    right_only[:, :, : SIZE - 12] = 0
+    assert depth_scale_to_keyframe(plane(5.0), right_only, K, T) is None
 
 
 def test_bad_shapes_are_refused_with_the_argument_named():
