@@ -175,13 +175,14 @@ def build_parser() -> argparse.ArgumentParser:
     report.set_defaults(handler=_report)
 
     sweep = commands.add_parser("sweep", help="queue a study's configurations x seeds as DVC experiments and run "
-                                              "them (the paper's Table 3, the VAE or the motion study, with seed "
-                                              "statistics)")
+                                              "them (the paper's Table 3, the VAE, motion or mask study, with "
+                                              "seed statistics)")
     sweep.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default: 0 1 2)")
     sweep.add_argument("--study", choices=STUDIES, default="ablation",
                        help="ablation: the four configurations (default); vae: the full model without the warp's "
                             "sampling and with beta over decades (docs/method.md, 'What the VAE contributes'); "
-                            "motion: with mixed frame offsets, the depth consistency, both (docs/results.md)")
+                            "motion: with mixed frame offsets, the depth consistency, both; mask: without auto-masking and "
+                            "with it for the pose alone (docs/results.md)")
     sweep.add_argument("--no-start", dest="start", action="store_false",
                        help="only queue them (start later with `dvc queue start -j 1`)")
     sweep.set_defaults(handler=_sweep)

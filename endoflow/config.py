@@ -379,6 +379,11 @@ class LossConfig(Section):
     automask_pose: bool = setting(True, "with automask, the mask also withholds the pose's gradient (Monodepth2); "
                                         "false: the depth keeps the mask and the pose learns from every pixel's "
                                         "reprojection error (each warp made twice)")
+    # The lumen's far end barely moves between frames, so the unwarped neighbour explains it and the mask drops it
+    # from the depth's loss; trained so, the far depth comes out compressed (docs/results.md).
+    automask_depth: bool = setting(True, "with automask, the mask also withholds the depth's (and a learned K's) "
+                                         "gradient (Monodepth2); false: the pose keeps the mask and the depth learns "
+                                         "from every pixel's reprojection error (each warp made twice)")
     # Without the mask, the pose VAE's spread learns from every pixel too; the sampling noise is what holds the depth
     # at the metric scale (docs/method.md, "What the VAE contributes").
     automask_pose_spread: bool = setting(False, "with automask_pose false, the pose's sampling spread (the VAE's "

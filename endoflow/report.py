@@ -48,6 +48,8 @@ STUDY_SETTINGS = (
                  lambda value: "offsets " + "/".join(str(offset) for offset in value)),
     StudySetting("loss.geometry_weight", LossConfig().geometry_weight, lambda value: f"geometry {value:g}"),
     StudySetting("train.time_reversal", TrainConfig().time_reversal, lambda value: f"reversed {value:g}"),
+    StudySetting("loss.automask", LossConfig().automask, lambda value: "no automask"),
+    StudySetting("loss.automask_depth", LossConfig().automask_depth, lambda value: "depth unmasked"),
 )
 _HEADLINE_PROTOCOL = {metric: protocol for _, protocol, _, metric in HEADLINE}  # by the evaluation JSON's name
 # the seed statistics' figures: column title, protocol of the evaluation JSON (the headline figures' own, the
@@ -59,6 +61,7 @@ SEED_METRICS = {"abs_rel": ("Abs Rel", _HEADLINE_PROTOCOL["abs_rel"], "constant_
                 "ate": ("ATE (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity", ("model", "ate")),
                 "ate_local": ("ATE local (cm)", _HEADLINE_PROTOCOL["rte"], "constant_velocity", ("model", "ate_local")),
                 "step_corr": ("step corr (↑)", "pose_motion", "constant_velocity", ("model", "step_corr")),
+                "far_ratio": ("far GT/pred (1)", _HEADLINE_PROTOCOL["abs_rel"], None, ("model", "far_ratio")),
                 "path_over_depth": ("path / depth scale (1)", "scale", None, ("model", "path_over_depth")),
                 "depth_drift": ("depth scale drift (1)", "scale", None, ("model", "depth_drift")),
                 "refined_rte": ("refined RTE (cm)", "pose_simcol", "constant_velocity", ("refined", "rte")),

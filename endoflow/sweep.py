@@ -1,6 +1,7 @@
 """Studies as DVC experiments, each configuration with each seed, queued in DVC's experiment queue and run one
 after another by ``dvc queue start``: the paper's Table 3 (``ablation``: :data:`ABLATIONS`), the VAE study
-(``vae``: :data:`VAE_STUDY`) and the motion study (``motion``: :data:`MOTION_STUDY`).
+(``vae``: :data:`VAE_STUDY`), the motion study (``motion``: :data:`MOTION_STUDY`) and the mask study (``mask``:
+:data:`MASK_STUDY`).
 
 Each experiment reproduces the pipeline up to the ``evaluate`` stages (:data:`SWEEP_TARGET`), Table 3's
 metrics; reconstruction is left out (``dvc exp apply`` then ``dvc repro`` makes it for a chosen run).
@@ -40,7 +41,12 @@ CONSISTENCY = {"loss.geometry_weight": 0.5}
 REVERSAL = {"train.time_reversal": 0.25}
 MOTION_STUDY = (("motion-base", {}), ("motion-offsets", MIXED_OFFSETS), ("motion-geometry", CONSISTENCY),
                 ("motion-both", {**MIXED_OFFSETS, **CONSISTENCY}), ("motion-reversal25", REVERSAL))
-STUDIES = ("ablation", "vae", "motion")
+# The mask study (docs/results.md): auto-masking drops the far lumen from the depth's loss; the full model as it is,
+# without the mask, and with the mask kept for the pose alone.
+MASK_STUDY = (("mask-base", {}), ("mask-off", {"loss.automask": False}),
+              ("mask-pose-only", {"loss.automask_depth": False}))
+STUDIES = ("ablation", "vae", "motion", "mask")
+STUDY_CHANGES = {"vae": VAE_STUDY, "motion": MOTION_STUDY, "mask": MASK_STUDY}
 
 
 class SweepError(RuntimeError):
@@ -65,9 +71,8 @@ def study_configurations(study: str) -> list[tuple[str, dict[str, Any]]]:
     defaults = {setting.key: setting.default for setting in STUDY_SETTINGS}
     if study == "ablation":
         return [(name, {"model.latent_bank": bank, "model.pose_vae": vae, **defaults}) for name, bank, vae in ABLATIONS]
-    changes = VAE_STUDY if study == "vae" else MOTION_STUDY
     return [(name, {"model.latent_bank": True, "model.pose_vae": True, **defaults, **changed})
-            for name, changed in changes]
+            for name, changed in STUDY_CHANGES[study]]
 
 
 def _value(value: Any) -> str:

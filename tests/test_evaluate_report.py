@@ -24,7 +24,8 @@ def evaluation(abs_rel: float, rte: float) -> dict:
     return {
         "test_set": "simcol_12",
         "depth_paper": {"model": {"abs_rel": abs_rel, "sq_rel": 0.1, "rmse": 1.0, "rmse_log": 0.2, "l1": 0.5,
-                                  "a1": 0.8, "a2": 0.9, "a3": 0.95, "ratio": 1.25},
+                                  "a1": 0.8, "a2": 0.9, "a3": 0.95, "ratio": 1.25, "near_ratio": 0.9,
+                                  "far_ratio": 1.3},
                         "constant_depth": {"abs_rel": 0.5, "a1": 0.3}},
         "depth_simcol": {"model": {"l1": 0.4, "rel": 9.0, "rmse": 0.7}},
         "pose_simcol": {"model": {"ate": 2.0, "ate_local": 0.6, "rte": rte, "rot": 1.5},
@@ -88,8 +89,8 @@ def test_report_has_a_table_per_protocol_with_baselines_and_an_ablation_summary(
     assert "### Depth, paper protocol" in report and "### Depth, SimCol3D challenge protocol" in report
     rows = table_rows(report)
     assert ["workspace (bank on, VAE on)", "0.1234", "0.1000", "1.0000", "0.2000", "0.5000", "0.8000", "0.9000",
-            "0.9500", "1.2500"] in rows
-    assert ["baseline: constant depth", "0.5000", "–", "–", "–", "–", "0.3000", "–", "–", "–"] in rows
+            "0.9500", "1.2500", "0.9000", "1.3000"] in rows
+    assert ["baseline: constant depth", "0.5000", "–", "–", "–", "–", "0.3000", "–", "–", "–", "–", "–"] in rows
     assert ["baseline: constant velocity", "4.0000", "0.6000", "0.9000", "–"] in rows
     assert ["no-bank (bank off, VAE on)", "0.2000", "0.3000"] in table_rows(report.split("## Ablation summary")[1])
     assert "EndoSLAM protocol" not in report  # absent protocols get no empty table
@@ -121,7 +122,7 @@ def test_evaluation_summary_shows_the_model_beside_its_baselines_per_protocol():
                               "Pose, SimCol3D challenge protocol (medians)"]  # no EndoSLAM metrics in the result
     paper = sections["Depth, paper protocol (per-image median scaling, capped at 20 cm)"]
     assert paper[0] == ["method", "Abs Rel", "Sq Rel", "RMSE", "RMSE log", "L1", "δ<1.25", "δ<1.25²", "δ<1.25³",
-                        "Scale"]
+                        "Scale", "near GT/pred", "far GT/pred"]
     assert [row[:2] for row in paper[2:]] == [["model", "0.1234"], ["baseline: constant depth", "0.5000"]]
     pose = sections["Pose, SimCol3D challenge protocol (medians)"]
     assert pose[0] == ["method", "ATE (cm)", "ATE local (cm)", "RTE (cm)", "ROT (°)"]
@@ -157,15 +158,16 @@ def test_seed_statistics_give_mean_and_sd_per_configuration_and_mark_differences
     text = format_report(runs)
     section = text[text.index("### simcol_12"):text.index("### Pose against constant velocity")]
     rows = table_rows(section)
-    assert rows[0] == ["configuration", "seeds", "Abs Rel", "RTE (cm)", "ROT (°)", "ATE (cm)", "ATE local (cm)"]
+    assert rows[0] == ["configuration", "seeds", "Abs Rel", "RTE (cm)", "ROT (°)", "ATE (cm)", "ATE local (cm)",
+                       "far GT/pred (1)"]
     # full: Abs Rel 0.10, 0.12, 0.14 -> 0.12 ± 0.02; RTE 0.5, 0.7, 0.6 -> 0.6 ± 0.1
     assert rows[2] == ["full", "3", "0.1200 ± 0.0200", "0.6000 ± 0.1000", "1.5000 ± 0.0000", "2.0000 ± 0.0000",
-                       "0.6000 ± 0.0000"]
+                       "0.6000 ± 0.0000", "1.3000 ± 0.0000"]
     assert rows[3] == ["no-bank", "3", "0.2200 ± 0.0200", "0.6500 ± 0.1000", "1.5000 ± 0.0000", "2.0000 ± 0.0000",
-                       "0.6000 ± 0.0000"]
-    assert rows[4] == ["trivial baseline", "–", "0.5000", "0.9000", "–", "4.0000", "0.6000"]
+                       "0.6000 ± 0.0000", "1.3000 ± 0.0000"]
+    assert rows[4] == ["trivial baseline", "–", "0.5000", "0.9000", "–", "4.0000", "0.6000", "–"]
     # Abs Rel +0.10 > 0.02 + 0.02: beyond the spread; RTE +0.05 < 0.1 + 0.1: within it
-    assert rows[5] == ["no-bank - full", "3", "+0.1000 *", "+0.0500", "+0.0000", "+0.0000", "+0.0000"]
+    assert rows[5] == ["no-bank - full", "3", "+0.1000 *", "+0.0500", "+0.0000", "+0.0000", "+0.0000", "+0.0000"]
 
 
 def test_pose_is_compared_with_constant_velocity_beyond_the_seed_spread():
@@ -203,7 +205,8 @@ def test_the_sweep_queues_every_configuration_with_every_seed_naming_each_switch
     assert len(commands) == 12
     # the studies' settings too, at their defaults: the ablation does not inherit the workspace's
     defaults = ["-S", "model.pose_sample=true", "-S", "loss.kl_weight=1e-05", "-S", "preprocess.train_offsets=null",
-                "-S", "loss.geometry_weight=0.0", "-S", "train.time_reversal=0.0"]
+                "-S", "loss.geometry_weight=0.0", "-S", "train.time_reversal=0.0", "-S", "loss.automask=true",
+                "-S", "loss.automask_depth=true"]
     assert commands[0] == ["exp", "run", "--queue", "-n", "full-seed0", "-S", "model.latent_bank=true",
                            "-S", "model.pose_vae=true", *defaults, "-S", "seed=0", "evaluate"]
     assert commands[-1] == ["exp", "run", "--queue", "-n", "neither-seed2", "-S", "model.latent_bank=false",
@@ -227,8 +230,8 @@ def test_the_vae_study_queues_the_full_model_without_sampling_and_with_beta_over
     assert commands[0] == ["exp", "run", "--queue", "-n", "vae-mean-warp-seed0", "-S", "model.latent_bank=true",
                            "-S", "model.pose_vae=true", "-S", "model.pose_sample=false",
                            "-S", "loss.kl_weight=1e-05", "-S", "preprocess.train_offsets=null",
-                           "-S", "loss.geometry_weight=0.0", "-S", "train.time_reversal=0.0", "-S", "seed=0",
-                           "evaluate"]
+                           "-S", "loss.geometry_weight=0.0", "-S", "train.time_reversal=0.0",
+                           "-S", "loss.automask=true", "-S", "loss.automask_depth=true", "-S", "seed=0", "evaluate"]
     betas = [next(word for word in command if word.startswith("loss.kl_weight=")) for command in commands[:4]]
     assert betas == ["loss.kl_weight=1e-05", "loss.kl_weight=0.0", "loss.kl_weight=0.0001", "loss.kl_weight=0.001"]
     with pytest.raises(ValueError, match="study"):
@@ -249,7 +252,28 @@ def test_the_motion_study_queues_the_full_model_with_mixed_offsets_the_depth_con
                        ["preprocess.train_offsets=null", "loss.geometry_weight=0.0", "train.time_reversal=0.25"]]
 
 
-@pytest.mark.parametrize("study", ["ablation", "vae", "motion"])
+def test_the_mask_study_queues_the_full_model_without_auto_masking_and_with_it_for_the_pose_alone():
+    from endoflow.sweep import sweep_commands
+
+    commands = sweep_commands([0], study="mask")
+    names = [command[command.index("-n") + 1] for command in commands]
+    changed = [[word for word in command if word.startswith("loss.automask")] for command in commands]
+    assert names == ["mask-base-seed0", "mask-off-seed0", "mask-pose-only-seed0"]
+    assert changed == [["loss.automask=true", "loss.automask_depth=true"],
+                       ["loss.automask=false", "loss.automask_depth=true"],
+                       ["loss.automask=true", "loss.automask_depth=false"]]
+
+
+def test_mask_study_runs_are_named_by_their_mask():
+    def run(**loss) -> RunResults:
+        return RunResults("r", {"model": {"latent_bank": True, "pose_vae": True}, "loss": loss})
+
+    assert run(automask=True, automask_depth=True).configuration == "full"
+    assert run(automask=False).configuration == "full, no automask"
+    assert run(automask_depth=False).configuration == "full, depth unmasked"
+
+
+@pytest.mark.parametrize("study", ["ablation", "vae", "motion", "mask"])
 def test_the_sweeps_settings_as_dvc_writes_them_load_as_the_studys_values(tmp_path: Path, study: str):
     """`-S` as DVC applies it to the queued copy's params.yaml (Hydra's override grammar, written back by ruamel),
     then read by endoflow's config."""

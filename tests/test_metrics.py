@@ -70,6 +70,20 @@ def test_paper_protocol_clamps_the_scaled_prediction_to_20_cm():
     assert errors["l1"] == pytest.approx(10 / 3)
 
 
+def test_paper_protocol_shape_ratios_compare_the_nearest_and_farthest_tenth_after_the_scaling():
+    # GT 1..20 cm; the prediction right up to 10 cm and compressed beyond it, as a depth that flattens the far end
+    gt = np.arange(1.0, 21.0).reshape(4, 5)
+    pred = np.where(gt <= 10, gt, 10 + (gt - 10) / 2)
+    errors = metrics.paper_depth_errors(gt, pred)
+    scale = errors["ratio"]  # median(gt) 10.5 over median(pred) 10.25
+    assert scale == pytest.approx(10.5 / 10.25)
+    # the nearest tenth (1 and 2 cm, at or below the 0.1 quantile 2.9) and the farthest (19 and 20 cm, at or above 18.1)
+    assert errors["near_ratio"] == pytest.approx(1 / scale)
+    assert errors["far_ratio"] == pytest.approx(np.median([19 / 14.5, 20 / 15]) / scale)
+    exact = metrics.paper_depth_errors(gt, 3 * gt)
+    assert exact["near_ratio"] == pytest.approx(1.0) and exact["far_ratio"] == pytest.approx(1.0)
+
+
 def test_paper_protocol_rejects_mismatched_or_empty_maps():
     with pytest.raises(ValueError, match=r"pred_cm: expected shape \[H, W\] with H=2, W=2, got \(2, 3\)"):
         metrics.paper_depth_errors(np.ones((2, 2)), np.ones((2, 3)))

@@ -356,6 +356,42 @@ def test_without_the_mask_on_the_pose_the_depth_learns_from_the_masked_loss_and_
     assert plain[0] == unmasked[0] and torch.equal(plain[1], unmasked[1]) and torch.equal(plain[2], unmasked[2])
 
 
+def test_with_the_mask_on_the_pose_alone_the_depth_learns_from_the_unmasked_loss_and_the_pose_from_the_masked():
+    batch = simcol_triplets(size=32)
+    sources = [batch["prev"], batch["next"]]
+
+    def term(cfg: LossConfig):
+        return lambda depth, transforms: reprojection(batch["cur"], sources, depth, transforms, batch["K"], cfg)
+
+    masked, pose_only, unmasked = (gradients_of(term(cfg), batch) for cfg in (
+        LossConfig(), LossConfig(automask_depth=False), LossConfig(automask=False)))
+    assert pose_only[0] == masked[0]  # the value logged is the masked loss's
+    assert torch.equal(pose_only[2], masked[2])  # the pose's gradient: the mask's
+    assert torch.allclose(pose_only[1], unmasked[1], rtol=1e-5, atol=1e-9)  # the depth's: every pixel's
+    assert not torch.allclose(masked[1], unmasked[1], rtol=1e-2)  # the mask does change it on these frames
+    # the mask on neither: every gradient the unmasked loss's, the value still the masked one
+    neither = gradients_of(term(LossConfig(automask_pose=False, automask_depth=False)), batch)
+    assert neither[0] == masked[0]
+    assert torch.allclose(neither[1], unmasked[1], rtol=1e-5, atol=1e-9)
+    assert torch.allclose(neither[2], unmasked[2], rtol=1e-5, atol=1e-9)
+
+
+def test_with_the_mask_on_the_pose_alone_a_learned_K_learns_with_the_depth_from_every_pixel():
+    batch = simcol_triplets(size=32)
+    sources = [batch["prev"], batch["next"]]
+
+    def K_gradient(cfg: LossConfig) -> torch.Tensor:
+        K = batch["K"].clone().requires_grad_(True)
+        depth, _, transforms = differentiable_inputs(batch)
+        torch.manual_seed(0)
+        reprojection(batch["cur"], sources, depth, transforms, K, cfg).backward()
+        return K.grad
+
+    pose_only, unmasked = K_gradient(LossConfig(automask_depth=False)), K_gradient(LossConfig(automask=False))
+    assert torch.allclose(pose_only, unmasked, rtol=1e-5, atol=1e-9)
+    assert not torch.allclose(K_gradient(LossConfig()), unmasked, rtol=1e-2)
+
+
 def test_a_forward_answer_for_a_paused_camera_is_pulled_back_only_where_the_mask_spares_the_pose():
     """The camera stops (each neighbour is the target itself) and the pose answers the true forward step. The
     unwarped neighbours explain every pixel, so auto-masking leaves the pose nothing but its tie-break noise;
@@ -395,6 +431,20 @@ def test_training_without_the_mask_on_the_pose_changes_the_pose_networks_gradien
     assert depth and pose and set(split) == set(masked)
     assert all(torch.allclose(split[name], masked[name], rtol=1e-4, atol=1e-10) for name in depth)
     assert not all(torch.allclose(split[name], masked[name], rtol=1e-2) for name in pose)
+
+
+def test_training_with_the_mask_on_the_pose_alone_changes_the_depth_networks_gradient_and_not_the_pose_networks():
+    batch = {key: value[:2] for key, value in simcol_triplets(size=32).items()}
+    batch["valid"] = circle_mask(32).expand(2, 1, 32, 32)
+    params = Params()
+    torch.manual_seed(0)
+    model = build_model(params, None)
+    totals: list[float] = []
+    masked = step_gradients(model, batch, params.loss, totals)
+    pose_only = step_gradients(model, batch, params.loss.replace(automask_depth=False), totals)
+    assert totals[0] == totals[1] and set(pose_only) == set(masked)
+    assert same_gradients(pose_only, masked, "pose_net.")
+    assert not same_gradients(pose_only, masked, "depth_net.")
 
 
 def step_gradients(model: torch.nn.Module, batch: dict, cfg: LossConfig, totals: list[float]

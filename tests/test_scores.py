@@ -20,7 +20,7 @@ from endoflow.evaluation.scores import (
 
 def paper(abs_rel: float) -> dict[str, float]:
     return {"abs_rel": abs_rel, "sq_rel": 0.0, "rmse": 2 * abs_rel, "rmse_log": 0.0, "l1": 0.0, "a1": 1.0,
-            "a2": 1.0, "a3": 1.0, "ratio": 1.0}
+            "a2": 1.0, "a3": 1.0, "ratio": 1.0, "near_ratio": 1.0, "far_ratio": 1.0}
 
 
 def simcol_depth(l1: float) -> dict[str, float]:

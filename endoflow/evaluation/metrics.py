@@ -5,7 +5,10 @@ Three protocols, each labelled in every output so tables never mix them:
 - ``paper``: the Monodepth2-style protocol of the paper's released code. Per image: keep ``gt > 0``,
   median-scale the prediction (``median(gt) / median(pred)``), clamp it to ``[1e-3, 20]`` cm, then Abs Rel,
   Sq Rel, RMSE, RMSE log, L1 and the three ``delta < 1.25^k`` accuracies; averaged over images, as is the
-  scale the median scaling applied (``ratio``: 1 where the prediction is metric).
+  scale the median scaling applied (``ratio``: 1 where the prediction is metric). Beside them (ours), the depth's
+  shape: ``near_ratio`` and ``far_ratio``, the median of GT over the scaled prediction among the GT's nearest and
+  farthest tenth of pixels (1 where near and far keep their proportion; above 1 at the far end: the far depth is
+  compressed, as auto-masking leaves it, docs/results.md).
 - ``simcol``: the SimCol3D challenge's evaluation scripts. Depth: predictions are ``depth / 20`` clipped to
   ``[0, 1]``, ONE least-squares scale per sequence from per-image means, then per image L1 (cm), median
   relative error (%, the per-image median, so the sequence figure is a mean of medians) and RMSE (cm),
@@ -47,7 +50,8 @@ PAPER_MAX_DEPTH_CM = 20.0
 SIMCOL_DEPTH_RANGE_CM = 20.0  # challenge predictions are depth / 20 cm in [0, 1]
 SIMCOL_REL_EPS_CM = 1e-4  # the challenge code's 10e-5 added to the GT in the relative error
 
-PAPER_DEPTH_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "l1", "a1", "a2", "a3", "ratio")
+PAPER_DEPTH_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "l1", "a1", "a2", "a3", "ratio", "near_ratio", "far_ratio")
+SHAPE_SHARE = 0.1  # the nearest and farthest tenth of an image's GT pixels: the depth's shape figures
 SIMCOL_DEPTH_KEYS = ("l1", "rel", "rmse")
 SIMCOL_POSE_KEYS = ("ate", "ate_local", "rte", "rot")
 ENDOSLAM_POSE_KEYS = ("ate", "rpe_trans", "rpe_rot")
@@ -66,7 +70,8 @@ def paper_depth_errors(gt_cm: np.ndarray, pred_cm: np.ndarray) -> dict[str, floa
         pred_cm: ``H x W`` predicted depth (any positive scale), same size as ``gt_cm``.
 
     Returns:
-        ``abs_rel, sq_rel, rmse, rmse_log, l1, a1, a2, a3`` and the applied ``ratio``.
+        ``abs_rel, sq_rel, rmse, rmse_log, l1, a1, a2, a3``, the applied ``ratio`` and the shape figures
+        ``near_ratio, far_ratio`` (:func:`shape_ratios`).
     """
     gt_cm, pred_cm = _same_shape_2d("gt_cm", gt_cm, "pred_cm", pred_cm)
     mask = gt_cm > 0
@@ -87,7 +92,17 @@ def paper_depth_errors(gt_cm: np.ndarray, pred_cm: np.ndarray) -> dict[str, floa
         "a2": float(np.mean(thresh < 1.25**2)),
         "a3": float(np.mean(thresh < 1.25**3)),
         "ratio": ratio,
+        **shape_ratios(gt, pred),
     }
+
+
+def shape_ratios(gt: np.ndarray, pred: np.ndarray) -> dict[str, float]:
+    """``near_ratio`` and ``far_ratio``: the median of ``gt / pred`` over the pixels at or below the GT's
+    :data:`SHAPE_SHARE` quantile and at or above its ``1 - SHAPE_SHARE`` quantile (flat arrays of known pixels, the
+    prediction already scaled)."""
+    near, far = np.quantile(gt, [SHAPE_SHARE, 1 - SHAPE_SHARE])
+    return {"near_ratio": float(np.median(gt[gt <= near] / pred[gt <= near])),
+            "far_ratio": float(np.median(gt[gt >= far] / pred[gt >= far]))}
 
 
 def depth_to_simcol_unit(depth_cm: np.ndarray) -> np.ndarray:

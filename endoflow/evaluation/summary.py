@@ -10,7 +10,8 @@ from __future__ import annotations
 from typing import Any, Iterable, Optional
 
 PAPER_COLUMNS = (("abs_rel", "Abs Rel"), ("sq_rel", "Sq Rel"), ("rmse", "RMSE"), ("rmse_log", "RMSE log"),
-                 ("l1", "L1"), ("a1", "δ<1.25"), ("a2", "δ<1.25²"), ("a3", "δ<1.25³"), ("ratio", "Scale"))
+                 ("l1", "L1"), ("a1", "δ<1.25"), ("a2", "δ<1.25²"), ("a3", "δ<1.25³"), ("ratio", "Scale"),
+                 ("near_ratio", "near GT/pred"), ("far_ratio", "far GT/pred"))
 SIMCOL_DEPTH_COLUMNS = (("l1", "L1 (cm)"), ("rel", "Rel (%)"), ("rmse", "RMSE (cm)"))
 SIMCOL_POSE_COLUMNS = (("ate", "ATE (cm)"), ("ate_local", "ATE local (cm)"), ("rte", "RTE (cm)"),
                        ("rot", "ROT (°)"))

@@ -13,7 +13,8 @@ For a target frame ``cur`` and its neighbours ``prev`` and ``next``:
   masked loss and the pose that of the unmasked one (every warp made twice: once with the pose detached, once with
   the depth detached); the value is the masked loss's (:func:`reprojection`). With ``loss.automask_pose_spread``
   the pose's sampling spread keeps the masked loss's gradient and only its mean takes the unmasked one;
-  ``loss.pose_ssim_weight`` sets SSIM's share in the unmasked one.
+  ``loss.pose_ssim_weight`` sets SSIM's share in the unmasked one. ``loss.automask_depth`` off is the reverse split:
+  the pose keeps the masked loss and the depth (and ``K``) takes the unmasked one (:func:`split_reprojection`).
 - ``smoothness``: edge-aware smoothness of each scale's disparity, divided by ``2^scale``, averaged.
 - ``kl``: the closed-form KL of both predicted pose distributions to N(0, I), summed over the two poses,
   averaged over the batch (zero without the pose VAE).
@@ -84,20 +85,12 @@ def reprojection(
     :func:`reprojection_loss` takes it. ``valid [B, 1, H, W]`` bool: the field of view, the same in every frame of
     a sequence (None: everywhere); a source counts where the target pixel is in it and lands in it.
 
-    With ``automask`` on and ``automask_pose`` off, the mask keeps its effect on the depth (and ``K``) while the
-    pose learns from every pixel: auto-masking hands a pixel to the unwarped neighbour exactly where a wrong motion
-    warps worse than none, which would leave the pose no gradient there. The value is the masked loss's, so that
-    runs compare; the pose's unmasked loss gives SSIM the share ``pose_ssim_weight`` (None: ``ssim_weight``).
-    ``T_masked``, equal in value to ``T_source_target``, is what the masked loss warps with there (None: the poses
-    detached), so that a part of the pose can keep the mask's gradient."""
-    if loss_cfg.automask and not loss_cfg.automask_pose:
-        T_masked = [T.detach() for T in T_source_target] if T_masked is None else T_masked
-        masked = reprojection(target, sources, depth, T_masked, K, loss_cfg.replace(automask_pose=True), identity,
-                              valid)
-        pose_ssim = loss_cfg.ssim_weight if loss_cfg.pose_ssim_weight is None else loss_cfg.pose_ssim_weight
-        unmasked = reprojection(target, sources, depth.detach(), T_source_target, K.detach(),
-                                loss_cfg.replace(automask=False, ssim_weight=pose_ssim), None, valid)
-        return masked + (unmasked - unmasked.detach())
+    With ``automask`` on and ``automask_pose`` or ``automask_depth`` off, the loss is split
+    (:func:`split_reprojection`). ``T_masked``, equal in value to ``T_source_target``, is what the masked loss
+    warps with where the mask spares the pose (None: the poses detached), so that a part of the pose can keep the
+    mask's gradient."""
+    if loss_cfg.automask and not (loss_cfg.automask_pose and loss_cfg.automask_depth):
+        return split_reprojection(target, sources, depth, T_source_target, K, loss_cfg, identity, valid, T_masked)
     warped = [warp_frame(src, depth, T, K)[0] for src, T in zip(sources, T_source_target)]
     seen = None
     if valid is not None:
@@ -107,6 +100,41 @@ def reprojection(
         # SSIM's windows reach a pixel's neighbours: those out of view take part as values, not as gradient
         warped = [torch.where(s, w, w.detach()) for w, s in zip(warped, seen)]
     return reprojection_loss(warped, target, sources, loss_cfg, identity, seen)[0]
+
+
+def split_reprojection(
+    target: torch.Tensor,
+    sources: list[torch.Tensor],
+    depth: torch.Tensor,
+    T_source_target: list[torch.Tensor],
+    K: torch.Tensor,
+    loss_cfg: LossConfig,
+    identity: torch.Tensor | None,
+    valid: torch.Tensor | None,
+    T_masked: list[torch.Tensor] | None,
+) -> torch.Tensor:
+    """:func:`reprojection` with auto-masking kept for one of pose and depth: the part whose ``automask_*`` is on
+    takes the gradient of the masked loss, the other that of the same reprojection error without the mask.
+
+    - ``automask_pose`` off: auto-masking hands a pixel to the unwarped neighbour exactly where a wrong motion warps
+      worse than none, which would leave the pose no gradient there.
+    - ``automask_depth`` off: the lumen's far end barely moves between frames, so the mask drops it from the depth's
+      loss as well.
+
+    The depth and a learned ``K`` go together. The value is the masked loss's, so that runs compare; the unmasked
+    loss gives SSIM the share ``pose_ssim_weight`` where the pose learns from it (None: ``ssim_weight``)."""
+    pose_free, depth_free = not loss_cfg.automask_pose, not loss_cfg.automask_depth
+    detached = [T.detach() for T in T_source_target]
+    if T_masked is None:
+        T_masked = detached if pose_free else T_source_target
+    masked_depth, masked_K = (depth.detach(), K.detach()) if depth_free else (depth, K)
+    masked = reprojection(target, sources, masked_depth, T_masked, masked_K,
+                          loss_cfg.replace(automask_pose=True, automask_depth=True), identity, valid)
+    ssim = loss_cfg.pose_ssim_weight if pose_free and loss_cfg.pose_ssim_weight is not None else loss_cfg.ssim_weight
+    unmasked = reprojection(target, sources, depth if depth_free else depth.detach(),
+                            T_source_target if pose_free else detached, K if depth_free else K.detach(),
+                            loss_cfg.replace(automask=False, ssim_weight=ssim), None, valid)
+    return masked + (unmasked - unmasked.detach())
 
 
 def training_step_losses(model: EndoflowModel, batch: dict, loss_cfg: LossConfig) -> dict[str, torch.Tensor]:
