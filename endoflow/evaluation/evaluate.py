@@ -458,14 +458,14 @@ def pose_sequence_scores(seq: SequenceResult, training: TrainingBaselines, rotat
                                {"rte": result["per_frame"]["rte"][i], "rot": result["per_frame"]["rot"][i]})
         trajectory[method] = result["trajectory"][:, :3, 3]
     for method in ("model", "refined"):
-        ratios = depth_ratios(seq, start, stop, rescaled=method == "refined")
+        ratios = scaled_depth_ratios(seq, start, stop, rescaled=method == "refined")
         if ratios and method in predicted and np.any(predicted[method][:, :3, 3]):
             rows += score_rows(seq.name, None, method, "scale",
                                metrics.scale_consistency(gt_poses, predicted[method], ratios))
     return rows, trajectory
 
 
-def depth_ratios(seq: SequenceResult, start: int, stop: int, rescaled: bool) -> list[float]:
+def scaled_depth_ratios(seq: SequenceResult, start: int, stop: int, rescaled: bool) -> list[float]:
     """The per-frame median ratios of GT over predicted depth of frames ``start:stop`` that have GT depth; with
     ``rescaled``, of the depth as the tracker rescaled it (``refine.depth_scale``), whose scale the refined path
     has."""

@@ -220,7 +220,8 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                             torch.from_numpy(depth)[None].to(device),
                             torch.from_numpy(aligned_chain.next_start(T_cur_prev, options.scale))).cpu().numpy()
                         depth_scales.append(tracker.depth_scale)
-                        depth = depth * np.float32(tracker.depth_scale)  # 1 unless refine.depth_scale
+                        if options.refine.depth_scale:
+                            depth = depth * np.float32(tracker.depth_scale)
                     held = TrackedFrame(replace(frame, rgb=rgb), depth, network_pose)
                     for tracked, pose in smoother.push(aligned, held):
                         settle(tracked, pose)
