@@ -318,9 +318,11 @@ def test_the_compiled_loops_cost_and_linearise_a_state_as_the_tensor_code_does(r
             for (level, _, brightness, _), at in ((loops, at_loops), (tensors, at_tensors)))
         assert count_loops == int(part_loops[index].sum()) and abs(count_loops - count_tensors) <= 3
         assert normal_loops.dtype == torch.float64 and normal_loops.shape == (8, 9)
-        # the Hessian symmetric to rounding, and each entry the tensor code's to a ten-thousandth of the largest in
-        # its row
-        torch.testing.assert_close(normal_loops[:, :8], normal_loops[:, :8].T, rtol=1e-5, atol=0)
+        # the Hessian symmetric to float32 rounding (the rows' products are summed in float32, in an order that the
+        # matrix product's blocking sets and that can differ between an entry and its mirror: 2e-5 of it apart on an
+        # AVX2 CPU), and each entry the tensor code's, both to a ten-thousandth of the largest in its row
+        hessian = normal_loops[:, :8]
+        assert ((hessian - hessian.T).abs() <= 1e-4 * hessian.abs().amax(dim=1, keepdim=True)).all()
         scale = normal_tensors.abs().amax(dim=1, keepdim=True)
         assert ((normal_loops - normal_tensors).abs() <= 1e-4 * scale).all()
 
