@@ -181,8 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--study", choices=STUDIES, default="ablation",
                        help="ablation: the four configurations (default); vae: the full model without the warp's "
                             "sampling and with beta over decades (docs/method.md, 'What the VAE contributes'); "
-                            "motion: with mixed frame offsets, the depth consistency, both; mask: without auto-masking and "
-                            "with it for the pose alone (docs/results.md)")
+                            "motion: with mixed frame offsets, the depth consistency, both; mask: without "
+                            "auto-masking and with it for the pose alone (docs/results.md)")
     sweep.add_argument("--no-start", dest="start", action="store_false",
                        help="only queue them (start later with `dvc queue start -j 1`)")
     sweep.set_defaults(handler=_sweep)
@@ -442,10 +442,6 @@ def _params_if_present(path: str):
     return load_params(path) if Path(path).is_file() else Params()
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
-
-
 def _params(args: argparse.Namespace) -> int:
     from endoflow.params_file import preset_yaml, write_params_file
 
@@ -455,3 +451,7 @@ def _params(args: argparse.Namespace) -> int:
     write_params_file(args.out, args.preset)
     print(f"wrote {args.out}: the defaults" + (f" with {args.preset}" if args.preset else ""))
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

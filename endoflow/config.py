@@ -402,6 +402,14 @@ class LossConfig(Section):
         0.0, "weight of the depth consistency between neighbouring frames (SC-SfMLearner: one scale for depth and "
              "path over a video); 0: off, and no depth pass over the neighbours", ge=0)
 
+    @model_validator(mode="after")
+    def _one_part_unmasked(self) -> "LossConfig":
+        # both unmasked would train as automask: false while the logged loss stays the masked one's
+        if not (self.automask_pose or self.automask_depth):
+            raise _field_error("automask_depth", "true while automask_pose is false (for neither part masked: "
+                               "loss.automask false)", self.automask_depth)
+        return self
+
 
 # -------------------------------------------------------------------------------------------- training
 class TrainConfig(Section):

@@ -37,20 +37,24 @@ class StudySetting:
     key: str  # dotted params key
     default: Any
     label: Callable[[Any], str]
-    needs_vae: bool = False  # without the pose VAE the setting does nothing: read as its default
+    needs: Optional[str] = None  # the switch (dotted key) without which the setting does nothing: read as its default
 
 
 # in the order configurations sort and name them
 STUDY_SETTINGS = (
-    StudySetting("model.pose_sample", DEFAULT_POSE_SAMPLE, lambda value: "mean warp", needs_vae=True),
-    StudySetting("loss.kl_weight", DEFAULT_KL_WEIGHT, lambda value: f"β={value:g}", needs_vae=True),
+    StudySetting("model.pose_sample", DEFAULT_POSE_SAMPLE, lambda value: "mean warp", needs="model.pose_vae"),
+    StudySetting("loss.kl_weight", DEFAULT_KL_WEIGHT, lambda value: f"β={value:g}", needs="model.pose_vae"),
     StudySetting("preprocess.train_offsets", PreprocessConfig().train_offsets,
                  lambda value: "offsets " + "/".join(str(offset) for offset in value)),
     StudySetting("loss.geometry_weight", LossConfig().geometry_weight, lambda value: f"geometry {value:g}"),
     StudySetting("train.time_reversal", TrainConfig().time_reversal, lambda value: f"reversed {value:g}"),
     StudySetting("loss.automask", LossConfig().automask, lambda value: "no automask"),
-    StudySetting("loss.automask_depth", LossConfig().automask_depth, lambda value: "depth unmasked"),
+    StudySetting("loss.automask_pose", LossConfig().automask_pose, lambda value: "pose unmasked",
+                 needs="loss.automask"),
+    StudySetting("loss.automask_depth", LossConfig().automask_depth, lambda value: "depth unmasked",
+                 needs="loss.automask"),
 )
+_SCHEMA_DEFAULTS = flatten_params(Params())
 _HEADLINE_PROTOCOL = {metric: protocol for _, protocol, _, metric in HEADLINE}  # by the evaluation JSON's name
 # the seed statistics' figures: column title, protocol of the evaluation JSON (the headline figures' own, the
 # ATEs beside RTE's), the trivial baseline in it (None: the figure has none), and the method whose figure it is
@@ -90,6 +94,11 @@ class RunResults:
                   if values[setting.key] != setting.default]
         return ", ".join([ABLATIONS[key[1]][0]] + labels)
 
+    def param(self, key: str, default: Any) -> Any:
+        """The run's value of the dotted ``key`` (``default`` where its params lack it)."""
+        section, name = key.split(".")
+        return self.params.get(section, {}).get(name, default)
+
     @property
     def configuration_key(self) -> Optional[tuple[bool, int, tuple[Any, ...]]]:
         """(a study setting differs from its default, index in :data:`ABLATIONS`, the settings in a sortable form):
@@ -105,14 +114,12 @@ class RunResults:
         return differs, ablation, tuple(_sortable(values[setting.key], setting.default) for setting in STUDY_SETTINGS)
 
     def study_values(self) -> dict[str, Any]:
-        """Each study setting's value in the run's params (its default where the params lack it, or where it needs
-        the pose VAE and the run has none)."""
-        vae = bool(self.params.get("model", {}).get("pose_vae"))
+        """Each study setting's value in the run's params (its default where the params lack it, or where the switch
+        it needs is off: the pose VAE, auto-masking)."""
         values = {}
         for setting in STUDY_SETTINGS:
-            section, name = setting.key.split(".")
-            value = self.params.get(section, {}).get(name, setting.default)
-            if setting.needs_vae and not vae:
+            value = self.param(setting.key, setting.default)
+            if setting.needs is not None and not self.param(setting.needs, _SCHEMA_DEFAULTS[setting.needs]):
                 value = setting.default
             elif isinstance(setting.default, float):
                 value = _float_or(value, setting.default)
@@ -325,7 +332,9 @@ def seed_statistics(runs: list[RunResults], test_sets: list[str]) -> str:
         return ""
     parts = ["## Seed statistics\n\nMean ± sample standard deviation over seeds; lower is better for every "
              "figure but the step correlation (↑: 1 follows every change of the camera's speed, 0 none) and the "
-             "ratio of the path's scale to the depth's (1: one scale for both, as a map needs). Trivial "
+             "ratios marked (1), best at 1: the path's scale over the depth's (one scale for both, as a map "
+             "needs), the depth scale's drift along a sequence and the far depth's GT over prediction (above 1: "
+             "the far end compressed). Trivial "
              "baselines: constant depth for Abs Rel, constant velocity for pose. Differences are of the means from "
              "the full model, marked `*` where they exceed the seed spread (the mean ± sd intervals do not "
              "overlap)."]

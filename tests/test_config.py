@@ -334,6 +334,8 @@ def test_defaults_pass_every_rule():
 # (settings that contradict each other, the keys the error must name); each case is one rule.
 CONTRADICTIONS = [
     ({"model.min_depth": 20.0, "model.max_depth": 20.0}, ["model.min_depth", "model.max_depth"]),
+    ({"loss.automask_pose": False, "loss.automask_depth": False},
+     ["loss.automask_depth", "automask_pose is false", "loss.automask false"]),
     ({"data.size": 32, "train.batch_size": 1}, ["train.batch_size", "data.size"]),
     ({"latent_bank.start_resolution": 64, "latent_bank.resolution": 32},
      ["latent_bank.start_resolution", "latent_bank.resolution"]),

@@ -206,7 +206,7 @@ def test_the_sweep_queues_every_configuration_with_every_seed_naming_each_switch
     # the studies' settings too, at their defaults: the ablation does not inherit the workspace's
     defaults = ["-S", "model.pose_sample=true", "-S", "loss.kl_weight=1e-05", "-S", "preprocess.train_offsets=null",
                 "-S", "loss.geometry_weight=0.0", "-S", "train.time_reversal=0.0", "-S", "loss.automask=true",
-                "-S", "loss.automask_depth=true"]
+                "-S", "loss.automask_pose=true", "-S", "loss.automask_depth=true"]
     assert commands[0] == ["exp", "run", "--queue", "-n", "full-seed0", "-S", "model.latent_bank=true",
                            "-S", "model.pose_vae=true", *defaults, "-S", "seed=0", "evaluate"]
     assert commands[-1] == ["exp", "run", "--queue", "-n", "neither-seed2", "-S", "model.latent_bank=false",
@@ -231,7 +231,7 @@ def test_the_vae_study_queues_the_full_model_without_sampling_and_with_beta_over
                            "-S", "model.pose_vae=true", "-S", "model.pose_sample=false",
                            "-S", "loss.kl_weight=1e-05", "-S", "preprocess.train_offsets=null",
                            "-S", "loss.geometry_weight=0.0", "-S", "train.time_reversal=0.0",
-                           "-S", "loss.automask=true", "-S", "loss.automask_depth=true", "-S", "seed=0", "evaluate"]
+                           "-S", "loss.automask=true", "-S", "loss.automask_pose=true", "-S", "loss.automask_depth=true", "-S", "seed=0", "evaluate"]
     betas = [next(word for word in command if word.startswith("loss.kl_weight=")) for command in commands[:4]]
     assert betas == ["loss.kl_weight=1e-05", "loss.kl_weight=0.0", "loss.kl_weight=0.0001", "loss.kl_weight=0.001"]
     with pytest.raises(ValueError, match="study"):
@@ -259,9 +259,9 @@ def test_the_mask_study_queues_the_full_model_without_auto_masking_and_with_it_f
     names = [command[command.index("-n") + 1] for command in commands]
     changed = [[word for word in command if word.startswith("loss.automask")] for command in commands]
     assert names == ["mask-base-seed0", "mask-off-seed0", "mask-pose-only-seed0"]
-    assert changed == [["loss.automask=true", "loss.automask_depth=true"],
-                       ["loss.automask=false", "loss.automask_depth=true"],
-                       ["loss.automask=true", "loss.automask_depth=false"]]
+    assert changed == [["loss.automask=true", "loss.automask_pose=true", "loss.automask_depth=true"],
+                       ["loss.automask=false", "loss.automask_pose=true", "loss.automask_depth=true"],
+                       ["loss.automask=true", "loss.automask_pose=true", "loss.automask_depth=false"]]
 
 
 def test_mask_study_runs_are_named_by_their_mask():
@@ -271,6 +271,9 @@ def test_mask_study_runs_are_named_by_their_mask():
     assert run(automask=True, automask_depth=True).configuration == "full"
     assert run(automask=False).configuration == "full, no automask"
     assert run(automask_depth=False).configuration == "full, depth unmasked"
+    assert run(automask_pose=False).configuration == "full, pose unmasked"
+    # without auto-masking, neither split does anything: the run is the unmasked one
+    assert run(automask=False, automask_depth=False).configuration == "full, no automask"
 
 
 @pytest.mark.parametrize("study", ["ablation", "vae", "motion", "mask"])

@@ -84,6 +84,16 @@ def test_paper_protocol_shape_ratios_compare_the_nearest_and_farthest_tenth_afte
     assert exact["near_ratio"] == pytest.approx(1.0) and exact["far_ratio"] == pytest.approx(1.0)
 
 
+def test_shape_ratios_take_every_pixel_tied_at_a_quantile_into_its_tenth():
+    # GT saturated at its far end: a quarter of the pixels at 20 cm, all of them at the 0.9 quantile
+    gt = np.concatenate([np.arange(1.0, 16.0), np.full(5, 20.0)])
+    pred = np.where(gt < 20, gt, 16.0)
+    assert metrics.shape_ratios(gt, pred)["far_ratio"] == pytest.approx(20 / 16)  # the five, not the top two
+    flat = np.full(10, 5.0)  # one depth everywhere: both tenths are every pixel
+    ratios = metrics.shape_ratios(flat, flat * np.linspace(0.8, 1.2, 10))
+    assert ratios["near_ratio"] == ratios["far_ratio"] == pytest.approx(np.median(1 / np.linspace(0.8, 1.2, 10)))
+
+
 def test_paper_protocol_rejects_mismatched_or_empty_maps():
     with pytest.raises(ValueError, match=r"pred_cm: expected shape \[H, W\] with H=2, W=2, got \(2, 3\)"):
         metrics.paper_depth_errors(np.ones((2, 2)), np.ones((2, 3)))

@@ -99,7 +99,8 @@ def paper_depth_errors(gt_cm: np.ndarray, pred_cm: np.ndarray) -> dict[str, floa
 def shape_ratios(gt: np.ndarray, pred: np.ndarray) -> dict[str, float]:
     """``near_ratio`` and ``far_ratio``: the median of ``gt / pred`` over the pixels at or below the GT's
     :data:`SHAPE_SHARE` quantile and at or above its ``1 - SHAPE_SHARE`` quantile (flat arrays of known pixels, the
-    prediction already scaled)."""
+    prediction already scaled and clamped). Pixels tied at a quantile all join its share: a GT saturated at its far
+    end counts whole, and a GT of one depth gives both shares every pixel."""
     near, far = np.quantile(gt, [SHAPE_SHARE, 1 - SHAPE_SHARE])
     return {"near_ratio": float(np.median(gt[gt <= near] / pred[gt <= near])),
             "far_ratio": float(np.median(gt[gt >= far] / pred[gt >= far]))}

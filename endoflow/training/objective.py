@@ -14,7 +14,8 @@ For a target frame ``cur`` and its neighbours ``prev`` and ``next``:
   the depth detached); the value is the masked loss's (:func:`reprojection`). With ``loss.automask_pose_spread``
   the pose's sampling spread keeps the masked loss's gradient and only its mean takes the unmasked one;
   ``loss.pose_ssim_weight`` sets SSIM's share in the unmasked one. ``loss.automask_depth`` off is the reverse split:
-  the pose keeps the masked loss and the depth (and ``K``) takes the unmasked one (:func:`split_reprojection`).
+  the pose keeps the masked loss and the depth (and ``K``) takes the unmasked one (:func:`split_reprojection`); the
+  config refuses both off (that trains as ``loss.automask`` off).
 - ``smoothness``: edge-aware smoothness of each scale's disparity, divided by ``2^scale``, averaged.
 - ``kl``: the closed-form KL of both predicted pose distributions to N(0, I), summed over the two poses,
   averaged over the batch (zero without the pose VAE).
