@@ -32,7 +32,8 @@ repro: $(STAMP) dvc-deps dvc-plots
 # still left room. On 2 cores the suite took 20 min 24 s in three, 24 min 06 s in two, 28 min 44 s in one (the
 # last before the paper dry run rendered smaller, a minute of it); tests/conftest.py sets the order and how idle
 # threads wait.
-# Four took longer than three (22 min 23 s against 20 min 44-57 s on an AVX2-only AMD VM): both cores are busy already.
+# Four took longer than three (22 min 23 s against 20 min 37 s the same day on an AVX2-only AMD VM): both cores
+# are busy already.
 TEST_WORKERS ?= 3
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=15
