@@ -16,6 +16,7 @@ from endoflow import tracking
 from endoflow.config import load_params
 from endoflow.evaluation.results import evaluation_path
 from endoflow.io import file_sha256
+from endoflow.models.depth_range import COLLAPSED_SHARE
 from endoflow.params_file import params_yaml
 from tests.module_temp import ModuleTemp
 from tests.project_clone import PROJECT, clone_project, pipeline_env, run
@@ -69,6 +70,7 @@ def test_the_smoke_run_trained_on_the_built_in_video_beside_simcol(smoke_repro):
     (training,) = client.search_runs([client.get_experiment_by_name(params.tracking.experiment).experiment_id])
     assert {d.dataset.name for d in training.inputs.dataset_inputs} >= {"simcol", "video"}
     assert "val_photometric" in training.data.metrics
+    assert training.data.metrics["val_depth_at_range_ends"] < COLLAPSED_SHARE  # the depth did not collapse
 
 
 def test_dvc_metrics_show_lists_training_and_evaluation(smoke_repro):

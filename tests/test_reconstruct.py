@@ -23,6 +23,7 @@ from endoflow.data.frame_encoding import resize_depth, stored_intrinsics
 from endoflow.errors import DataFormatError
 from endoflow.geometry.pose import rotation_angle_deg
 from endoflow.io import file_sha256
+from endoflow.models.depth_range import COLLAPSED_SHARE
 from endoflow.models.endoflow_model import build_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_model_file, save_model_file
 from endoflow.reconstruction.frames import FrameRange, InputFrame, intrinsics_for, open_frames
@@ -236,6 +237,25 @@ def test_an_empty_surface_is_written_and_said_with_the_voxel_that_would_give_one
     footprint = float(warning.split("footprint there, ")[1].split(" cm")[0])
     finer = run(scene, model_file, tmp_path / "finer", params, "S1", frames=FrameRange(stop=3), voxel_cm=footprint)
     assert finer["mesh"]["vertices"] > 0
+
+
+def test_a_collapsed_depth_network_is_said_and_its_share_at_the_range_ends_recorded(
+        scene: Path, model_file: Path, params: Params, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    working = run(scene, model_file, tmp_path / "working", params, "S1", frames=FrameRange(stop=3), fuse=False)
+    assert working["depth_at_range_ends"] < COLLAPSED_SHARE and "has collapsed" not in capsys.readouterr().err
+    # the finest disparity head saturated: sigmoid(-40) puts every pixel at max_depth, a depth with no gradient
+    record = load_model_file(model_file)
+    head = "depth_net.decoder.dispconvs.0"
+    state = {**record.state, f"{head}.weight": torch.zeros_like(record.state[f"{head}.weight"]),
+             f"{head}.bias": torch.full_like(record.state[f"{head}.bias"], -40.0)}
+    collapsed_file = tmp_path / "collapsed.pt"
+    save_model_file(collapsed_file, replace(record, state=state))
+    collapsed = run(scene, collapsed_file, tmp_path / "collapsed", params, "S1", frames=FrameRange(stop=3), fuse=False)
+    assert collapsed["depth_at_range_ends"] == 1.0
+    assert json.loads((tmp_path / "collapsed" / "reconstruction.json").read_text())["depth_at_range_ends"] == 1.0
+    warning = capsys.readouterr().err
+    assert "[reconstruct] warning: 100% of the depth of these frames sits at an end of its range" in warning
+    assert "has collapsed" in warning
 
 
 def test_a_frame_that_fusion_refuses_fails_the_call_with_the_option_that_helps_and_leaves_no_output(

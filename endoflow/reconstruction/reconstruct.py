@@ -38,6 +38,7 @@ from endoflow.geometry.path_smoothing import OrientationSmoother
 from endoflow.geometry.pose import chain_step, invert_pose, relative_pose
 from endoflow.io import check_replaceable, marked_output, staged_directory, write_bytes, write_json
 from endoflow.losses.photometric import view_synthesis_error
+from endoflow.models.depth_range import at_depth_range_ends, collapsed_depth_warning
 from endoflow.models.endoflow_model import EndoflowModel, load_trained_model
 from endoflow.progress import Progress, format_duration
 from endoflow.reconstruction.alignment import ground_truth_in_path_world
@@ -174,6 +175,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
     smoother: OrientationSmoother[TrackedFrame] = OrientationSmoother(
         options.refine.rotation_smoothing if options.refine is not None else 0.0)
     explained = PathPhotometry(K, record.baselines.mean_relative_pose, options.frames.stride, options.scale, device)
+    range_ends = RangeEndShare(record.params.model)
     progress = Progress(source_frame_count(source, options.frames), "frames")
     sampler = FrameSampler()
     with staged_directory(out_dir, EARLIER_RECONSTRUCTION, options.force, read_inputs(source, model_path),
@@ -212,6 +214,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
                                                [frame.index for frame, _ in batch])
                 for (frame, rgb), (depth, T_cur_prev) in zip(batch, predicted):
                     depth = np.where(valid, depth, np.float32(0))  # outside the field of view: unknown
+                    range_ends.add(depth / options.scale, valid)
                     network_pose = network_chain.step(T_cur_prev, options.scale)
                     aligned = network_pose
                     if tracker is not None:
@@ -239,6 +242,9 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
         surface_seconds = progress.elapsed() - surface_started
         if mesh is not None and len(mesh.vertices) == 0:
             print(f"[reconstruct] warning: {empty_surface_warning(depth, K, volume.voxel_cm)}", file=sys.stderr)
+        collapsed = collapsed_depth_warning(range_ends.share, record.params.model, "of these frames")
+        if collapsed:
+            print(f"[reconstruct] warning: {collapsed}", file=sys.stderr)
         ground_truth = ground_truth_in_path_world(path.gt_poses, path.poses)
         recording.finish(np.stack(path.poses), ground_truth, mesh)
         seconds = progress.elapsed()
@@ -259,6 +265,7 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
             "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
                      "blocks": volume.block_count} if mesh is not None else None,
             "field_of_view": {"share": float(valid.mean()), "frames_looked_at": FIELD_OF_VIEW_FRAMES},
+            "depth_at_range_ends": range_ends.share,
             # a refined path's translations come from the keyframes' depth: it has the depth's scale
             "path": {"refined": tracker is not None, "scale_from": "depth" if tracker is not None else "pose network",
                      **({"keyframes": tracker.keyframes, "rotation_smoothing_frames": smoother.sigma_frames,
@@ -279,6 +286,22 @@ def reconstruct(source: FrameSource, K_native: Optional[np.ndarray], model_path:
     print(f"[reconstruct] {path.count} frames in {format_duration(seconds)} ({path.count / seconds:.1f} frames/s"
           f"{surface}) -> {out_dir}", file=sys.stderr)
     return summary
+
+
+class RangeEndShare:
+    """The share of the pixels in view, over every frame, whose depth (cm, before ``--scale``) sits at an end of the
+    model's range (:func:`~endoflow.models.depth_range.at_depth_range_ends`): near 1, the depth has collapsed."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        self.cfg, self.at_ends, self.in_view = cfg, 0, 0
+
+    def add(self, depth_cm: np.ndarray, valid: np.ndarray) -> None:
+        self.at_ends += int(np.count_nonzero(at_depth_range_ends(depth_cm, self.cfg) & valid))
+        self.in_view += int(np.count_nonzero(valid))
+
+    @property
+    def share(self) -> float:
+        return self.at_ends / max(self.in_view, 1)
 
 
 class PathPhotometry:

@@ -38,6 +38,7 @@ from endoflow.devices import (
 )
 from endoflow.evaluation import metrics
 from endoflow.locations import local_file
+from endoflow.models.depth_range import at_depth_range_ends
 from endoflow.models.endoflow_model import EndoflowModel, build_model
 from endoflow.progress import Progress
 from endoflow.training.checkpoint import (
@@ -266,13 +267,16 @@ def steps_in_epoch(urls: list[str], per_batch: int, world: int, cfg: TrainConfig
 def validate(ctx: EpochContext) -> dict[str, float]:
     """Over the val split, shared out over the ranks: median-scaled Abs Rel and RMSE (paper protocol) of the frames
     with ground-truth depth, and of every frame the photometric error of rebuilding it from its neighbours
-    (:func:`~endoflow.losses.photometric.held_out_photometric_error`)."""
+    (:func:`~endoflow.losses.photometric.held_out_photometric_error`) and the share of its pixels in view whose
+    depth sits at an end of its range (:func:`~endoflow.models.depth_range.at_depth_range_ends`: near 1, the
+    depth has collapsed)."""
     if not ctx.config.val_shards:
         return {}
     model, params, device, world = ctx.model, ctx.params, ctx.device, ctx.world
     model.eval()
-    # abs_rel, rmse, frames with depth, photometric, frames (on the backend's device)
-    sums = torch.zeros(5, dtype=torch.float64, device=device)
+    # abs_rel, rmse, frames with depth, photometric, frames, pixels at the depth range's ends, pixels in view (on
+    # the backend's device)
+    sums = torch.zeros(7, dtype=torch.float64, device=device)
     batches = rank_batches(list(ctx.config.val_shards), ctx.rank, world, params.train.batch_size, 0, params.seed,
                            entries=ctx.entries, loader_workers=params.train.loader_workers,
                            pin_memory=device.type == "cuda", max_batches=params.train.val_batches)
@@ -289,6 +293,9 @@ def validate(ctx: EpochContext) -> dict[str, float]:
                                                  [T.float() for T in poses], model.camera_K(inputs), inputs.get("valid"))
         sums[3] += photometric.double().sum()
         sums[4] += len(photometric)
+        in_view = inputs["valid"].bool() if "valid" in inputs else torch.ones_like(depth, dtype=torch.bool)
+        sums[5] += (at_depth_range_ends(depth.float(), params.model) & in_view).sum()
+        sums[6] += in_view.sum()
         for gt, pred in zip(batch["depth"][:, 0].numpy(), depth.float().cpu().numpy()[:, 0]):
             if (gt > 0).any():
                 errors = metrics.paper_depth_errors(gt, pred)
@@ -296,10 +303,11 @@ def validate(ctx: EpochContext) -> dict[str, float]:
     if world > 1:
         dist.all_reduce(sums)
     model.train()
-    abs_rel, rmse, with_depth, photometric, frames = sums.cpu().tolist()
+    abs_rel, rmse, with_depth, photometric, frames, at_ends, in_view = sums.cpu().tolist()
     if frames == 0:
         return {}
-    val = {"val_photometric": photometric / frames, "val_images": int(frames)}
+    val = {"val_photometric": photometric / frames, "val_images": int(frames),
+           "val_depth_at_range_ends": at_ends / max(in_view, 1.0)}
     if with_depth:
         val.update({"val_abs_rel": abs_rel / with_depth, "val_rmse": rmse / with_depth})
     return val

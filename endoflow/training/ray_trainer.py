@@ -55,6 +55,7 @@ from endoflow.io import (
     write_json,
 )
 from endoflow.locations import absolute_location, home_project, local_file
+from endoflow.models.depth_range import COLLAPSED_SHARE
 from endoflow.models.mlflow_model import log_mlflow_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, save_model_file
 from endoflow.models.latent_bank import check_latent_bank_file
@@ -224,12 +225,38 @@ def train_in_run(params: Params, root: Path, run: tracking.RunHandle, config: Wo
 
 
 def format_training_summary(summary: dict[str, Any], model_path: str) -> str:
-    """The closing lines of the ``train`` stage: the best epoch's validation figures, the model and the run."""
+    """The closing lines of the ``train`` stage: the best epoch's validation figures, the model and the run, and a
+    warning where the validation depth collapsed."""
     figures = "; ".join(f"{label} {summary[key]:.4f}" for key, label in VALIDATION_LABELS.items() if key in summary)
     return (f"[train] done: {summary['epochs']} epochs, {summary['global_steps']} steps; best epoch "
             f"{summary['best_epoch']}{': ' + figures if figures else ' (no validation data)'}; final train loss "
             f"{summary['final_train_loss']:.4f}\n"
-            f"[train] model written to {model_path}; MLflow run {summary['mlflow_run_id']}\n")
+            f"[train] model written to {model_path}; MLflow run {summary['mlflow_run_id']}\n"
+            f"{depth_collapse_warning(summary.get('depth_collapsed_epochs', []), summary['best_epoch'])}")
+
+
+def depth_collapse_warning(epochs: list[int], best_epoch: int) -> str:
+    """A warning line naming the ``epochs`` whose validation depth collapsed (none: empty) and whether the model
+    file, ``best_epoch``'s, is one of them."""
+    if not epochs:
+        return ""
+    model = ("the model file's depth is one of them" if best_epoch in epochs
+             else f"the model file is epoch {best_epoch}'s, whose validation depth had not")
+    return (f"[train] warning: after epoch{'s' if len(epochs) > 1 else ''} {epoch_ranges(epochs)} half the validation "
+            f"depth or more sat at an end of its range (model.min_depth, model.max_depth): the depth network "
+            f"collapsed to the photometric loss's degenerate answer, where it gets no gradient back; {model} "
+            f"(training with loss.automask on, the default, guards against it)\n")
+
+
+def epoch_ranges(epochs: list[int]) -> str:
+    """``[2, 3, 4, 7]`` -> ``"2-4, 7"``."""
+    runs: list[list[int]] = []
+    for epoch in sorted(epochs):
+        if runs and epoch == runs[-1][-1] + 1:
+            runs[-1].append(epoch)
+        else:
+            runs.append([epoch])
+    return ", ".join(f"{run[0]}-{run[-1]}" if len(run) > 1 else f"{run[0]}" for run in runs)
 
 
 def log_ray_lines(run: tracking.RunHandle, ray_log: Path) -> None:
@@ -335,11 +362,18 @@ def write_training_outputs(params: Params, root: Path, state: TrainState, run_id
         # the intrinsics the model learned, where some camera's K was unknown
         **{k: float(v) for k, v in best_row.items() if k.startswith("intrinsics/")},
         "final_train_loss": float(state.history[-1]["train_loss"]),
+        "depth_collapsed_epochs": depth_collapsed_epochs(state.history),
         "mlflow_run_id": run_id,
         "fingerprint": fingerprint,
     }
     write_json(root / params.train.metrics, train_dvc_metrics(summary))
     return summary
+
+
+def depth_collapsed_epochs(history: list[dict[str, Any]]) -> list[int]:
+    """The epochs (from 1) after which half the validation depth or more sat at an end of its range
+    (:mod:`endoflow.models.depth_range`)."""
+    return [int(row["epoch"]) for row in history if row.get("val_depth_at_range_ends", 0.0) >= COLLAPSED_SHARE]
 
 
 def train_dvc_metrics(summary: dict[str, Any]) -> dict[str, dict[str, float]]:
