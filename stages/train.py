@@ -7,9 +7,10 @@ Ray checkpoint in ``ray.storage_path``. See docs/cluster.md and docs/outputs.md,
 from __future__ import annotations
 
 import argparse
+import sys
 
 from endoflow.config import load_params
-from endoflow.training.ray_trainer import format_training_summary, train
+from endoflow.training.ray_trainer import depth_collapse_warning, format_training_summary, train
 
 
 def main() -> None:
@@ -17,7 +18,11 @@ def main() -> None:
     parser.add_argument("--params", default="params.yaml", help="parameter file (default: params.yaml)")
     args = parser.parse_args()
     params = load_params(args.params)
-    print(format_training_summary(train(params), params.train.out), end="")
+    summary = train(params)
+    print(format_training_summary(summary, params.train.out), end="")
+    collapsed = depth_collapse_warning(summary)
+    if collapsed:
+        print(f"[train] warning: {collapsed}", file=sys.stderr)
 
 
 if __name__ == "__main__":

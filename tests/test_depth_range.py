@@ -45,11 +45,38 @@ def test_training_names_the_epochs_whose_validation_depth_collapsed_and_whether_
                                                                for e in range(2, 11))]
     assert depth_collapsed_epochs(history) == list(range(2, 11))
     assert depth_collapsed_epochs([{"epoch": 1, "val_photometric": 0.1}]) == []  # an older history: no key
-    before = depth_collapse_warning(list(range(2, 11)), best_epoch=1)
-    assert before.startswith("[train] warning: after epochs 2-10 half the validation depth or more sat at an end")
-    assert "the model file is epoch 1's, whose validation depth had not" in before and before.endswith("\n")
-    assert "the model file's depth is one of them" in depth_collapse_warning([3], best_epoch=3)
-    assert depth_collapse_warning([], best_epoch=3) == ""
+    before = depth_collapse_warning({"depth_collapsed_epochs": list(range(2, 11)), "best_epoch": 1})
+    assert before.startswith("after epochs 2-10 25% of the validation depth or more sat at an end of its range")
+    assert "the model file is epoch 1's, whose validation depth had not" in before
+    one = depth_collapse_warning({"depth_collapsed_epochs": [3], "best_epoch": 3})
+    assert one.startswith("after epoch 3 ") and "the model file's depth is one of them" in one
+    assert depth_collapse_warning({"depth_collapsed_epochs": [], "best_epoch": 3}) is None
+    assert depth_collapse_warning({"best_epoch": 3}) is None  # a summary from before the key
+
+
+def test_an_epoch_at_exactly_the_collapsed_share_counts_and_one_just_below_does_not():
+    history = [{"epoch": 1, "val_depth_at_range_ends": COLLAPSED_SHARE},
+               {"epoch": 2, "val_depth_at_range_ends": np.nextafter(COLLAPSED_SHARE, 0.0)}]
+    assert depth_collapsed_epochs(history) == [1]
+    assert collapsed_depth_warning(COLLAPSED_SHARE, CFG, "of these frames").startswith("25% of the depth")
+
+
+def test_the_train_stage_prints_its_summary_and_puts_a_collapse_warning_on_stderr(
+        tmp_path, monkeypatch, capsys):
+    from stages import train as stage
+
+    summary = {"epochs": 10, "global_steps": 500, "best_epoch": 1, "final_train_loss": 0.1234,
+               "mlflow_run_id": "abc", "depth_collapsed_epochs": list(range(2, 11))}
+    monkeypatch.setattr(stage, "train", lambda params: summary)
+    monkeypatch.setattr("sys.argv", ["stage", "--params", str(tmp_path / "params.yaml")])
+    (tmp_path / "params.yaml").write_text("{}\n")
+    stage.main()
+    printed = capsys.readouterr()
+    assert printed.out.startswith("[train] done: 10 epochs, 500 steps; best epoch 1") and "warning" not in printed.out
+    assert printed.err == f"[train] warning: {depth_collapse_warning(summary)}\n"
+    monkeypatch.setattr(stage, "train", lambda params: {**summary, "depth_collapsed_epochs": []})
+    stage.main()
+    assert capsys.readouterr().err == ""
 
 
 @pytest.mark.parametrize("epochs, text", [([1], "1"), ([2, 3, 4, 7], "2-4, 7"), ([5, 1, 2], "1-2, 5")])
@@ -77,7 +104,7 @@ def test_validation_reports_the_share_of_pixels_at_the_range_ends_near_0_for_a_w
         context = EpochContext(config, model, model, None, shard_entries(val), 0, 1, torch.device("cpu"), None)
         return validate(context)["val_depth_at_range_ends"]
 
-    assert share() < COLLAPSED_SHARE  # untrained: about 0.2 cm everywhere, mid-range
+    assert share() == 0.0  # untrained: about 0.2 cm everywhere, neither end
     head = model.depth_net.decoder.dispconvs[0]
     with torch.no_grad():
         head.weight.zero_()

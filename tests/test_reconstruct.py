@@ -23,7 +23,6 @@ from endoflow.data.frame_encoding import resize_depth, stored_intrinsics
 from endoflow.errors import DataFormatError
 from endoflow.geometry.pose import rotation_angle_deg
 from endoflow.io import file_sha256
-from endoflow.models.depth_range import COLLAPSED_SHARE
 from endoflow.models.endoflow_model import build_model
 from endoflow.models.model_file import ModelRecord, TrainingBaselines, load_model_file, save_model_file
 from endoflow.reconstruction.frames import FrameRange, InputFrame, intrinsics_for, open_frames
@@ -36,6 +35,7 @@ from endoflow.reconstruction.reconstruct import (
     Chain,
     PathPhotometry,
     RECONSTRUCTION_FORMAT,
+    RangeEndShare,
     ReconstructOptions,
     default_voxel_cm,
     frames_per_call,
@@ -242,7 +242,7 @@ def test_an_empty_surface_is_written_and_said_with_the_voxel_that_would_give_one
 def test_a_collapsed_depth_network_is_said_and_its_share_at_the_range_ends_recorded(
         scene: Path, model_file: Path, params: Params, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     working = run(scene, model_file, tmp_path / "working", params, "S1", frames=FrameRange(stop=3), fuse=False)
-    assert working["depth_at_range_ends"] < COLLAPSED_SHARE and "has collapsed" not in capsys.readouterr().err
+    assert working["depth_at_range_ends"] == 0.0 and "has collapsed" not in capsys.readouterr().err
     # the finest disparity head saturated: sigmoid(-40) puts every pixel at max_depth, a depth with no gradient
     record = load_model_file(model_file)
     head = "depth_net.decoder.dispconvs.0"
@@ -256,6 +256,25 @@ def test_a_collapsed_depth_network_is_said_and_its_share_at_the_range_ends_recor
     warning = capsys.readouterr().err
     assert "[reconstruct] warning: 100% of the depth of these frames sits at an end of its range" in warning
     assert "has collapsed" in warning
+    # --scale multiplies what is written, not what the network put at the end of its range
+    halved = run(scene, collapsed_file, tmp_path / "halved", params, "S1", frames=FrameRange(stop=3), fuse=False,
+                 scale=0.5)
+    assert halved["depth_at_range_ends"] == 1.0 and np.allclose(depth_of(tmp_path / "halved", 0)[32, 32], 10.0,
+                                                                rtol=1e-3)
+
+
+def test_the_share_at_the_range_ends_counts_only_the_pixels_in_view_over_every_frame() -> None:
+    cfg = small_model_params(64).model
+    valid = np.zeros((4, 4), bool)
+    valid[1:3, 1:3] = True  # 4 pixels in view; outside, the depth is 0 (unknown), below min_depth
+    at_top, mid = np.where(valid, np.float32(cfg.max_depth), 0), np.where(valid, np.float32(2.0), 0)
+    at_top[1, 1] = 2.0  # 3 of the 4 in view at the top
+    share = RangeEndShare(cfg)
+    share.add(at_top, valid)
+    assert share.share == 0.75
+    share.add(mid, valid)
+    assert share.share == 3 / 8
+    assert RangeEndShare(cfg).share == 0.0  # no frame: nothing at the ends
 
 
 def test_a_frame_that_fusion_refuses_fails_the_call_with_the_option_that_helps_and_leaves_no_output(

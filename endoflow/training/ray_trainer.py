@@ -225,27 +225,26 @@ def train_in_run(params: Params, root: Path, run: tracking.RunHandle, config: Wo
 
 
 def format_training_summary(summary: dict[str, Any], model_path: str) -> str:
-    """The closing lines of the ``train`` stage: the best epoch's validation figures, the model and the run, and a
-    warning where the validation depth collapsed."""
+    """The closing lines of the ``train`` stage: the best epoch's validation figures, the model and the run."""
     figures = "; ".join(f"{label} {summary[key]:.4f}" for key, label in VALIDATION_LABELS.items() if key in summary)
     return (f"[train] done: {summary['epochs']} epochs, {summary['global_steps']} steps; best epoch "
             f"{summary['best_epoch']}{': ' + figures if figures else ' (no validation data)'}; final train loss "
             f"{summary['final_train_loss']:.4f}\n"
-            f"[train] model written to {model_path}; MLflow run {summary['mlflow_run_id']}\n"
-            f"{depth_collapse_warning(summary.get('depth_collapsed_epochs', []), summary['best_epoch'])}")
+            f"[train] model written to {model_path}; MLflow run {summary['mlflow_run_id']}\n")
 
 
-def depth_collapse_warning(epochs: list[int], best_epoch: int) -> str:
-    """A warning line naming the ``epochs`` whose validation depth collapsed (none: empty) and whether the model
-    file, ``best_epoch``'s, is one of them."""
+def depth_collapse_warning(summary: dict[str, Any]) -> str | None:
+    """A warning naming the epochs of a training ``summary`` whose validation depth collapsed
+    (``depth_collapsed_epochs``) and whether the model file, the best epoch's, is one of them; None if none did."""
+    epochs, best_epoch = summary.get("depth_collapsed_epochs", []), summary["best_epoch"]
     if not epochs:
-        return ""
+        return None
     model = ("the model file's depth is one of them" if best_epoch in epochs
              else f"the model file is epoch {best_epoch}'s, whose validation depth had not")
-    return (f"[train] warning: after epoch{'s' if len(epochs) > 1 else ''} {epoch_ranges(epochs)} half the validation "
-            f"depth or more sat at an end of its range (model.min_depth, model.max_depth): the depth network "
-            f"collapsed to the photometric loss's degenerate answer, where it gets no gradient back; {model} "
-            f"(training with loss.automask on, the default, guards against it)\n")
+    return (f"after epoch{'s' if len(epochs) > 1 else ''} {epoch_ranges(epochs)} {COLLAPSED_SHARE:.0%} of the "
+            f"validation depth or more sat at an end of its range (model.min_depth, model.max_depth): the depth "
+            f"network collapsed to the photometric loss's degenerate answer; {model} (training with loss.automask "
+            f"on, the default, guards against it)")
 
 
 def epoch_ranges(epochs: list[int]) -> str:
@@ -371,8 +370,8 @@ def write_training_outputs(params: Params, root: Path, state: TrainState, run_id
 
 
 def depth_collapsed_epochs(history: list[dict[str, Any]]) -> list[int]:
-    """The epochs (from 1) after which half the validation depth or more sat at an end of its range
-    (:mod:`endoflow.models.depth_range`)."""
+    """The epochs (from 1) after which :data:`~endoflow.models.depth_range.COLLAPSED_SHARE` of the validation depth
+    or more sat at an end of its range (:mod:`endoflow.models.depth_range`)."""
     return [int(row["epoch"]) for row in history if row.get("val_depth_at_range_ends", 0.0) >= COLLAPSED_SHARE]
 
 
